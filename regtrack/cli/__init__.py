@@ -1,0 +1,73 @@
+"""The ``regtrack`` command line.
+
+Each verb lives in its own module ``regtrack/cli/<verb>.py`` that defines
+
+* ``HELP``: one line for ``regtrack --help``;
+* ``add_arguments(parser)``: its options (argparse only, no heavy imports);
+* ``run(args) -> int``: the work; heavy modules are imported inside it.
+
+so ``regtrack --help`` returns at once.  User errors (:class:`regtrack.errors.RegtrackError`)
+end as one line on stderr and a non-zero exit code; ``--debug`` shows the traceback.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import logging
+import sys
+
+# verb -> module.  Stages that do not exist yet are simply not listed.
+COMMANDS: dict[str, str] = {
+
+}
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="regtrack",
+        description="Track breast lesions between prone MRI and mammograms through "
+        "patient-specific finite-element simulation.",
+    )
+    parser.add_argument("--debug", action="store_true", help="show tracebacks and debug logs")
+    parser.add_argument("-q", "--quiet", action="store_true", help="only warnings and errors")
+    parser.add_argument("--version", action="store_true", help="print the version and exit")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    for verb, modname in COMMANDS.items():
+        mod = importlib.import_module(modname)
+        p = sub.add_parser(verb, help=mod.HELP, description=mod.HELP)
+        mod.add_arguments(p)
+        p.set_defaults(_module=modname)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if args.version:
+        from regtrack import __version__
+
+        print(f"regtrack {__version__}")
+        return 0
+    if not getattr(args, "command", None):
+        parser.print_help()
+        return 1
+    level = logging.DEBUG if args.debug else (logging.WARNING if args.quiet else logging.INFO)
+    logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s")
+    mod = importlib.import_module(args._module)
+    from regtrack.errors import RegtrackError
+
+    try:
+        return int(mod.run(args) or 0)
+    except RegtrackError as err:
+        if args.debug:
+            raise
+        print(f"regtrack {args.command}: error: {err}", file=sys.stderr)
+        return err.exit_code
+    except KeyboardInterrupt:
+        print(f"regtrack {args.command}: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

@@ -1,0 +1,1 @@
+"""Imaging: MRI label maps / series (``volume``, ``readers``) and real mammograms (``mammogram``)."""

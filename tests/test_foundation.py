@@ -1,0 +1,71 @@
+"""Foundation: package import, CLI start-up, atomic writes, volume affines, model I/O."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from regtrack import _io
+from regtrack.imaging.volume import LabelVolume, make_affine
+from regtrack.model.io import load_model, save_model
+from regtrack.model.types import AnatomicalFrame, BreastModel
+
+
+def test_cli_help_is_lazy():
+    """`regtrack --help` must not import the heavy stack (numpy-level libs are fine)."""
+    code = (
+        "import sys; from regtrack.cli import build_parser; build_parser().format_help();"
+        "heavy=[m for m in ('gmsh','scipy.sparse','pydicom','matplotlib','skfem','numba','dask') if m in sys.modules];"
+        "print(heavy); sys.exit(1 if heavy else 0)"
+    )
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert r.returncode == 0, r.stdout + r.stderr
+
+
+def test_cli_no_command_prints_help():
+    r = subprocess.run([sys.executable, "-m", "regtrack.cli"], capture_output=True, text=True)
+    assert r.returncode == 1 and "usage" in r.stdout.lower()
+
+
+def test_atomic_write_leaves_nothing_on_failure(tmp_path):
+    target = tmp_path / "out.json"
+    with pytest.raises(RuntimeError):
+        with _io.atomic_path(target) as tmp:
+            tmp.write_text("half")
+            raise RuntimeError("killed")
+    assert list(tmp_path.iterdir()) == []
+    _io.write_json(target, {"a": np.float64(1.5), "b": np.arange(3)})
+    assert target.read_text().strip().startswith("{")
+    with pytest.raises(ValueError):
+        _io.write_json(tmp_path / "nan.json", {"x": float("nan")})
+    assert not (tmp_path / "nan.json").exists()
+
+
+def test_volume_affine_roundtrip():
+    d = np.array([[1, 0, 0], [0, 0, -1], [0, 1, 0]], float)
+    vol = LabelVolume(np.zeros((4, 5, 6), np.int16), make_affine([10, 20, 30], [0.5, 0.7, 2.0], d))
+    np.testing.assert_allclose(vol.spacing, [0.5, 0.7, 2.0])
+    ijk = np.array([[1.0, 2.0, 3.0], [0, 0, 0]])
+    np.testing.assert_allclose(vol.world_to_index(vol.index_to_world(ijk)), ijk, atol=1e-12)
+    # direction columns: axis 1 goes along +z (LPS), axis 2 along -y
+    np.testing.assert_allclose(vol.index_to_world([0, 1, 0]) - vol.origin, [0, 0, 0.7])
+    sub = vol.crop([1, 1, 1], [3, 3, 3])
+    np.testing.assert_allclose(sub.origin, vol.index_to_world([1, 1, 1]))
+
+
+def test_model_io_roundtrip(tmp_path):
+    pts = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1], [1, 1, 1]], float)
+    tets = np.array([[0, 1, 2, 3], [1, 2, 3, 4]])
+    frame = AnatomicalFrame.standard("L", origin_lps=[1, 2, 3])
+    m = BreastModel(pts, tets, [1, 2], [0, 1], [[1, 2, 4]], [1, 0, 0, 0, 0], 4, frame, meta={"k": 1})
+    save_model(m, tmp_path / "m.vtu")
+    m2 = load_model(tmp_path / "m.vtu")
+    np.testing.assert_allclose(m2.points, pts)
+    np.testing.assert_array_equal(m2.tets, tets)
+    np.testing.assert_array_equal(m2.region, [1, 2])
+    np.testing.assert_array_equal(m2.skin, [[1, 2, 4]])
+    assert m2.nipple == 4 and m2.frame.side == "L" and m2.meta == {"k": 1}
+    np.testing.assert_allclose(m2.frame.to_patient(m2.frame.to_model([5, 6, 7])), [5, 6, 7])
