@@ -1,0 +1,53 @@
+"""The plug-in interface between the nonlinear solver and extra force terms (contact).
+
+The solver (``regtrack.mechanics.solver``) finds the displacement ``u`` (N, 3) of the
+model nodes such that the residual
+
+    R(u) = f_int(u) + sum_c r_c(u) - f_ext(t) = 0
+
+where ``f_int`` is the tissue + skin internal force, ``f_ext`` gravity, and each
+*contribution* ``c`` (e.g. a rigid plate with frictional contact) adds a residual
+``r_c`` and its consistent tangent ``K_c = d r_c / d u``.  All vectors are flattened
+node-major: dof ``3*i + k`` is component ``k`` of node ``i``.  Units: mm, N, MPa.
+
+A load step runs a pseudo-time ``t`` from 0 to 1; the solver calls, in this order:
+
+* ``begin_step(step)`` once when a protocol step starts (plates read their motion);
+* ``set_time(t)`` before each increment (a plate moves to its position at ``t``);
+* ``residual_tangent(u)`` at every Newton iterate;
+* ``commit(u)`` after an increment converged (friction stores its stick point /
+  slip history); ``rollback()`` if the increment is cut back;
+* ``augment(u) -> bool`` after convergence when the contribution uses augmented
+  Lagrangian multipliers: return True when the multipliers are converged, False to
+  ask the solver to re-solve the increment with the updated multipliers;
+* ``report(u) -> dict`` after each converged increment: plain figures (force on the
+  plate in N, maximum penetration in mm, number of active nodes, contact area mm^2).
+"""
+
+from __future__ import annotations
+
+from typing import Any, Protocol, runtime_checkable
+
+import numpy as np
+import scipy.sparse as sp
+
+
+@runtime_checkable
+class Contribution(Protocol):
+    name: str
+
+    def begin_step(self, step: Any) -> None: ...
+
+    def set_time(self, t: float) -> None: ...
+
+    def residual_tangent(self, u: np.ndarray) -> tuple[np.ndarray, sp.spmatrix | None]:
+        """Residual (3N,) and tangent (3N, 3N) sparse (None if no active node)."""
+        ...
+
+    def commit(self, u: np.ndarray) -> None: ...
+
+    def rollback(self) -> None: ...
+
+    def augment(self, u: np.ndarray) -> bool: ...
+
+    def report(self, u: np.ndarray) -> dict: ...
