@@ -1,0 +1,1 @@
+"""End-to-end pipeline: stage orchestration and the content-addressed stage cache."""

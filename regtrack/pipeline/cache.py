@@ -1,0 +1,112 @@
+"""Content-addressed cache of finished pipeline stages.
+
+A stage's *key* is the SHA-256 of everything it depends on: the content of its input
+files, the configuration sections it reads, the keys of the stages before it and the
+regtrack version.  Change one registration setting and only registration and later
+stages get new keys; the mesh and the simulations are found in the cache.
+
+A stage is produced in a temporary folder and renamed into place when it finishes,
+together with a ``_complete.json`` marker, so an interrupted run never leaves a stage
+folder that a later run would trust (``os.rename`` of a folder is atomic on POSIX).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import json
+import logging
+import os
+import shutil
+import tempfile
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from regtrack import __version__, _io
+
+log = logging.getLogger(__name__)
+
+MARKER = "_complete.json"
+
+
+def file_digest(path: str | os.PathLike) -> str:
+    """SHA-256 of a file's bytes, or of a folder's files (names and bytes, sorted)."""
+    p = Path(path)
+    h = hashlib.sha256()
+    files = sorted(q for q in p.rglob("*") if q.is_file()) if p.is_dir() else [p]
+    for q in files:
+        if p.is_dir():
+            h.update(str(q.relative_to(p)).encode())
+        with open(q, "rb") as fh:
+            for chunk in iter(lambda: fh.read(1 << 20), b""):
+                h.update(chunk)
+    return h.hexdigest()
+
+
+def fingerprint(*parts: Any) -> str:
+    """Stable 16-hex-digit key of JSON-serialisable parts (plus the regtrack version)."""
+    text = _io.to_json({"version": __version__, "parts": parts}, indent=None)
+    return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+
+@dataclass
+class StageCache:
+    """Stage folders under ``root/<stage>/<key>/``; hits and misses are counted."""
+
+    root: Path
+    hits: int = 0
+    misses: int = 0
+    events: list = field(default_factory=list)
+
+    def __post_init__(self) -> None:
+        self.root = Path(self.root)
+
+    def folder(self, stage: str, key: str) -> Path:
+        return self.root / stage / key
+
+    def lookup(self, stage: str, key: str) -> Path | None:
+        """The finished folder of ``stage`` with ``key``, or None (counted as hit/miss)."""
+        d = self.folder(stage, key)
+        if (d / MARKER).is_file():
+            self.hits += 1
+            self.events.append((stage, key, "hit"))
+            log.debug("cache hit %s/%s", stage, key)
+            return d
+        self.misses += 1
+        self.events.append((stage, key, "miss"))
+        return None
+
+    @contextlib.contextmanager
+    def produce(self, stage: str, key: str, *, info: dict | None = None) -> Iterator[Path]:
+        """Yield an empty temporary folder; on success it becomes the stage folder."""
+        final = self.folder(stage, key)
+        final.parent.mkdir(parents=True, exist_ok=True)
+        tmp = Path(tempfile.mkdtemp(prefix=f".{key}.", suffix=".part", dir=final.parent))
+        t0 = time.perf_counter()
+        try:
+            yield tmp
+            _io.write_json(tmp / MARKER, {"stage": stage, "key": key, "seconds": time.perf_counter() - t0,
+                                          "version": __version__, "info": info or {}})
+            if final.exists():  # produced concurrently by another worker: keep theirs
+                shutil.rmtree(tmp)
+            else:
+                try:
+                    os.rename(tmp, final)
+                except OSError:
+                    if not (final / MARKER).is_file():
+                        raise
+                    shutil.rmtree(tmp, ignore_errors=True)
+        finally:
+            if tmp.exists():
+                shutil.rmtree(tmp, ignore_errors=True)
+
+    def marker(self, stage: str, key: str) -> dict:
+        return json.loads((self.folder(stage, key) / MARKER).read_text())
+
+    @property
+    def hit_rate(self) -> float:
+        n = self.hits + self.misses
+        return self.hits / n if n else 0.0
