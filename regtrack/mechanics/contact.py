@@ -1,0 +1,331 @@
+"""Frictional node-to-rigid-plate contact: a solver :class:`Contribution`.
+
+Every skin node ``i`` with tributary (reference) skin area ``A_i`` (mm^2) carries a
+contact pressure ``p_i`` (MPa) and a tangential traction ``t_i`` (MPa) against one rigid
+plate (:mod:`regtrack.mechanics.plates`).  With the signed gap ``g_i`` (mm) and the outward
+plate normal ``n_i``:
+
+Normal contact (augmented Lagrangian, or pure penalty with ``lambda = 0``)
+
+.. math::
+
+    p_i = \\max(0,\\; \\lambda_i - \\varepsilon_N\\, g_i)
+
+with the multipliers updated after each converged increment (Uzawa):
+``lambda_i <- p_i`` until the largest penetration is below ``penetration_tol_mm``.  The
+penetration is then bounded by the tolerance whatever the tissue stiffness; plain penalty
+leaves ``|g| ~ p / eps_N``.
+
+Automatic penalty (pressure per mm of penetration, MPa/mm)
+
+.. math::
+
+    \\varepsilon_N = \\kappa\\, E / h
+
+with ``E`` the tissue's small-strain Young modulus (MPa), ``h`` the mean skin edge length
+of the contact surface (mm) and ``kappa = penalty_factor``: a penetration of ``h/kappa``
+costs a pressure equal to ``E``, the stress of a unit strain of the tissue, so the
+contact stiffness stays ``kappa`` times the local stiffness of the surface elements
+whatever the mesh size or material (well conditioned, yet small penetration).
+
+Regularised Coulomb friction (stick/slip return mapping, Wriggers, *Computational
+Contact Mechanics*, ch. 5).  ``a_i`` is the stick point (plate-local, committed at the
+end of each converged increment) and ``g_T = (I - n n^T)(x_i - a_i)`` the elastic
+tangential slip:
+
+.. math::
+
+    t^{trial} = -\\varepsilon_T\\, g_T, \\qquad
+    t = \\begin{cases} t^{trial} & |t^{trial}| \\le \\mu p \\ \\text{(stick)} \\\\
+        \\mu p\\, t^{trial}/|t^{trial}| & \\text{otherwise (slip)} \\end{cases}
+
+and on slip the stick point is moved so that ``|g_T| = mu p / eps_T`` (slip history).
+The nodal force on the body is ``f_i = A_i (p_i n_i + t_i)``; the residual added to the
+solver's ``R = f_int - f_ext`` is ``-f_i`` and the tangent is its exact derivative
+(non-symmetric when slipping), including the curvature of the rounded plate edges.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import scipy.sparse as sp
+
+from regtrack.config import param
+from regtrack.errors import ConfigError
+from regtrack.mechanics.plates import RigidPlate
+
+log = logging.getLogger(__name__)
+
+METHODS = ("augmented-lagrangian", "penalty")
+
+
+@dataclass(frozen=True)
+class ContactConfig:
+    """Contact and friction settings (``[contact]`` of case.toml / simulation config)."""
+
+    friction: float = param(0.1, "-", "Coulomb friction coefficient mu between skin and plates "
+                            "(Lapuebla-Ferri et al.: 0.1)", ge=0.0, le=2.0)
+    method: str = param("augmented-lagrangian", "", "normal contact enforcement",
+                        choices=METHODS)
+    penalty_factor: float = param(20.0, "-", "kappa in eps_N = kappa * E / h (automatic normal "
+                                  "penalty)", gt=0.0, le=1e6)
+    penalty_mpa_per_mm: float = param(0.0, "MPa/mm", "explicit normal penalty eps_N; 0 = "
+                                      "automatic rule", ge=0.0)
+    stick_ratio: float = param(0.5, "-", "tangential (stick) penalty eps_T as a fraction of "
+                               "eps_N", gt=0.0, le=100.0)
+    penetration_tol_mm: float = param(0.02, "mm", "augmented Lagrangian: largest accepted "
+                                      "penetration", gt=0.0, le=5.0)
+    max_augmentations: int = param(20, "-", "augmented Lagrangian: updates per increment "
+                                   "before giving up", ge=1, le=1000)
+    max_penetration_mm: float = param(0.1, "mm", "guard rail: a converged step with a deeper "
+                                      "penetration is rejected", gt=0.0)
+
+
+def tributary_areas(points: np.ndarray, tris: np.ndarray) -> np.ndarray:
+    """Nodal tributary area (mm^2): a third of the area of every adjacent triangle.
+
+    Parameters
+    ----------
+    points : (N, 3) float
+        Node coordinates (mm).
+    tris : (S, 3) int
+        Surface triangles.
+
+    Returns
+    -------
+    (N,) float
+        ``A_i = sum_{T ∋ i} |T| / 3``; zero for nodes off the surface.
+    """
+    p = np.asarray(points, float)[np.asarray(tris)]
+    area = 0.5 * np.linalg.norm(np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), axis=1)
+    return np.bincount(np.asarray(tris).ravel(), np.repeat(area / 3.0, 3), minlength=len(points))
+
+
+def mean_edge_length(points: np.ndarray, tris: np.ndarray) -> float:
+    """Mean edge length (mm) of a triangle surface (edges counted once per triangle)."""
+    p = np.asarray(points, float)[np.asarray(tris)]
+    e = np.concatenate([p[:, 1] - p[:, 0], p[:, 2] - p[:, 1], p[:, 0] - p[:, 2]])
+    return float(np.linalg.norm(e, axis=1).mean())
+
+
+def automatic_penalty(config: ContactConfig, *, young_mpa: float, h_mm: float) -> float:
+    """Normal penalty ``eps_N`` (MPa/mm): explicit value, or ``kappa * E / h``."""
+    if config.penalty_mpa_per_mm > 0:
+        return float(config.penalty_mpa_per_mm)
+    if not (young_mpa > 0 and h_mm > 0):
+        raise ConfigError(f"contact: automatic penalty needs E > 0 and h > 0 (got E={young_mpa} "
+                          f"MPa, h={h_mm} mm); set [contact] penalty_mpa_per_mm")
+    return float(config.penalty_factor * young_mpa / h_mm)
+
+
+def _outer(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    return np.einsum("ni,nj->nij", a, b)
+
+
+class PlateContact:
+    """Frictional contact of a set of body nodes against one moving rigid plate.
+
+    Implements :class:`regtrack.mechanics.contributions.Contribution`.
+
+    Parameters
+    ----------
+    plate : RigidPlate
+        The plate at the start of the simulation.
+    reference : (N, 3) float
+        Reference coordinates of all model nodes (mm).
+    nodes : (M,) int
+        Candidate contact nodes (skin nodes).
+    areas : (M,) float
+        Tributary skin area of each candidate node (mm^2).
+    config : ContactConfig
+    penalty : float
+        Normal penalty ``eps_N`` (MPa/mm), see :func:`automatic_penalty`.
+    name : str, optional
+        Name in reports (default: the plate's name).
+    """
+
+    def __init__(self, plate: RigidPlate, reference: np.ndarray, nodes, areas, *,
+                 config: ContactConfig, penalty: float, name: str | None = None):
+        self.name = name or plate.name
+        self.plate = plate
+        self.X = np.asarray(reference, float)
+        self.nodes = np.asarray(nodes, np.int64)
+        self.areas = np.asarray(areas, float)
+        if self.areas.shape != self.nodes.shape or np.any(self.areas < 0):
+            raise ConfigError(f"contact '{self.name}': areas must be >= 0, one per node")
+        self.config = config
+        self.eps_n = float(penalty)
+        self.eps_t = float(penalty * config.stick_ratio)
+        self.mu = float(config.friction)
+        self.use_al = config.method == "augmented-lagrangian"
+        m = len(self.nodes)
+        # committed state (end of the last converged increment)
+        self._lam = np.zeros(m)
+        self._anchor = self.plate.to_local(self.X[self.nodes])  # stick points, plate-local
+        # trial state (current increment)
+        self.lam = self._lam.copy()
+        self._plate0 = plate
+        self._n_slip = 0
+        self.motion: tuple[np.ndarray, np.ndarray] | None = None
+
+    # -- plate motion -----------------------------------------------------------------
+    def set_motion(self, start, end) -> None:
+        """Move the plate face origin linearly from ``start`` to ``end`` (mm) over t in [0, 1]."""
+        self.motion = (np.asarray(start, float).reshape(3), np.asarray(end, float).reshape(3))
+
+    def begin_step(self, step: Any) -> None:
+        """Start of a protocol step: the committed plate position is the step's start."""
+        self._plate0 = self.plate
+
+    def set_time(self, t: float) -> None:
+        if self.motion is not None:
+            a, b = self.motion
+            self.plate = self.plate.moved_to(a + float(t) * (b - a))
+
+    # -- the physics ------------------------------------------------------------------
+    def _state(self, u: np.ndarray, *, tangent: bool):
+        x = self.X[self.nodes] + np.asarray(u, float).reshape(-1, 3)[self.nodes]
+        q = self.plate.query(x, curvature=tangent)
+        p = self.lam - self.eps_n * q.gap
+        act = p > 0
+        p = np.where(act, p, 0.0)
+        return x, q, p, act
+
+    def _friction(self, x, q, p, act):
+        """Tangential traction (M, 3), stick mask, unit slip direction, g_T and |g_T|."""
+        anchor = self.plate.to_model(self._anchor)
+        d = x - anchor
+        n = q.normal
+        gt = d - n * np.einsum("ni,ni->n", n, d)[:, None]
+        gn = np.linalg.norm(gt, axis=1)
+        ttrial = self.eps_t * gn
+        limit = self.mu * p
+        stick = act & (ttrial <= limit)
+        slip = act & ~stick & (gn > 0)
+        ghat = gt / np.where(gn > 0, gn, 1.0)[:, None]
+        t = np.zeros_like(x)
+        t[stick] = -self.eps_t * gt[stick]
+        t[slip] = -(limit[slip])[:, None] * ghat[slip]
+        return t, stick, slip, ghat, gt, gn, d
+
+    def nodal_forces(self, u: np.ndarray) -> tuple[np.ndarray, dict]:
+        """Contact force on each candidate node (M, 3) in N, and state figures."""
+        x, q, p, act = self._state(u, tangent=False)
+        f = p[:, None] * q.normal
+        nslip = 0
+        if self.mu > 0:
+            t, stick, slip, *_ = self._friction(x, q, p, act)
+            f = f + t
+            nslip = int(slip.sum())
+        f *= self.areas[:, None]
+        pen = float(max(0.0, -q.gap[act].min())) if act.any() else 0.0
+        return f, {"active": act, "gap": q.gap, "pressure": p, "n_slip": nslip,
+                   "max_penetration_mm": pen}
+
+    def residual_tangent(self, u: np.ndarray) -> tuple[np.ndarray, sp.spmatrix | None]:
+        """Residual ``-f`` (3N,) and its tangent (3N, 3N) CSR, or None without contact."""
+        ndof = self.X.size
+        x, q, p, act = self._state(u, tangent=True)
+        res = np.zeros(ndof)
+        if not act.any():
+            return res, None
+        idx = np.flatnonzero(act)
+        A = self.areas[idx]
+        n = q.normal[idx]
+        H = q.dn_dx[idx]
+        pa = p[idx]
+        f = pa[:, None] * n
+        # normal: r = -A p n ; dr/dx = A (eps n n^T - p H)
+        K = A[:, None, None] * (self.eps_n * _outer(n, n) - pa[:, None, None] * H)
+        if self.mu > 0:
+            t, stick, slip, ghat, gt, gn, d = self._friction(x, q, p, act)
+            f = f + t[idx]
+            st, sl = stick[idx], slip[idx]
+            nd = np.einsum("ni,ni->n", n, d[idx])
+            P = np.eye(3)[None] - _outer(n, n)
+            dgt = P - nd[:, None, None] * H - _outer(n, np.einsum("nij,nj->ni", H, d[idx]))
+            Kt = np.zeros_like(K)
+            Kt[st] = self.eps_t * dgt[st]
+            if sl.any():
+                gh = ghat[idx][sl]
+                dp = self.eps_n * n[sl]  # -dp/dx
+                proj = np.eye(3)[None] - _outer(gh, gh)
+                Kt[sl] = self.mu * (-_outer(gh, dp) + (pa[sl] / gn[idx][sl])[:, None, None]
+                                    * np.einsum("nij,njk->nik", proj, dgt[sl]))
+            K = K + A[:, None, None] * Kt
+        f = f * A[:, None]
+        dof = 3 * self.nodes[idx][:, None] + np.arange(3)[None]
+        np.add.at(res, dof.ravel(), -f.ravel())
+        rows = np.repeat(dof, 3, axis=1).ravel()
+        cols = np.tile(dof, (1, 3)).ravel()
+        Kc = sp.csr_matrix((K.ravel(), (rows, cols)), shape=(ndof, ndof))
+        return res, Kc
+
+    # -- increment bookkeeping --------------------------------------------------------
+    def commit(self, u: np.ndarray) -> None:
+        """Store the stick points (slip history) and multipliers of a converged increment."""
+        x, q, p, act = self._state(u, tangent=False)
+        new = self.plate.to_local(x)  # inactive nodes: stick point follows the node
+        self._n_slip = 0
+        if self.mu > 0 and act.any():
+            t, stick, slip, ghat, gt, gn, d = self._friction(x, q, p, act)
+            anchor = self.plate.to_model(self._anchor)
+            keep = stick
+            new[keep] = self.plate.to_local(anchor[keep])
+            moved = x[slip] - (self.mu * p[slip] / self.eps_t)[:, None] * ghat[slip]
+            new[slip] = self.plate.to_local(moved)
+            self._n_slip = int(slip.sum())
+        elif act.any():
+            new[act] = self.plate.to_local(x[act])
+        self._anchor = new
+        # augmented Lagrangian: the converged pressures warm-start the next increment
+        self._lam = p.copy() if self.use_al else np.zeros_like(p)
+        self.lam = self._lam.copy()
+        self._plate0 = self.plate
+
+    def rollback(self) -> None:
+        """Forget the trial multipliers and plate position of a cut-back increment."""
+        self.lam = self._lam.copy()
+        self.plate = self._plate0
+
+    def augment(self, u: np.ndarray) -> bool:
+        """Uzawa update ``lambda <- max(0, lambda - eps g)``.
+
+        Returns True when every pressed node lies within ``penetration_tol_mm`` of the
+        plate (neither penetrating nor pushed from a distance), False after updating the
+        multipliers (the solver then re-solves the increment).
+        """
+        if not self.use_al:
+            return True
+        x, q, p, act = self._state(u, tangent=False)
+        viol = float(np.abs(q.gap[act]).max()) if act.any() else 0.0
+        if viol <= self.config.penetration_tol_mm:
+            return True
+        self.lam = p
+        return False
+
+    def report(self, u: np.ndarray) -> dict:
+        """Plate force (N), maximum penetration (mm), active nodes, contact area (mm^2).
+
+        Call after :meth:`commit`; ``n_slip`` counts the nodes that slid in the increment
+        just committed.
+        """
+        f, st = self.nodal_forces(u)
+        force_on_plate = -f.sum(axis=0)
+        n0 = self.plate.normal
+        fn = float(-(force_on_plate @ n0))
+        ft = force_on_plate - (force_on_plate @ n0) * n0
+        act = st["active"]
+        return {"name": self.name,
+                "force_N": force_on_plate.tolist(),
+                "normal_force_N": fn,
+                "tangential_force_N": float(np.linalg.norm(ft)),
+                "max_penetration_mm": st["max_penetration_mm"],
+                "n_active": int(act.sum()),
+                "n_slip": self._n_slip,
+                "contact_area_mm2": float(self.areas[act].sum()),
+                "plate_origin_mm": self.plate.origin.tolist()}

@@ -1,0 +1,169 @@
+"""Frictional plate contact (regtrack.mechanics.contact) with the solver mocked out.
+
+* the consistent tangent against central finite differences of the residual, node by
+  node, for inactive, sticking, sliding and rounded-edge nodes;
+* a single node on a spring, pressed and dragged over a plate (a one-node "friction
+  block" with a hand-written Newton loop): it sticks while the spring force is below
+  mu*N, slides at exactly mu*N, and keeps its slip history across increments;
+* the augmented Lagrangian bounds the penetration whatever the penalty.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from regtrack.config import parse_section
+from regtrack.mechanics.contact import (ContactConfig, PlateContact, automatic_penalty,
+                                        tributary_areas)
+from regtrack.mechanics.contributions import Contribution
+from regtrack.mechanics.plates import RigidPlate
+
+
+def _contact(X, *, mu=0.3, method="penalty", eps=2.0, areas=None, plate=None):
+    plate = plate or RigidPlate(name="upper", origin=(0, 0, 0), normal=(0, 0, 1), e1=(1, 0, 0),
+                                s_range=(0.0, np.inf), edge_radius=3.0)
+    cfg = ContactConfig(friction=mu, method=method)
+    nodes = np.arange(len(X))
+    a = np.full(len(X), 2.0) if areas is None else areas
+    return PlateContact(plate, X, nodes, a, config=cfg, penalty=eps)
+
+
+def test_is_a_contribution():
+    c = _contact(np.zeros((1, 3)))
+    assert isinstance(c, Contribution)
+
+
+def test_tangent_matches_finite_differences_node_by_node():
+    """Nodes in every state: inactive, stick, slip (flat face) and on the rounded edge."""
+    X = np.array([
+        [10.0, 0.0, 1.0],    # inactive (gap 1 mm)
+        [10.0, 0.0, -0.2],   # penetrating, stick (anchor at its position)
+        [20.0, 5.0, -0.3],   # penetrating, slip (anchor moved far away below)
+        [-1.0, 2.0, -2.5],   # on the rounded edge, penetrating, slip
+        [-0.5, 1.0, -1.0],   # on the rounded edge, stick
+    ])
+    c = _contact(X, mu=0.3, eps=2.0)
+    u0 = np.zeros(X.size)
+    c.commit(u0)  # anchors = current positions
+    anchors = c._anchor.copy()
+    anchors[2] += [3.0, -1.0, 0.0]
+    anchors[3] += [0.0, 4.0, 0.0]
+    anchors[4] += [0.0, 0.01, 0.0]
+    c._anchor = anchors
+    u = np.random.default_rng(0).normal(scale=0.01, size=X.size)
+    r, K = c.residual_tangent(u)
+    K = K.toarray()
+    # states as designed
+    _, st = c.nodal_forces(u)
+    assert list(st["active"]) == [False, True, True, True, True]
+    assert st["n_slip"] == 2
+    h = 1e-7
+    fd = np.zeros_like(K)
+    for j in range(X.size):
+        du = np.zeros(X.size)
+        du[j] = h
+        fd[:, j] = (c.residual_tangent(u + du)[0] - c.residual_tangent(u - du)[0]) / (2 * h)
+    for i in range(len(X)):
+        blk = slice(3 * i, 3 * i + 3)
+        np.testing.assert_allclose(K[blk, blk], fd[blk, blk], rtol=1e-5, atol=1e-7 * np.abs(K).max(),
+                                   err_msg=f"node {i}")
+    np.testing.assert_allclose(K, fd, atol=1e-6 * np.abs(K).max())
+
+
+def _drag(mu, *, fn=1.0, k=0.5, path=None):
+    """One node pressed by fn (N) onto z=0 and pulled along x by a spring k (N/mm) whose
+    end follows ``path`` (mm). Returns (spring end, spring force, contact report) per step."""
+    X = np.zeros((1, 3))
+    c = _contact(X, mu=mu, eps=50.0, areas=np.array([1.0]))
+    u = np.zeros(3)
+    out = []
+    for s in path:
+        c.set_time(1.0)
+        for _ in range(50):
+            r, K = c.residual_tangent(u)
+            fext = np.array([k * (s - u[0]), 0.0, -fn])
+            R = r - fext
+            Kt = (K.toarray() if K is not None else np.zeros((3, 3))) + np.diag([k, 0, 0])
+            if np.linalg.norm(R) < 1e-12:
+                break
+            u = u - np.linalg.solve(Kt + 1e-12 * np.eye(3), R)
+        c.commit(u)
+        out.append((s, k * (s - u[0]), c.report(u)))
+    return out
+
+
+def test_node_sticks_below_mu_n_and_slides_at_mu_n():
+    mu, fn = 0.2, 1.0
+    forward = list(np.linspace(0, 4.0, 41)[1:])
+    hist = _drag(mu, fn=fn, path=forward + [3.99, 3.98])
+    for s, f_spring, rep in hist:
+        assert rep["normal_force_N"] == pytest.approx(fn, rel=1e-9)
+        # the tangential contact force balances the spring, never exceeds mu N
+        assert rep["tangential_force_N"] == pytest.approx(abs(f_spring), rel=1e-8)
+        assert rep["tangential_force_N"] <= mu * fn * (1 + 1e-9)
+    sliding = [h for h in hist if h[2]["n_slip"] == 1]
+    sticking = [h for h in hist if h[2]["n_slip"] == 0]
+    assert sticking and sliding
+    # sticking: force below mu N; sliding: force = mu N to machine precision (the 2 %
+    # acceptance tolerance of issue 5 is far looser than the return mapping's exactness)
+    assert max(h[2]["tangential_force_N"] for h in sticking) <= mu * fn * (1 + 1e-12)
+    for h in sliding:
+        assert h[2]["tangential_force_N"] == pytest.approx(mu * fn, rel=1e-9)
+    # the stick phase is the elastic regularisation: force = k s until mu N is reached
+    first = hist[0]
+    assert first[2]["n_slip"] == 0 and first[1] < mu * fn
+    # slip history: after sliding 3+ mm, pulling the spring back by 0.01 mm sticks at
+    # the slid position (force drops by k*0.01 per step), it does not jump back
+    back1, back2 = hist[-2], hist[-1]
+    assert back1[2]["n_slip"] == 0 and back2[2]["n_slip"] == 0
+    assert back1[1] == pytest.approx(mu * fn - 0.5 * 0.01 * (1 - 0.5 / (0.5 + 25.0)), rel=1e-3)
+    assert back2[1] < back1[1] < mu * fn
+
+
+def test_zero_friction_gives_no_tangential_force():
+    hist = _drag(0.0, path=[0.025, 0.05, 0.1])
+    assert all(h[2]["tangential_force_N"] == 0.0 for h in hist)
+    # without friction nothing holds the node: it follows the spring end (force ~ 0)
+    assert abs(hist[-1][1]) < 1e-9
+
+
+def test_augmented_lagrangian_bounds_penetration():
+    """A soft penalty leaves p/eps of penetration; AL updates cut it below the tolerance."""
+    X = np.zeros((1, 3))
+    fn, eps = 1.0, 0.5  # plain penalty: penetration fn/(eps*A) = 2 mm
+    res = {}
+    for method in ("penalty", "augmented-lagrangian"):
+        c = _contact(X, mu=0.0, method=method, eps=eps, areas=np.array([1.0]))
+        u = np.zeros(3)
+        for _aug in range(50):
+            for _ in range(30):
+                r, K = c.residual_tangent(u)
+                R = r - np.array([0, 0, -fn])
+                Kt = (K.toarray() if K is not None else np.zeros((3, 3))) + 1e-9 * np.eye(3)
+                u = u - np.linalg.solve(Kt, R)
+            if c.augment(u):
+                break
+        c.commit(u)
+        res[method] = c.report(u)["max_penetration_mm"]
+    assert res["penalty"] == pytest.approx(2.0, rel=1e-6)
+    assert res["augmented-lagrangian"] <= ContactConfig().penetration_tol_mm
+
+
+def test_tributary_area_sums_to_surface_area():
+    pts = np.array([[0, 0, 0], [2, 0, 0], [2, 3, 0], [0, 3, 0]], float)
+    tris = np.array([[0, 1, 2], [0, 2, 3]])
+    a = tributary_areas(pts, tris)
+    assert a.sum() == pytest.approx(6.0)
+    np.testing.assert_allclose(a, [2.0, 1.0, 2.0, 1.0])
+
+
+def test_automatic_penalty_rule_and_config_validation():
+    cfg = ContactConfig()
+    assert automatic_penalty(cfg, young_mpa=6e-3, h_mm=3.0) == pytest.approx(20 * 6e-3 / 3.0)
+    _, problems, warnings = parse_section(ContactConfig, {"friction": -0.1, "methd": "penalty",
+                                                          "method": "lagrange"},
+                                          where="case.toml [contact]")
+    assert any("friction" in p and "-0.1" in p for p in problems)
+    assert any("method" in p and "augmented-lagrangian" in p for p in problems)
+    assert any("did you mean 'method'" in w for w in warnings)
