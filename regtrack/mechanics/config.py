@@ -1,0 +1,94 @@
+"""Configuration of the mechanics core: materials, skin membrane and Newton solver.
+
+Every physical parameter is a :func:`regtrack.config.param` field with unit, range and
+documentation, so ``case.toml [mechanics]`` and simulation configs are validated by
+:func:`regtrack.config.parse_section` (e.g. negative stiffness or ``nu >= 0.5`` are
+reported naming the key).  Units at this edge: kPa, Pa (skin), mm, kg/m^3; the solver
+works internally in mm-N-MPa (1 kPa = 1e-3 MPa).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from regtrack.config import param
+
+FORMULATIONS = ("p1-anp", "p1")
+
+
+@dataclass(frozen=True)
+class SolverOptions:
+    """Newton-Raphson with line search and adaptive load stepping.
+
+    Convergence of an increment requires *both*
+
+    * force: ``||R_free||_2 <= force_tol * F_ref`` with
+      ``F_ref = max(||f_ext||_2, ||reaction||_2, ||f_int||_2 / sqrt(ndof), force_floor_n)``;
+    * displacement: ``||du||_inf <= disp_tol * max(||u - u_start||_inf, disp_floor_mm)``,
+      where ``u_start`` is the state at the start of the increment.
+    """
+
+    force_tol: float = param(1e-6, "-", "relative residual tolerance (vs external force / reaction)", gt=0, lt=1)
+    disp_tol: float = param(1e-6, "-", "relative displacement-correction tolerance", gt=0, lt=1)
+    force_floor_n: float = param(1e-9, "N", "absolute force floor of the residual reference", gt=0)
+    disp_floor_mm: float = param(1e-6, "mm", "absolute displacement floor of the correction reference", gt=0)
+    max_iterations: int = param(15, "-", "Newton iterations per increment before a cut-back", ge=2, le=200)
+    initial_increment: float = param(0.25, "-", "first pseudo-time increment of a step", gt=0, le=1)
+    min_increment: float = param(1e-4, "-", "smallest increment before giving up", gt=0, le=1)
+    max_increment: float = param(1.0, "-", "largest increment", gt=0, le=1)
+    growth: float = param(1.5, "-", "increment growth factor after an easy increment", ge=1, le=4)
+    cutback: float = param(0.5, "-", "increment cut-back factor after a failure", gt=0, lt=1)
+    easy_iterations: int = param(5, "-", "an increment converging in at most this many iterations grows the next", ge=1)
+    line_search: bool = param(True, "", "backtracking line search on the directional residual")
+    line_search_ratio: float = param(0.8, "-", "accept a step when |du.R(a)| <= ratio |du.R(0)|", gt=0, lt=1)
+    line_search_max: int = param(6, "-", "line-search trials per iteration", ge=1, le=30)
+    max_augmentations: int = param(20, "-", "augmented-Lagrangian updates per increment", ge=1)
+    linear_solver: str = param("auto", "", "sparse solver", choices=("auto", "pardiso", "splu"))
+
+
+@dataclass(frozen=True)
+class MechanicsConfig:
+    r"""Materials and formulation of the breast model.
+
+    Tissue and tumour: nearly incompressible neo-Hookean
+
+    .. math:: W = c_1(\bar I_1 - 3) + \tfrac{K}{2}(J-1)^2,\quad \bar I_1 = J^{-2/3}\operatorname{tr} C,
+              \quad \mu = 2c_1,\quad K = \frac{2\mu(1+\nu)}{3(1-2\nu)}
+
+    so that the small-strain limit has Young's modulus ``E = 2 mu (1 + nu)`` and Poisson
+    ratio ``nu``.  Skin: incompressible plane-stress membrane (thickness ``skin_thickness_mm``)
+
+    .. math:: \Psi = \sum_{1\le i+j\le 2} c_{ij}(I_1-3)^i(I_2-3)^j .
+    """
+
+    tissue_c1_kpa: float = param(0.54, "kPa", "neo-Hookean c1 of the tissue (paper: 0.54)", gt=0, le=1e4)
+    tumour_c1_kpa: float = param(5.44, "kPa", "neo-Hookean c1 of the tumour (paper: 5.44)", gt=0, le=1e5)
+    nu: float = param(0.49, "-", "Poisson's ratio of the tissue", ge=0.0, lt=0.5)
+    tumour_nu: float | None = param(None, "-", "Poisson's ratio of the tumour (default: nu)", ge=0.0, lt=0.5)
+    density_kg_m3: float = param(1000.0, "kg/m^3", "tissue density", gt=0, le=1e4)
+    formulation: str = param("p1-anp", "", "tet formulation: 'p1-anp' (average nodal pressure, "
+                             "locking-free) or 'p1' (plain displacement)", choices=FORMULATIONS)
+    skin_enabled: bool = param(True, "", "add the skin membrane on the outer surface")
+    skin_thickness_mm: float = param(1.0, "mm", "skin membrane thickness", gt=0, le=10)
+    skin_c10_pa: float = param(31.0, "Pa", "skin c10", ge=0)
+    skin_c01_pa: float = param(30.0, "Pa", "skin c01", ge=0)
+    skin_c11_pa: float = param(22.5, "Pa", "skin c11", ge=0)
+    skin_c20_pa: float = param(50.0, "Pa", "skin c20", ge=0)
+    skin_c02_pa: float = param(60.0, "Pa", "skin c02", ge=0)
+    solver: SolverOptions = field(default_factory=SolverOptions,
+                                  metadata={"unit": "", "doc": "Newton solver options ([mechanics.solver])"})
+
+    def problems(self) -> list[str]:
+        """Cross-field checks (called by :func:`regtrack.config.parse_section`)."""
+        out = []
+        s = self.solver
+        if s.min_increment > s.initial_increment:
+            out.append(f"solver.min_increment = {s.min_increment} exceeds initial_increment = "
+                       f"{s.initial_increment}: lower min_increment")
+        if s.initial_increment > s.max_increment:
+            out.append(f"solver.initial_increment = {s.initial_increment} exceeds max_increment = "
+                       f"{s.max_increment}: raise max_increment")
+        if self.skin_enabled and self.skin_c10_pa + self.skin_c01_pa <= 0:
+            out.append("skin_c10_pa + skin_c01_pa must be > 0 (zero initial skin stiffness): "
+                       "set skin_enabled = false instead")
+        return out

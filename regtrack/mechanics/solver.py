@@ -1,0 +1,309 @@
+"""Quasi-static Newton-Raphson solver with line search and adaptive load stepping.
+
+A step runs a pseudo-time ``t`` from 0 to 1 in increments.  Each increment solves
+
+    R(u) = f_int(u) + sum_c r_c(u) - f_ext(t) = 0   on the free dofs,
+    u = u_D(t)                                       on the constrained dofs,
+
+(``f_int``: tissue + skin, :mod:`.problem`; ``r_c``: contributions such as contact,
+:mod:`.contributions`; ``f_ext``: gravity) by Newton with the consistent tangent.
+Constrained rows/columns are replaced by the identity in the fixed sparsity pattern, so
+the factorisation analysis is re-used; the prescribed increment enters the first
+iteration's right-hand side (``-K_fc du_c``), which is the linear predictor.
+
+Convergence (both, see :class:`.config.SolverOptions`): ``||R_free|| <= force_tol * F_ref``
+with ``F_ref = max(||f_ext||, ||reaction||, ||f_int|| / sqrt(ndof), force_floor)``, and
+``||du||_inf <= disp_tol * max(||u - u_start||_inf, disp_floor)`` (constraints met).
+Line search: accept the step length ``a`` when ``du.R(u + a du) <= ratio |du.R(u)|``
+(else secant update, bounded to [0.1, 1] of the current ``a``); elements may not invert.
+An increment that fails (iterations exhausted, divergence, inversion, NaN) is rolled
+back and cut (``cutback``); easy increments grow the next one (``growth``).  Below
+``min_increment`` the step stops with :class:`SolverDidNotConvergeError`, which keeps
+the last converged state and the load fraction reached.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Callable, Sequence
+from typing import Any
+
+import numpy as np
+import scipy.sparse as sp
+
+from regtrack.errors import ContactDidNotConvergeError, SolverDidNotConvergeError
+from regtrack.mechanics.config import SolverOptions
+from regtrack.mechanics.contributions import Contribution
+from regtrack.mechanics.linsolve import LinearSolver
+from regtrack.mechanics.problem import Problem, body_force, build_problem, evaluate, internal_force, tangent
+from regtrack.mechanics.types import StepStats
+
+__all__ = ["Problem", "build_problem", "internal_force", "tangent", "solve_step", "reaction_forces"]
+
+log = logging.getLogger(__name__)
+
+Gravity = Callable[[float], np.ndarray]
+Dirichlet = Callable[[float], tuple[np.ndarray, np.ndarray]]
+Progress = Callable[[str, float], None]
+
+
+class _Failed(Exception):
+    """An increment did not converge (internal; triggers a cut-back)."""
+
+
+class _Constraints:
+    """Constrained dofs and the CSR value positions that the identity rows replace."""
+
+    def __init__(self, problem: Problem, dofs: np.ndarray):
+        pat = problem.pattern
+        self.dofs = dofs
+        mask = np.zeros(problem.n_dofs, bool)
+        mask[dofs] = True
+        self.mask = mask
+        self.free = ~mask
+        rows = np.repeat(mask, np.diff(pat.indptr))
+        self.zero = rows | mask[pat.indices]
+        self.diag = pat.dof_positions(dofs, dofs)
+
+
+def _constraint_targets(problem: Problem, u_start: np.ndarray, dirichlet: Dirichlet | None, t: float):
+    dofs = problem.fixed_dofs
+    vals = u_start[dofs]
+    if dirichlet is not None:
+        d, v = dirichlet(t)
+        d = np.asarray(d, np.int64).reshape(-1)
+        v = np.broadcast_to(np.asarray(v, float).reshape(-1), d.shape)
+        keep = ~np.isin(dofs, d)
+        dofs = np.concatenate([dofs[keep], d])
+        vals = np.concatenate([vals[keep], v])
+        order = np.argsort(dofs)
+        dofs, vals = dofs[order], vals[order]
+    return dofs, vals
+
+
+class _Newton:
+    """State of one step's Newton solves (problem, loads, contributions, statistics)."""
+
+    def __init__(self, problem, contributions, options, stats, linsolver):
+        self.p = problem
+        self.contribs = list(contributions)
+        self.o = options
+        self.stats = stats
+        self.ls = linsolver
+        self._cons_cache: dict[bytes, _Constraints] = {}
+
+    def constraints(self, dofs: np.ndarray) -> _Constraints:
+        key = dofs.tobytes()
+        if key not in self._cons_cache:
+            self._cons_cache = {key: _Constraints(self.p, dofs)}
+        return self._cons_cache[key]
+
+    def residual(self, u: np.ndarray, fext: np.ndarray, want_k: bool):
+        t0 = time.perf_counter()
+        ev = evaluate(self.p, u, want_k=want_k)
+        self.stats.t_assembly += time.perf_counter() - t0
+        if ev.n_inverted != 0 or not np.all(np.isfinite(ev.f)):
+            return None, None, None
+        R = ev.f - fext
+        ktan = []
+        t0 = time.perf_counter()
+        for c in self.contribs:
+            rc, kc = c.residual_tangent(u.reshape(-1, 3))
+            R = R + np.asarray(rc, float).reshape(-1)
+            if kc is not None and want_k:
+                ktan.append(kc)
+        self.stats.t_contrib += time.perf_counter() - t0
+        return R, ev, ktan
+
+    def matrix(self, data: np.ndarray, ktan: list, cons: _Constraints):
+        """Tangent with contributions, before the constraint rows are replaced."""
+        pat = self.p.pattern
+        extra = []
+        for kc in ktan:
+            kc = sp.coo_matrix(kc)
+            pos = pat.dof_positions(kc.row, kc.col)
+            if np.all(pos >= 0):
+                np.add.at(data, pos, kc.data)
+            else:
+                extra.append(kc)
+        K = pat.matrix(data)
+        for kc in extra:  # outside the pattern: generic sum (new analysis)
+            log.debug("contribution tangent outside the pattern: generic assembly")
+            K = (K + kc).tocsr()
+        return K
+
+    def solve_increment(self, u_start: np.ndarray, fext: np.ndarray, dofs: np.ndarray, vals: np.ndarray,
+                        hist: list[float]) -> np.ndarray:
+        o = self.o
+        cons = self.constraints(dofs)
+        u = u_start.copy()
+        fnorm_ext = np.linalg.norm(fext)
+        du_prev = np.inf
+        for it in range(o.max_iterations + 1):
+            R, ev, ktan = self.residual(u, fext, want_k=True)
+            if R is None:
+                raise _Failed("inverted elements or non-finite forces")
+            ducon = np.zeros_like(u)
+            ducon[dofs] = vals - u[dofs]
+            f_ref = max(fnorm_ext, np.linalg.norm(R[cons.mask]), np.linalg.norm(ev.f) / np.sqrt(len(u)),
+                        o.force_floor_n)
+            rn = float(np.linalg.norm(R[cons.free]))
+            hist.append(rn)
+            u_ref = max(float(np.max(np.abs(u - u_start), initial=0.0)), o.disp_floor_mm)
+            cons_ok = not np.any(ducon) or float(np.max(np.abs(ducon))) <= o.disp_tol * u_ref
+            if rn <= o.force_tol * f_ref and cons_ok and (du_prev <= o.disp_tol * u_ref or it == 0):
+                return u
+            if it == o.max_iterations:
+                break
+            if it > 2 and rn > 1e8 * max(hist[0], o.force_floor_n):
+                raise _Failed("residual diverged")
+            self.stats.iterations += 1
+            K = self.matrix(ev.data, ktan, cons)
+            rhs = -R
+            if np.any(ducon):
+                rhs = rhs - K @ ducon
+            rhs[cons.mask] = ducon[cons.mask]
+            if K.indices is self.p.pattern.indices:
+                K.data[cons.zero] = 0.0
+                K.data[cons.diag] = 1.0
+            else:
+                dm = sp.diags(cons.free.astype(float))
+                K = (dm @ K @ dm + sp.diags(cons.mask.astype(float))).tocsr()
+            t0 = time.perf_counter()
+            du = self.ls.solve(K, rhs)
+            self.stats.t_solve += time.perf_counter() - t0
+            if not np.all(np.isfinite(du)):
+                raise _Failed("linear solve returned non-finite values")
+            alpha = self.line_search(u, du, R, fext, cons)
+            u = u + alpha * du
+            du_prev = float(np.max(np.abs(alpha * du)))
+        raise _Failed(f"no convergence in {o.max_iterations} iterations (|R| = {hist[-1]:.3g} N)")
+
+    def line_search(self, u, du, R, fext, cons) -> float:
+        """Step length in (0, 1]: halve on inversion; secant on ``s(a) = du.R(u + a du)``."""
+        o = self.o
+        s0 = float(du[cons.free] @ R[cons.free])
+        search = o.line_search and s0 < 0
+        alpha = 1.0
+        t0 = time.perf_counter()
+        try:
+            for _ in range(o.line_search_max + 4):
+                R1, _, _ = self.residual(u + alpha * du, fext, want_k=False)
+                self.stats.line_search_trials += 1
+                if R1 is None:
+                    alpha *= 0.5
+                    continue
+                if not search:
+                    return alpha
+                s1 = float(du[cons.free] @ R1[cons.free])
+                if s1 <= o.line_search_ratio * abs(s0) or _ >= o.line_search_max - 1:
+                    return alpha
+                alpha *= float(np.clip(s0 / (s0 - s1), 0.1, 1.0))
+            raise _Failed("line search could not avoid inverted elements")
+        finally:
+            self.stats.t_line_search += time.perf_counter() - t0
+
+
+def solve_step(problem: Problem, u0: np.ndarray, *, gravity: Gravity | None = None,
+               dirichlet: Dirichlet | None = None, contributions: Sequence[Contribution] = (),
+               options: SolverOptions | None = None, progress: Progress | None = None,
+               step_name: str = "", step: Any = None,
+               linear_solver: LinearSolver | None = None) -> tuple[np.ndarray, StepStats]:
+    """Solve one load step from ``u0`` (N, 3) mm over pseudo-time t in (0, 1].
+
+    Parameters
+    ----------
+    gravity : callable t -> (3,) acceleration in m/s^2 (model frame); body force
+        ``rho * g`` per reference volume (``rho`` in kg/m^3 -> N/mm^3 via 1e-9).
+    dirichlet : callable t -> (dofs, values): prescribed displacements (mm) in addition
+        to the model's fixed (chest-wall) nodes, which keep their ``u0`` values.
+    contributions : extra residual/tangent terms (contact); call order documented in
+        :mod:`regtrack.mechanics.contributions`.
+    options : solver options (default: ``problem.config.solver``).
+    progress : callable ``(step_name, t)`` after every converged increment.
+    step : object handed to ``Contribution.begin_step``.
+
+    Returns
+    -------
+    (u, stats) : displacement (N, 3) mm at t = 1 and :class:`StepStats`.
+
+    Raises
+    ------
+    SolverDidNotConvergeError
+        with ``load_fraction`` (last converged t) and ``last_converged`` (N, 3).
+    """
+    o = options or problem.config.solver
+    stats = StepStats(name=step_name)
+    tstart = time.perf_counter()
+    newton = _Newton(problem, contributions, o, stats, linear_solver or LinearSolver(o.linear_solver))
+    u = np.asarray(u0, float).reshape(-1).copy()
+    for c in newton.contribs:
+        c.begin_step(step)
+    t, dt = 0.0, o.initial_increment
+    while t < 1.0 - 1e-12:
+        dt = min(dt, 1.0 - t)
+        if 1.0 - (t + dt) < 1e-9:
+            dt = 1.0 - t
+        t_new = t + dt
+        hist: list[float] = []
+        it0 = stats.iterations
+        try:
+            u_new = _increment(newton, u, t_new, gravity, dirichlet, hist)
+        except _Failed as why:
+            for c in newton.contribs:
+                c.rollback()
+            stats.cutbacks += 1
+            log.info("%s: increment t = %.4g -> %.4g failed (%s); cutting back", step_name, t, t_new, why)
+            dt *= o.cutback
+            if dt < o.min_increment:
+                stats.t_total = time.perf_counter() - tstart
+                err = ContactDidNotConvergeError if "augment" in str(why) else SolverDidNotConvergeError
+                raise err(f"step '{step_name}': Newton did not converge beyond load fraction t = {t:.4g} "
+                          f"({why}); try smaller [mechanics.solver] min_increment/initial_increment, more "
+                          "max_iterations, or check the boundary conditions and loads",
+                          load_fraction=t, last_converged=u.reshape(-1, 3).copy()) from None
+            continue
+        u, t = u_new, t_new
+        stats.increments += 1
+        stats.residual_history.append(hist)
+        for c in newton.contribs:
+            c.commit(u.reshape(-1, 3))
+        if newton.contribs:
+            stats.reports.append({"t": t, **{c.name: c.report(u.reshape(-1, 3)) for c in newton.contribs}})
+        if stats.iterations - it0 <= o.easy_iterations:
+            dt = min(dt * o.growth, o.max_increment)
+        if progress is not None:
+            progress(step_name, t)
+    stats.t_total = time.perf_counter() - tstart
+    log.debug("%s: %d increments, %d iterations, %d cut-backs, %.2f s", step_name, stats.increments,
+              stats.iterations, stats.cutbacks, stats.t_total)
+    return u.reshape(-1, 3), stats
+
+
+def _increment(newton: _Newton, u: np.ndarray, t: float, gravity, dirichlet, hist) -> np.ndarray:
+    p, o = newton.p, newton.o
+    for c in newton.contribs:
+        c.set_time(t)
+    fext = body_force(p, gravity(t)) if gravity is not None else np.zeros(p.n_dofs)
+    dofs, vals = _constraint_targets(p, u, dirichlet, t)
+    u_new = newton.solve_increment(u, fext, dofs, vals, hist)
+    for _ in range(o.max_augmentations):
+        done = [c.augment(u_new.reshape(-1, 3)) for c in newton.contribs]
+        if all(done):
+            return u_new
+        newton.stats.augmentations += 1
+        u_new = newton.solve_increment(u_new, fext, dofs, vals, hist)
+    raise _Failed(f"augmented-Lagrangian multipliers not converged after {o.max_augmentations} updates")
+
+
+def reaction_forces(problem: Problem, u: np.ndarray, *, gravity_ms2=None,
+                    contributions: Sequence[Contribution] = ()) -> np.ndarray:
+    """Residual ``f_int + sum r_c - f_ext`` (N, 3) N at ``u``: at constrained nodes this is
+    the force the supports exert on the body; at free nodes it is ~0 after convergence."""
+    R = evaluate(problem, u, want_k=False).f
+    for c in contributions:
+        R = R + np.asarray(c.residual_tangent(np.asarray(u).reshape(-1, 3))[0]).reshape(-1)
+    if gravity_ms2 is not None:
+        R = R - body_force(problem, gravity_ms2)
+    return R.reshape(-1, 3)

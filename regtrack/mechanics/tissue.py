@@ -1,0 +1,195 @@
+r"""Element kernels of the nearly incompressible neo-Hookean tetrahedron (numba).
+
+Strain energy per unit reference volume (see :mod:`.materials`)
+
+.. math:: W = c_1(J^{-2/3} I_1 - 3) + U(J),\qquad U = \tfrac{K}{2}(J-1)^2 .
+
+First Piola-Kirchhoff stress, with :math:`H = F^{-T}` and pressure :math:`p`
+
+.. math:: P = 2c_1 J^{-2/3}\,(F - \tfrac{I_1}{3} H) + p\,J\,H ,
+
+where ``p = K (J - 1)`` for the plain P1 formulation and ``p = \bar p_e`` (the mean of
+the nodal pressures of the element's nodes) for the average-nodal-pressure (ANP)
+tetrahedron of Bonet & Burton (1998) / Bonet, Marriott & Hassan (2001).  The element
+tangent is :math:`K^e_{ab,ik} = V_e \sum_{JL} G_{aJ} A_{iJkL} G_{bL}` with
+
+.. math::
+    A = 2c_1 J^{-2/3}\big[\delta_{ik}\delta_{JL} - \tfrac23 (H_{kL}F_{iJ} + F_{kL}H_{iJ})
+        + \tfrac29 I_1 H_{iJ}H_{kL} + \tfrac{I_1}{3} H_{kJ}H_{iL}\big]
+        + (p' J + p) J H_{iJ}H_{kL} - p J H_{kJ}H_{iL},
+
+``p' = dp/dJ`` (``K`` for P1; 0 in the element part of ANP, whose volumetric rank
+term is assembled in :mod:`.assembly`).  ``G`` are the reference shape-function
+gradients (1/mm), ``V_e`` the reference volume (mm^3).  Units: mm, N, MPa.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+
+def reference_geometry(points: np.ndarray, tets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Shape-function gradients ``G`` (E, 4, 3) in 1/mm and volumes ``V`` (E,) in mm^3."""
+    p = points[tets]
+    D = np.stack([p[:, 1] - p[:, 0], p[:, 2] - p[:, 0], p[:, 3] - p[:, 0]], axis=2)  # columns
+    V = np.linalg.det(D) / 6.0
+    Dinv = np.linalg.inv(D)  # rows = gradients of N1..N3
+    G = np.empty((len(tets), 4, 3))
+    G[:, 1:, :] = Dinv
+    G[:, 0, :] = -Dinv.sum(axis=1)
+    return G, V
+
+
+@njit(cache=True)
+def _defgrad(x, tets, G, e, F):
+    for i in range(3):
+        for J in range(3):
+            s = 0.0
+            for a in range(4):
+                s += x[tets[e, a], i] * G[e, a, J]
+            F[i, J] = s
+
+
+@njit(cache=True)
+def _det3(F):
+    return (F[0, 0] * (F[1, 1] * F[2, 2] - F[1, 2] * F[2, 1])
+            - F[0, 1] * (F[1, 0] * F[2, 2] - F[1, 2] * F[2, 0])
+            + F[0, 2] * (F[1, 0] * F[2, 1] - F[1, 1] * F[2, 0]))
+
+
+@njit(cache=True)
+def _inv_transpose(F, J, H):
+    H[0, 0] = (F[1, 1] * F[2, 2] - F[1, 2] * F[2, 1]) / J
+    H[0, 1] = (F[1, 2] * F[2, 0] - F[1, 0] * F[2, 2]) / J
+    H[0, 2] = (F[1, 0] * F[2, 1] - F[1, 1] * F[2, 0]) / J
+    H[1, 0] = (F[0, 2] * F[2, 1] - F[0, 1] * F[2, 2]) / J
+    H[1, 1] = (F[0, 0] * F[2, 2] - F[0, 2] * F[2, 0]) / J
+    H[1, 2] = (F[0, 1] * F[2, 0] - F[0, 0] * F[2, 1]) / J
+    H[2, 0] = (F[0, 1] * F[1, 2] - F[0, 2] * F[1, 1]) / J
+    H[2, 1] = (F[0, 2] * F[1, 0] - F[0, 0] * F[1, 2]) / J
+    H[2, 2] = (F[0, 0] * F[1, 1] - F[0, 1] * F[1, 0]) / J
+
+
+@njit(cache=True)
+def jacobians(x: np.ndarray, tets: np.ndarray, G: np.ndarray) -> np.ndarray:
+    """Volume ratio ``J = det F`` (E,) of every tetrahedron at current positions ``x``."""
+    ne = tets.shape[0]
+    out = np.empty(ne)
+    F = np.empty((3, 3))
+    for e in range(ne):
+        _defgrad(x, tets, G, e, F)
+        out[e] = _det3(F)
+    return out
+
+
+@njit(cache=True)
+def tet_kernel(x, tets, G, V, c1, p, dp, want_k, f, data, base, rowstride, dv):
+    """Accumulate internal forces, optionally the tangent, and return the deviatoric energy.
+
+    Parameters
+    ----------
+    x : (N, 3) current positions (mm).
+    p, dp : (E,) pressure (MPa) and dp/dJ (MPa) per element (see module docstring).
+    want_k : assemble the tangent into ``data`` (CSR values) at
+        ``base[e, a, b] + i * rowstride[tets[e, a]] + k``.
+    f : (N, 3) forces (N), accumulated in place.
+    dv : (E, 4, 3) output: derivative of the current element volume wrt node positions
+        (mm^2), used by the ANP rank term.
+
+    Returns
+    -------
+    (energy, n_inverted) : deviatoric energy (N mm) and count of elements with J <= 0.
+    """
+    ne = tets.shape[0]
+    F = np.empty((3, 3))
+    H = np.empty((3, 3))
+    fa = np.empty((4, 3))
+    ha = np.empty((4, 3))
+    energy = 0.0
+    bad = 0
+    for e in range(ne):
+        _defgrad(x, tets, G, e, F)
+        J = _det3(F)
+        if J <= 0.0:
+            bad += 1
+            continue
+        _inv_transpose(F, J, H)
+        I1 = 0.0
+        for i in range(3):
+            for j in range(3):
+                I1 += F[i, j] * F[i, j]
+        Jm23 = J ** (-2.0 / 3.0)
+        mu_e = 2.0 * c1[e] * Jm23
+        energy += V[e] * c1[e] * (Jm23 * I1 - 3.0)
+        for a in range(4):
+            for i in range(3):
+                sf = 0.0
+                sh = 0.0
+                for L in range(3):
+                    sf += F[i, L] * G[e, a, L]
+                    sh += H[i, L] * G[e, a, L]
+                fa[a, i] = sf
+                ha[a, i] = sh
+        pe = p[e]
+        for a in range(4):
+            n = tets[e, a]
+            for i in range(3):
+                f[n, i] += V[e] * (mu_e * (fa[a, i] - I1 / 3.0 * ha[a, i]) + pe * J * ha[a, i])
+                dv[e, a, i] = V[e] * J * ha[a, i]
+        if not want_k:
+            continue
+        cvol = (dp[e] * J + pe) * J
+        cgeo = mu_e * I1 / 3.0 - pe * J
+        for a in range(4):
+            na = tets[e, a]
+            rs = rowstride[na]
+            for b in range(4):
+                gg = 0.0
+                for L in range(3):
+                    gg += G[e, a, L] * G[e, b, L]
+                b0 = base[e, a, b]
+                for i in range(3):
+                    for k in range(3):
+                        v = (mu_e * (-2.0 / 3.0 * (fa[a, i] * ha[b, k] + ha[a, i] * fa[b, k])
+                                     + 2.0 / 9.0 * I1 * ha[a, i] * ha[b, k])
+                             + cvol * ha[a, i] * ha[b, k] + cgeo * ha[a, k] * ha[b, i])
+                        if i == k:
+                            v += mu_e * gg
+                        data[b0 + i * rs + k] += V[e] * v
+    return energy, bad
+
+
+@njit(cache=True)
+def anp_rank_kernel(tets, dv, coef, sptr, snodes, mptr, members, pos, pptr, pairj, nptr, rowstride, data):
+    """Add the ANP volumetric rank term ``sum_g coef_g b_g b_g^T`` to the CSR ``data``.
+
+    ``b_g = sum_{(e,i) in g} dv_e / 4`` is the derivative of the nodal current volume
+    ``v_g`` (mm^2) and ``coef_g = K_g / V_g`` (MPa/mm^3).  ``sptr/snodes``: nodes of each
+    group (sorted); ``mptr/members``: its (element*4 + local node) members; ``pos``
+    (E, 4, 4): index within the group's node list of element node ``a`` for member
+    ``(e, i)``; ``pairj``: adjacency position of node pair (s, t) of the group.
+    """
+    ng = sptr.shape[0] - 1
+    for g in range(ng):
+        n = sptr[g + 1] - sptr[g]
+        b = np.zeros((n, 3))
+        for m in range(mptr[g], mptr[g + 1]):
+            e = members[m] // 4
+            il = members[m] % 4
+            for a in range(4):
+                s = pos[e, il, a]
+                for i in range(3):
+                    b[s, i] += 0.25 * dv[e, a, i]
+        c = coef[g]
+        off = pptr[g]
+        for s in range(n):
+            pnode = snodes[sptr[g] + s]
+            rs = rowstride[pnode]
+            rb = 9 * nptr[pnode]
+            for t in range(n):
+                b0 = rb + 3 * pairj[off + s * n + t]
+                for i in range(3):
+                    ci = c * b[s, i]
+                    for k in range(3):
+                        data[b0 + i * rs + k] += ci * b[t, k]

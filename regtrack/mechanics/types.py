@@ -1,0 +1,98 @@
+"""Plain records passed out of the mechanics solver."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+
+@dataclass
+class StepStats:
+    """Statistics of one protocol/load step (pseudo-time 0 -> 1).
+
+    Times are wall-clock seconds per phase: ``t_assembly`` (tissue + skin residual and
+    tangent), ``t_contrib`` (contributions such as contact), ``t_solve`` (sparse
+    factorisation + solve), ``t_line_search`` (extra residual evaluations), ``t_total``.
+    """
+
+    name: str = ""
+    increments: int = 0
+    iterations: int = 0
+    cutbacks: int = 0
+    augmentations: int = 0
+    line_search_trials: int = 0
+    t_assembly: float = 0.0
+    t_contrib: float = 0.0
+    t_solve: float = 0.0
+    t_line_search: float = 0.0
+    t_total: float = 0.0
+    residual_history: list[list[float]] = field(default_factory=list)
+    reports: list[dict] = field(default_factory=list)
+
+    def to_dict(self) -> dict:
+        d = {k: getattr(self, k) for k in ("name", "increments", "iterations", "cutbacks", "augmentations",
+                                          "line_search_trials", "t_assembly", "t_contrib", "t_solve",
+                                          "t_line_search", "t_total")}
+        d["reports"] = self.reports[-1:] if self.reports else []
+        return d
+
+
+@dataclass
+class SolverStats:
+    """Totals over all steps of a run."""
+
+    steps: list[StepStats] = field(default_factory=list)
+
+    @property
+    def iterations(self) -> int:
+        return sum(s.iterations for s in self.steps)
+
+    @property
+    def increments(self) -> int:
+        return sum(s.increments for s in self.steps)
+
+    @property
+    def cutbacks(self) -> int:
+        return sum(s.cutbacks for s in self.steps)
+
+    @property
+    def time_total(self) -> float:
+        return sum(s.t_total for s in self.steps)
+
+    def to_dict(self) -> dict:
+        return {"steps": len(self.steps), "increments": self.increments, "iterations": self.iterations,
+                "cutbacks": self.cutbacks, "t_total_s": self.time_total,
+                "t_assembly_s": sum(s.t_assembly for s in self.steps),
+                "t_solve_s": sum(s.t_solve for s in self.steps),
+                "t_contrib_s": sum(s.t_contrib for s in self.steps),
+                "t_line_search_s": sum(s.t_line_search for s in self.steps)}
+
+
+@dataclass
+class StepResult:
+    """State at the end of a step: displacement (N, 3) mm and reaction at constrained dofs.
+
+    ``reaction`` (N, 3) N is the force the supports exert on the body (zero at free
+    dofs); ``chest_wall_reaction_n`` is its sum over the model's fixed (chest-wall) nodes.
+    """
+
+    name: str
+    u: np.ndarray
+    reaction: np.ndarray
+    chest_wall_reaction_n: np.ndarray
+    stats: StepStats
+
+
+@dataclass
+class Deformation:
+    """Result of :func:`regtrack.mechanics.solver.run_steps`: one :class:`StepResult` per step."""
+
+    steps: list[StepResult]
+    stats: SolverStats
+    config: dict = field(default_factory=dict)
+
+    @property
+    def u(self) -> np.ndarray:
+        """Final displacement (N, 3), mm."""
+        return self.steps[-1].u
