@@ -19,7 +19,7 @@ import sys
 
 # verb -> module.  Stages that do not exist yet are simply not listed.
 COMMANDS: dict[str, str] = {
-
+    "validate": "regtrack.cli.validate",
 }
 
 

@@ -1,0 +1,101 @@
+"""Override sections of ``case.toml`` and the stage config class each one feeds.
+
+Each pipeline stage owns its configuration dataclass (fields made with
+:func:`regtrack.config.param`).  A case may override any of their fields in the matching
+section; the table :data:`SECTIONS` maps the section to ``"module:Class"``.  Classes are
+imported lazily, so ``regtrack validate`` only imports what it needs; a class that does
+not exist (yet) leaves its section checked only as "must be a table" (logged at debug).
+"""
+
+from __future__ import annotations
+
+import importlib
+import logging
+from typing import Any
+
+from regtrack.config import closest_key, parse_section
+from regtrack.views import VIEWS
+
+log = logging.getLogger(__name__)
+
+#: Section of ``case.toml`` -> "module:Class" of the stage config it overrides.
+SECTIONS: dict[str, str] = {
+    "model": "regtrack.model.config:MeshConfig",
+    "mechanics": "regtrack.mechanics.config:MechanicsConfig",
+    "contact": "regtrack.mechanics.contact:ContactConfig",
+    "protocol.CC": "regtrack.mechanics.protocol:ProtocolOverrides",
+    "protocol.MLO": "regtrack.mechanics.protocol:ProtocolOverrides",
+    "registration": "regtrack.registration.config:RegistrationConfig",
+}
+
+
+def config_class(section: str) -> type | None:
+    """The config dataclass of ``section``, or None when its module/class is absent.
+
+    Raises :class:`KeyError` for a section not in :data:`SECTIONS`.  Errors inside an
+    existing module (syntax errors, failing imports of *other* modules) propagate: they are
+    bugs, not a missing stage.
+    """
+    target = SECTIONS[section]
+    modname, clsname = target.split(":")
+    try:
+        mod = importlib.import_module(modname)
+    except ModuleNotFoundError as exc:
+        if exc.name and (modname == exc.name or modname.startswith(exc.name + ".")):
+            log.debug("[%s]: %s not available yet; checking the section as a table only",
+                      section, modname)
+            return None
+        raise
+    cls = getattr(mod, clsname, None)
+    if cls is None:
+        log.debug("[%s]: %s has no %s yet; checking the section as a table only",
+                  section, modname, clsname)
+    return cls
+
+
+def parse_overrides(doc: dict, *, where: str) -> tuple[dict[str, tuple[dict, Any]], list[str],
+                                                       list[str]]:
+    """Parse every override section present in the TOML document ``doc``.
+
+    Returns ``({section: (table, config_or_None)}, problems, warnings)``.  ``[protocol]``
+    must hold only the view tables ``[protocol.CC]`` / ``[protocol.MLO]``.
+    """
+    problems: list[str] = []
+    warnings: list[str] = []
+    tables: dict[str, dict] = {}
+    for top in ("model", "mechanics", "contact", "registration"):
+        if top in doc:
+            tables[top] = doc[top]
+    if "protocol" in doc:
+        proto = doc["protocol"]
+        if not isinstance(proto, dict):
+            problems.append(f"{where} protocol = {proto!r}: expected a table; write the "
+                            "overrides as [protocol.CC] / [protocol.MLO] tables")
+        else:
+            for name, sub in proto.items():
+                if name in VIEWS:
+                    tables[f"protocol.{name}"] = sub
+                elif isinstance(sub, dict):
+                    near = closest_key(name, VIEWS)
+                    problems.append(
+                        f"{where} [protocol.{name}]: unknown view '{name}'; valid views: "
+                        + ", ".join(VIEWS) + (f" (did you mean '{near}'?)" if near else ""))
+                else:
+                    problems.append(
+                        f"{where} [protocol] {name} = {sub!r}: protocol overrides belong in "
+                        f"a view table; move it to [protocol.CC] and/or [protocol.MLO]")
+    out: dict[str, tuple[dict, Any]] = {}
+    for section, table in tables.items():
+        at = f"{where} [{section}]"
+        if not isinstance(table, dict):
+            problems.append(f"{where} {section} = {table!r}: expected a table [{section}]")
+            continue
+        cls = config_class(section)
+        if cls is None:
+            out[section] = (table, None)
+            continue
+        obj, p, w = parse_section(cls, table, where=at)
+        problems += p
+        warnings += w
+        out[section] = (table, obj)
+    return out, problems, warnings

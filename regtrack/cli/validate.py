@@ -1,0 +1,39 @@
+"""``regtrack validate CASE``: check a case folder and print its summary or its problems."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+HELP = "check a case folder (case.toml and its inputs) and summarise it"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("case", metavar="CASE", help="case folder, or the path of its case.toml")
+    parser.add_argument("--shallow", action="store_true",
+                        help="check case.toml and that the files exist, without opening them")
+
+
+def run(args: argparse.Namespace) -> int:
+    """Exit 0 and print the summary when the case is valid; exit 2 and list every problem
+    (one line each, naming ``case.toml [section] key``) when it is not."""
+    import logging
+
+    from regtrack.case import format_summary, load_case
+    from regtrack.errors import CaseError
+
+    if not getattr(args, "debug", False):  # warnings are printed below, not logged twice
+        logging.getLogger("regtrack.case.loader").setLevel(logging.ERROR)
+    try:
+        case = load_case(args.case, deep=not args.shallow)
+    except CaseError as err:
+        problems = err.problems
+        warnings = getattr(err, "warnings", [])
+        print(f"{args.case}: invalid case, {len(problems)} problem(s):", file=sys.stderr)
+        for p in problems:
+            print(f"  error: {p}", file=sys.stderr)
+        for w in warnings:
+            print(f"  warning: {w}", file=sys.stderr)
+        return err.exit_code
+    print(format_summary(case))
+    return 0
