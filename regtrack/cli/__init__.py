@@ -20,6 +20,7 @@ import sys
 # verb -> module.  Stages that do not exist yet are simply not listed.
 COMMANDS: dict[str, str] = {
     "validate": "regtrack.cli.validate",
+    "study": "regtrack.cli.study",
 }
 
 

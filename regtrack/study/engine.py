@@ -1,0 +1,264 @@
+"""The study engine: cached runs, shared-work scheduling, retries and failure records.
+
+:class:`Engine` takes a list of :class:`~regtrack.study.runner.RunSpec` and
+
+1. loads every run already in the result cache (:class:`~regtrack.study.results.ResultCache`)
+   and computes only the others, so an interrupted study resumes where it stopped;
+2. starts runs so that work they share is done once: a run is started only when, for
+   each of its share groups (same case mesh; same simulation), a run of that group has
+   finished or none is in flight.  The first run of a case builds the mesh into the
+   stage cache; the others then find it there instead of meshing concurrently.
+3. records a failing run (its error, type and traceback) and goes on; a run whose worker
+   process died is re-submitted up to ``retries`` times, then recorded as failed.
+
+The backend (local pool or Dask) is started lazily, only when something needs computing,
+and kept across :meth:`Engine.run` calls (calibration evaluates points one by one).
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+import traceback
+from collections import Counter
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from regtrack.study.backends import LocalBackend, make_backend
+from regtrack.study.results import ResultCache
+from regtrack.study.runner import FAILED, RunSpec
+
+log = logging.getLogger(__name__)
+
+RESULTS_SUBDIR = "study-runs"
+
+
+@dataclass
+class Execution:
+    """What one :meth:`Engine.run` did.  Lists hold run keys."""
+
+    outcomes: dict[str, dict] = field(default_factory=dict)
+    cached: list[str] = field(default_factory=list)
+    computed: list[str] = field(default_factory=list)
+    failed: list[str] = field(default_factory=list)
+    retried: int = 0
+    seconds: float = 0.0
+    backend: str = "none"
+    workers: int = 0
+
+    @property
+    def hit_rate(self) -> float:
+        """Fraction of runs found in the result cache."""
+        n = len(self.cached) + len(self.computed)
+        return len(self.cached) / n if n else 0.0
+
+
+class _Progress:
+    """Rich progress bar: runs done / failed / cached / remaining with an ETA."""
+
+    def __init__(self, *, enabled: bool, label: str, total: int, cached: int):
+        self.bar = None
+        self.counts = Counter(cached=cached)
+        self.total = total
+        if not enabled or total == 0:
+            return
+        from rich.progress import (BarColumn, MofNCompleteColumn, Progress, TextColumn,
+                                   TimeElapsedColumn, TimeRemainingColumn)
+
+        self.bar = Progress(TextColumn("[bold]{task.description}"), BarColumn(),
+                            MofNCompleteColumn(), TextColumn("{task.fields[status]}"),
+                            TimeElapsedColumn(), TextColumn("ETA"), TimeRemainingColumn())
+        self.bar.start()
+        self.task = self.bar.add_task(label, total=total, status=self._status())
+
+    def _status(self) -> str:
+        c = self.counts
+        remaining = self.total - c["ok"] - c["failed"]
+        return (f"done {c['ok']} failed {c['failed']} remaining {remaining} "
+                f"(cached {c['cached']}, retried {c['retried']})")
+
+    def update(self, event: str) -> None:
+        self.counts[event] += 1
+        if self.bar is not None:
+            adv = 1 if event in ("ok", "failed") else 0
+            self.bar.update(self.task, advance=adv, status=self._status())
+
+    def close(self) -> None:
+        if self.bar is not None:
+            self.bar.stop()
+
+
+def _died_record(spec: RunSpec, exc: BaseException, attempts: int) -> dict:
+    return {"run_key": spec.run_key, "status": FAILED, "rows": [],
+            "error": f"worker process died {attempts} time(s) running this case "
+                     f"({type(exc).__name__}: {' '.join(str(exc).split())}); it may run out of "
+                     "memory: lower [study] workers or raise memory_per_run_gb",
+            "error_type": "WorkerDied", "deterministic": False,
+            "traceback": None, "seconds": None, "host": None, "pid": None}
+
+
+def _error_record(spec: RunSpec, exc: BaseException) -> dict:
+    return {"run_key": spec.run_key, "status": FAILED, "rows": [],
+            "error": " ".join(str(exc).split()) or type(exc).__name__,
+            "error_type": type(exc).__name__, "deterministic": False,
+            "traceback": "".join(traceback.format_exception(exc)), "seconds": None,
+            "host": None, "pid": None}
+
+
+class Engine:
+    """Execute runs through a backend with the result cache in ``cache_dir/study-runs``.
+
+    Parameters
+    ----------
+    runner : str
+        ``"package.module:function"`` of the runner (see :mod:`regtrack.study.runner`).
+    cache_dir : Path
+        Cache root shared with the pipeline's stage cache.
+    scheduler : str, optional
+        Dask scheduler address; None runs a local process pool.
+    workers : int
+        Local pool size, 0 = sized to the machine (ignored with a scheduler).
+    retries : int
+        Re-submissions of a run whose worker died.
+    retry_failed : bool
+        Recompute runs whose failure is cached (after fixing a case, say).
+    progress : bool
+        Show a rich progress bar.
+    """
+
+    def __init__(self, *, runner: str, cache_dir: Path, scheduler: str | None = None,
+                 workers: int = 0, memory_per_run_gb: float = 2.0, retries: int = 2,
+                 retry_failed: bool = False, progress: bool = True):
+        self.runner = runner
+        self.cache = ResultCache(Path(cache_dir) / RESULTS_SUBDIR)
+        self.scheduler = scheduler
+        self.workers = workers
+        self.memory_per_run_gb = memory_per_run_gb
+        self.retries = retries
+        self.retry_failed = retry_failed
+        self.progress = progress
+        self._backend: LocalBackend | object | None = None
+
+    def __enter__(self) -> Engine:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def close(self) -> None:
+        if self._backend is not None:
+            self._backend.close()  # type: ignore[attr-defined]
+            self._backend = None
+
+    def backend(self):
+        if self._backend is None:
+            self._backend = make_backend(scheduler=self.scheduler, workers=self.workers,
+                                         memory_per_run_gb=self.memory_per_run_gb,
+                                         retries=self.retries)
+        return self._backend
+
+    def run(self, runs: list[RunSpec], *, label: str = "study") -> Execution:
+        """Outcomes of ``runs`` (cached or computed); never raises for a failing run."""
+        t0 = time.perf_counter()
+        ex = Execution()
+        pending: list[RunSpec] = []
+        done_groups: set[str] = set()
+        for spec in runs:
+            if spec.run_key in ex.outcomes:
+                continue
+            out = self.cache.load(spec.run_key, retry_failed=self.retry_failed)
+            if out is None:
+                if all(p.run_key != spec.run_key for p in pending):
+                    pending.append(spec)
+                continue
+            ex.outcomes[spec.run_key] = out
+            ex.cached.append(spec.run_key)
+            done_groups.update(spec.groups)
+        log.info("%s: %d runs, %d cached, %d to compute", label, len(ex.cached) + len(pending),
+                 len(ex.cached), len(pending))
+        if pending:
+            prog = _Progress(enabled=self.progress, label=label, total=len(pending),
+                             cached=len(ex.cached))
+            try:
+                self._compute(pending, done_groups, ex, prog)
+            finally:
+                prog.close()
+            backend = self.backend()
+            ex.backend = backend.name
+            ex.workers = backend.workers
+        ex.failed = [k for k, o in ex.outcomes.items() if o["status"] == FAILED]
+        ex.seconds = time.perf_counter() - t0
+        return ex
+
+    def _compute(self, pending: list[RunSpec], done_groups: set[str], ex: Execution,
+                 prog: _Progress) -> None:
+        backend = self.backend()
+        inflight: dict[object, RunSpec] = {}
+        busy: Counter[str] = Counter()
+        attempts: Counter[str] = Counter()
+        while pending or inflight:
+            i = 0
+            while len(inflight) < backend.capacity() and i < len(pending):
+                spec = pending[i]
+                if all(g in done_groups or busy[g] == 0 for g in spec.groups):
+                    pending.pop(i)
+                    fut = backend.submit(self.runner, spec, attempts[spec.run_key])
+                    inflight[fut] = spec
+                    busy.update(spec.groups)
+                else:
+                    i += 1
+            finished = backend.wait(list(inflight))
+            died = False
+            for fut in finished:
+                spec = inflight.pop(fut)
+                busy.subtract(spec.groups)
+                out = self._outcome(fut, spec, attempts, backend)
+                if out is None:  # worker died, re-submitted
+                    died = True
+                    pending.insert(0, spec)
+                    ex.retried += 1
+                    prog.update("retried")
+                    continue
+                died = died or out.get("error_type") == "WorkerDied"
+                self._record(spec, out, ex, prog)
+                done_groups.update(spec.groups)
+            if died and backend.death_breaks_all:
+                # a broken local pool fails every run in flight: collect them, then restart
+                for fut in list(inflight):
+                    spec = inflight.pop(fut)
+                    busy.subtract(spec.groups)
+                    out = self._outcome(fut, spec, attempts, backend)
+                    if out is None:
+                        pending.insert(0, spec)
+                        ex.retried += 1
+                        prog.update("retried")
+                    else:
+                        self._record(spec, out, ex, prog)
+                        done_groups.update(spec.groups)
+                backend.recover()
+
+    def _outcome(self, fut, spec: RunSpec, attempts: Counter, backend) -> dict | None:
+        """The run's outcome; None when its worker died and it should be re-submitted."""
+        try:
+            return fut.result()
+        except Exception as exc:  # noqa: BLE001 - recorded, the study goes on
+            if backend.died(exc):
+                attempts[spec.run_key] += 1
+                n = attempts[spec.run_key]
+                if n <= self.retries:
+                    log.warning("worker died running case %s (run %s); retry %d of %d",
+                                spec.case_id, spec.run_key, n, self.retries)
+                    return None
+                return _died_record(spec, exc, n)
+            return _error_record(spec, exc)
+
+    def _record(self, spec: RunSpec, out: dict, ex: Execution, prog: _Progress) -> None:
+        ex.outcomes[spec.run_key] = out
+        ex.computed.append(spec.run_key)
+        self.cache.store(out)
+        if out["status"] == FAILED:
+            log.info("run failed: case %s %s: %s: %s", spec.case_id, spec.params,
+                        out.get("error_type"), out.get("error"))
+            prog.update("failed")
+        else:
+            prog.update("ok")

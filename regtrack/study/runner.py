@@ -1,0 +1,195 @@
+"""Runs of a study: :class:`RunSpec`, the runner interface and the worker-side wrapper.
+
+A *runner* is a picklable, importable callable ``runner(spec: RunSpec) -> list[dict]``
+that returns one flat metrics row per view.  The default, :func:`pipeline_runner`, calls
+:func:`regtrack.pipeline.run.run_case`; studies may name another one as
+``"package.module:function"`` (it must be importable on every worker).
+
+:func:`execute` is what a worker process actually calls: it never raises for a failing
+run but returns an outcome dict, so a bad case or a diverging simulation becomes a
+failure *record* and the study goes on.  Only the death of the worker process itself
+escapes (and is retried by the engine).  This module imports nothing heavy at the top,
+so a worker sets its thread limits before numpy is loaded.
+"""
+
+from __future__ import annotations
+
+import importlib
+import logging
+import math
+import os
+import socket
+import time
+import traceback
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+log = logging.getLogger(__name__)
+
+#: Outcome status values.
+OK, FAILED = "ok", "failed"
+
+
+@dataclass(frozen=True)
+class RunSpec:
+    """Everything one run needs; picklable, paths as strings.
+
+    Attributes
+    ----------
+    case_dir : str
+        Absolute case folder.
+    case_id : str
+        Case id used in the table.
+    overrides : dict
+        TOML-like override sections (``{"mechanics": {"tissue_c1_kpa": 1.0}, ...}``).
+    views : tuple of str
+        Views to simulate and register (``"CC"``, ``"MLO"``).
+    cache_dir : str
+        Stage-cache root shared by every run (meshes and simulations are re-used).
+    run_key : str
+        Fingerprint of the run's inputs (runner, case content, overrides, views).
+    params : dict
+        The study parameter point (name -> value), copied into the table.
+    out_dir : str or None
+        Folder for the run's own files (overlays, JSON), or None to keep none.
+    index : int
+        Position in the study (table order).
+    groups : tuple of str
+        Share groups (mesh, simulation): the engine starts one run of a group first so
+        the work they share is done once and found in the stage cache by the others.
+    """
+
+    case_dir: str
+    case_id: str
+    overrides: dict
+    views: tuple[str, ...]
+    cache_dir: str
+    run_key: str
+    params: dict = field(default_factory=dict)
+    out_dir: str | None = None
+    index: int = 0
+    groups: tuple[str, ...] = ()
+
+
+def pipeline_runner(spec: RunSpec) -> list[dict]:
+    """The real pipeline: :func:`regtrack.pipeline.run.run_case` on the run's case."""
+    from regtrack.pipeline.run import run_case
+
+    return run_case(Path(spec.case_dir), overrides=spec.overrides, views=spec.views,
+                    cache_dir=Path(spec.cache_dir),
+                    out_dir=Path(spec.out_dir) if spec.out_dir else None)
+
+
+def resolve_runner(ref: str) -> Callable[[RunSpec], list[dict]]:
+    """Import ``"package.module:function"``.
+
+    Raises
+    ------
+    regtrack.errors.ConfigError
+        The module or function cannot be found.
+    """
+    from regtrack.errors import ConfigError
+
+    modname, _, qual = ref.partition(":")
+    try:
+        obj: Any = importlib.import_module(modname)
+        for part in qual.split("."):
+            obj = getattr(obj, part)
+    except (ImportError, AttributeError) as exc:
+        raise ConfigError(f"runner = {ref!r}: cannot import it ({exc}); give an importable "
+                          "'package.module:function'") from None
+    if not callable(obj):
+        raise ConfigError(f"runner = {ref!r}: not callable; name a function")
+    return obj
+
+
+def _clean(value: Any) -> Any:
+    """JSON-safe scalar: numpy scalars -> Python, NaN/inf -> None."""
+    if hasattr(value, "item") and not isinstance(value, (list, dict, str)):
+        try:
+            value = value.item()
+        except (ValueError, AttributeError):
+            pass
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    if isinstance(value, (str, int, float, bool)) or value is None:
+        return value
+    return str(value)
+
+
+def check_rows(rows: Any, spec: RunSpec) -> list[dict]:
+    """Validate a runner's rows: a list with one flat dict per view of the run.
+
+    Raises
+    ------
+    regtrack.errors.ResultCheckError
+        Not a list of dicts, or the views do not match ``spec.views``.
+    """
+    from regtrack.errors import ResultCheckError
+
+    if not isinstance(rows, list) or not all(isinstance(r, dict) for r in rows):
+        raise ResultCheckError(f"runner for case '{spec.case_id}': returned "
+                               f"{type(rows).__name__}, expected a list of dict rows (one per view)")
+    views = [r.get("view") for r in rows]
+    if sorted(map(str, views)) != sorted(spec.views):
+        raise ResultCheckError(f"runner for case '{spec.case_id}': rows for views {views}, "
+                               f"expected one row per view of {list(spec.views)}")
+    return [{str(k): _clean(v) for k, v in r.items()} for r in rows]
+
+
+def execute(runner_ref: str, spec: RunSpec) -> dict:
+    """Run ``spec`` with the runner ``runner_ref``; return an outcome dict, never raise.
+
+    The outcome has ``run_key``, ``status`` (``"ok"``/``"failed"``), ``rows``, ``error``
+    (one line), ``error_type``, ``deterministic`` (True for a :class:`RegtrackError`,
+    which the same inputs would raise again, so it is cached; other exceptions are
+    re-attempted by the next study run), ``traceback``, ``seconds``, ``host`` and ``pid``.
+    """
+    from regtrack.errors import RegtrackError
+
+    t0 = time.perf_counter()
+    base = {"run_key": spec.run_key, "host": socket.gethostname(), "pid": os.getpid()}
+    try:
+        runner = resolve_runner(runner_ref)
+        rows = check_rows(runner(spec), spec)
+    except Exception as exc:  # noqa: BLE001 - every failure becomes a record
+        msg = " ".join(str(exc).split()) or type(exc).__name__
+        log.debug("run %s of case %s failed: %s", spec.run_key, spec.case_id, msg)
+        return {**base, "status": FAILED, "rows": [], "error": msg,
+                "error_type": type(exc).__name__,
+                "deterministic": isinstance(exc, RegtrackError),
+                "traceback": traceback.format_exc(limit=20),
+                "seconds": time.perf_counter() - t0}
+    return {**base, "status": OK, "rows": rows, "error": None, "error_type": None,
+            "deterministic": True, "traceback": None, "seconds": time.perf_counter() - t0}
+
+
+def make_runs(study: Any) -> list[RunSpec]:
+    """Expand a :class:`regtrack.study.spec.Study` into its runs (case-major order).
+
+    Each run's key is the fingerprint of the runner, the case folder's content, the
+    overrides and the views, so an edited case or a changed parameter gives a new key.
+    """
+    from regtrack.pipeline.cache import file_digest, fingerprint
+    from regtrack.study.params import apply_point
+
+    points = study.points()
+    runs = []
+    for case in study.cases:
+        digest = file_digest(case.case_dir)
+        for point in points:
+            ov = apply_point(study.overrides, point, views=study.views)
+            key = fingerprint("study-run", study.runner, digest, ov, list(study.views))
+            mesh_group = fingerprint("mesh", digest, ov.get("model", {}))
+            sim_group = fingerprint("sim", digest, {k: v for k, v in ov.items()
+                                                     if k != "registration"}, list(study.views))
+            out = None
+            if "run_files" in study.outputs:
+                out = str(study.out_dir / "runs" / case.case_id / key)
+            runs.append(RunSpec(case_dir=str(case.case_dir), case_id=case.case_id, overrides=ov,
+                                views=tuple(study.views), cache_dir=str(study.cache_dir),
+                                run_key=key, params=dict(point), out_dir=out, index=len(runs),
+                                groups=(mesh_group, sim_group)))
+    return runs
