@@ -16,15 +16,20 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Exit 0 and print the summary when the case is valid; exit 2 and list every problem
-    (one line each, naming ``case.toml [section] key``) when it is not."""
+    (one line each, naming ``case.toml [section] key``) when it is not.  Writes nothing."""
     import logging
 
     from regtrack.case import format_summary, load_case
     from regtrack.errors import CaseError
 
-    if not getattr(args, "debug", False):  # warnings are printed below, not logged twice
-        logging.getLogger("regtrack.case.loader").setLevel(logging.ERROR)
+    # the summary / problem list is the output: keep the loggers quiet meanwhile (warnings
+    # would print twice, reader INFO lines would clutter the screen); --debug shows all
+    quiet = {} if getattr(args, "debug", False) else {
+        "regtrack.case.loader": logging.ERROR, "regtrack.imaging": logging.WARNING}
+    saved = {name: logging.getLogger(name).level for name in quiet}
     try:
+        for name, level in quiet.items():
+            logging.getLogger(name).setLevel(level)
         case = load_case(args.case, deep=not args.shallow)
     except CaseError as err:
         problems = err.problems
@@ -35,5 +40,8 @@ def run(args: argparse.Namespace) -> int:
         for w in warnings:
             print(f"  warning: {w}", file=sys.stderr)
         return err.exit_code
+    finally:
+        for name, level in saved.items():
+            logging.getLogger(name).setLevel(level)
     print(format_summary(case))
     return 0
