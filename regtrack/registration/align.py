@@ -1,0 +1,256 @@
+"""Rigid 2-D alignment of a virtual mammogram on a real one (Lapuebla-Ferri et al.).
+
+1. *Nipple superposition*: the virtual view is translated so that its nipple ``n_v``
+   falls on the real nipple ``n_p``.
+2. *Rotation about the nipple*: a virtual point ``v`` maps to
+   :math:`v(\\theta) = n_p + R(\\theta)(v - n_v)`.
+3. *Closest-point objective*: both contours are resampled at equal arc length; for each
+   virtual point the closest point ``r_c(i)`` of the real contour is found (KD-tree),
+
+   .. math:: F_b(\\theta) = \\sum_i \\lVert v_i(\\theta) - r_{c(i)} \\rVert^2
+
+   for the breast (open skin line) and :math:`F_t` likewise for the tumour contour(s).
+4. *Golden-section search* of :math:`F_b` and :math:`F_t` separately on
+   :math:`[\\theta_0 - w, \\theta_0 + w]` (``w = bracket_deg``, default 30 deg; nominal
+   :math:`\\theta_0 = 0` for both views because the MLO 45 deg pre-rotation is in the
+   plate frame) gives :math:`\\theta_{p,b}` and :math:`\\theta_{p,t}`;
+   :math:`\\theta_p = (\\theta_{p,b} + \\theta_{p,t}) / 2` is applied to the whole view.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from regtrack.errors import RegistrationError
+from regtrack.registration import geometry as G
+from regtrack.registration.config import RegistrationConfig
+from regtrack.registration.golden import GoldenResult, golden_section
+from regtrack.views import MammogramView
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class Objective:
+    """Closest-point objective of one contour pair (virtual -> real), in mm."""
+
+    virtual: np.ndarray          # (K, 2) resampled virtual points, nipple-centred (v - n_v)
+    closest: G.ClosestPoints     # on the resampled real contour
+    nipple: np.ndarray           # real nipple n_p
+
+    def points(self, theta_deg: float) -> np.ndarray:
+        """Virtual points after superposition and rotation by ``theta_deg``."""
+        return self.virtual @ G.rotation(theta_deg).T + self.nipple
+
+    def distances(self, theta_deg: float) -> np.ndarray:
+        """Per-point closest distances (mm) at ``theta_deg``."""
+        p = self.points(theta_deg)
+        return np.linalg.norm(p - self.closest(p), axis=1)
+
+    def __call__(self, theta_deg: float) -> float:
+        """F(theta): sum of squared closest distances (mm^2)."""
+        return float(np.sum(self.distances(theta_deg) ** 2))
+
+
+@dataclass
+class Alignment:
+    """Result of :func:`align` (angles in degrees, lengths in mm).
+
+    Attributes
+    ----------
+    view : str
+    theta_p_b, theta_p_t, theta_p : float
+        Optimal rotation for the breast, for the tumour, and their mean (deg).
+        ``theta_p_t`` is NaN when the tumour is not used.
+    translation : (2,) float
+        ``n_p - n_v``: nipple superposition (mm).
+    nipple : (2,) float
+        Real nipple ``n_p`` (mm), the centre of rotation.
+    F_b, F_t : dict
+        Objective values (mm^2) at ``theta = 0``, at its own optimum and at ``theta_p``.
+    evaluations_b, evaluations_t : int
+        Golden-section (+ coarse scan) function evaluations.
+    bracket_deg : (2,) float
+        Search interval (deg).
+    breast_contour, tumour_contours :
+        The virtual contours superposed and rotated by ``theta_p`` (mm, real frame).
+    breast_objective, tumour_objective : Objective
+        For re-evaluation by the metrics.
+    config : RegistrationConfig
+    warnings : list of str
+    """
+
+    view: str
+    theta_p_b: float
+    theta_p_t: float
+    theta_p: float
+    translation: np.ndarray
+    nipple: np.ndarray
+    virtual_nipple: np.ndarray
+    F_b: dict
+    F_t: dict
+    evaluations_b: int
+    evaluations_t: int
+    bracket_deg: tuple[float, float]
+    breast_contour: np.ndarray
+    tumour_contours: list[np.ndarray]
+    breast_objective: Objective
+    tumour_objective: Objective | None
+    config: RegistrationConfig
+    warnings: list[str] = field(default_factory=list)
+
+    def transform(self, xy, theta_deg: float | None = None) -> np.ndarray:
+        """Map virtual points (mm) into the real frame: ``n_p + R(theta)(v - n_v)``
+        (default ``theta = theta_p``)."""
+        th = self.theta_p if theta_deg is None else theta_deg
+        return (np.asarray(xy, float) - self.virtual_nipple) @ G.rotation(th).T + self.nipple
+
+    def to_dict(self) -> dict:
+        """JSON-ready summary (angles in deg, contours in mm)."""
+        return {
+            "view": self.view, "theta_p_b_deg": self.theta_p_b,
+            "theta_p_t_deg": None if np.isnan(self.theta_p_t) else self.theta_p_t,
+            "theta_p_deg": self.theta_p, "translation_mm": self.translation.tolist(),
+            "nipple_mm": self.nipple.tolist(), "F_b_mm2": self.F_b, "F_t_mm2": self.F_t,
+            "evaluations_b": self.evaluations_b, "evaluations_t": self.evaluations_t,
+            "bracket_deg": list(self.bracket_deg),
+            "breast_contour_mm": self.breast_contour.tolist(),
+            "tumour_contours_mm": [c.tolist() for c in self.tumour_contours],
+            "warnings": self.warnings,
+        }
+
+
+def _label(v: MammogramView, who: str) -> str:
+    src = f" ({v.source})" if v.source else ""
+    return f"{who} {v.view} view{src}"
+
+
+def check_view(v: MammogramView, who: str, cfg: RegistrationConfig) -> None:
+    """Raise :class:`RegistrationError` on degenerate inputs (one line naming the view)."""
+    name = _label(v, who)
+    bc = np.asarray(v.breast_contour, float)
+    if bc.ndim != 2 or bc.shape[1] != 2 or len(bc) < cfg.min_breast_points:
+        raise RegistrationError(
+            f"{name}: breast contour has {len(bc)} points (< {cfg.min_breast_points}); "
+            "check the mammogram segmentation or the simulation result")
+    nip = np.asarray(v.nipple, float).reshape(-1)
+    if not (np.isfinite(bc).all() and nip.shape == (2,) and np.isfinite(nip).all()):
+        raise RegistrationError(f"{name}: breast contour or nipple is not finite; give the "
+                                "nipple explicitly (case.toml [views.*] nipple_px)")
+    if not cfg.use_tumour:
+        return
+    if not v.tumour_contours:
+        fix = ("annotate it (case.toml [views.*] tumour_polygon or tumour_mask)"
+               if who == "real" else "the model has no tumour region")
+        raise RegistrationError(f"{name}: no tumour contour; {fix}, or set [registration] "
+                                "use_tumour = false to align on the breast contour only")
+    breast = G.polygon(bc)
+    for k, t in enumerate(v.tumour_contours):
+        t = np.asarray(t, float)
+        if t.ndim != 2 or t.shape[1:] != (2,) or len(t) < cfg.min_tumour_points or not np.isfinite(t).all():
+            raise RegistrationError(
+                f"{name}: tumour contour {k} has {len(t)} points (< {cfg.min_tumour_points}) "
+                "or non-finite values; redraw the tumour polygon")
+        c = G.polygon(t).representative_point()
+        if not breast.covers(c):
+            raise RegistrationError(
+                f"{name}: tumour contour {k} (near x={c.x:.1f}, y={c.y:.1f} mm) lies outside the "
+                "breast contour; check the tumour annotation's pixel grid and the view's flip")
+
+
+def _objective(virtual: list[np.ndarray], real: list[np.ndarray], *, closed: bool,
+               nv: np.ndarray, npr: np.ndarray, cfg: RegistrationConfig) -> Objective:
+    rs = [G.resample(r, cfg.resample_mm, closed=closed) for r in real]
+    vs = [G.resample(v, cfg.resample_mm, closed=closed) for v in virtual]
+    if closed and len(rs) > 1:
+        # several tumours: match against all real tumour points (segment refinement per contour
+        # would cross contours, so use vertices only)
+        cp = G.ClosestPoints(np.vstack(rs), closed=False, segment=False)
+    else:
+        cp = G.ClosestPoints(rs[0], closed=closed, segment=cfg.match == "segment")
+    return Objective(np.vstack(vs) - nv, cp, npr)
+
+
+def _search(obj: Objective, lo: float, hi: float, cfg: RegistrationConfig) -> GoldenResult:
+    n0 = 0
+    if cfg.coarse_step_deg > 0:
+        grid = np.arange(lo, hi + 1e-9, cfg.coarse_step_deg)
+        vals = [obj(t) for t in grid]
+        n0 = len(grid)
+        k = int(np.argmin(vals))
+        lo, hi = grid[max(k - 1, 0)], grid[min(k + 1, len(grid) - 1)]
+    r = golden_section(obj, lo, hi, tol=cfg.tol_deg)
+    return GoldenResult(r.x, r.fun, r.evaluations + n0, r.bracket, r.at_edge)
+
+
+def align(real: MammogramView, virtual: MammogramView, *,
+          config: RegistrationConfig | None = None) -> Alignment:
+    """Align ``virtual`` on ``real``: nipple superposition + golden-section rotation.
+
+    Parameters
+    ----------
+    real, virtual : MammogramView
+        Same view and laterality, canonical 2-D frame (mm).
+    config : RegistrationConfig, optional
+
+    Returns
+    -------
+    Alignment
+
+    Raises
+    ------
+    RegistrationError
+        Different views/sides, too few contour points, missing tumour contour, tumour
+        outside the breast, non-finite input.
+    """
+    cfg = config or RegistrationConfig()
+    if real.view.upper() != virtual.view.upper():
+        raise RegistrationError(f"cannot align a virtual {virtual.view} view on a real "
+                                f"{real.view} view; project the matching view")
+    if real.laterality != virtual.laterality:
+        raise RegistrationError(f"real {real.view} view is side {real.laterality} but the "
+                                f"model is side {virtual.laterality}; check case.toml [mri] side")
+    check_view(real, "real", cfg)
+    check_view(virtual, "virtual", cfg)
+    npr = np.asarray(real.nipple, float)
+    nv = np.asarray(virtual.nipple, float)
+    th0 = cfg.nominal_deg(real.view)
+    lo, hi = th0 - cfg.bracket_deg, th0 + cfg.bracket_deg
+    warnings: list[str] = []
+
+    ob = _objective([virtual.breast_contour], [real.breast_contour], closed=False,
+                    nv=nv, npr=npr, cfg=cfg)
+    rb = _search(ob, lo, hi, cfg)
+    if rb.at_edge:
+        warnings.append(f"theta_p,b = {rb.x:.2f} deg is at the edge of the search bracket "
+                        f"[{lo:g}, {hi:g}]; widen [registration] bracket_deg")
+    ot, rt = None, None
+    if cfg.use_tumour:
+        ot = _objective(list(virtual.tumour_contours), list(real.tumour_contours), closed=True,
+                        nv=nv, npr=npr, cfg=cfg)
+        rt = _search(ot, lo, hi, cfg)
+        if rt.at_edge:
+            warnings.append(f"theta_p,t = {rt.x:.2f} deg is at the edge of the search bracket "
+                            f"[{lo:g}, {hi:g}]; widen [registration] bracket_deg")
+    theta_t = rt.x if rt is not None else float("nan")
+    theta_p = 0.5 * (rb.x + rt.x) if rt is not None else rb.x
+    for w in warnings:
+        log.warning("%s: %s", _label(virtual, "virtual"), w)
+
+    def rot(xy):
+        return (np.asarray(xy, float) - nv) @ G.rotation(theta_p).T + npr
+
+    F_b = {"theta_0": ob(0.0), "theta_p_b": rb.fun, "theta_p": ob(theta_p)}
+    F_t = {} if ot is None else {"theta_0": ot(0.0), "theta_p_t": rt.fun, "theta_p": ot(theta_p)}
+    log.info("%s: theta_p,b = %.3f deg (%d evaluations), theta_p,t = %.3f deg, theta_p = %.3f deg",
+             real.view, rb.x, rb.evaluations, theta_t, theta_p)
+    return Alignment(
+        view=real.view, theta_p_b=rb.x, theta_p_t=theta_t, theta_p=theta_p,
+        translation=npr - nv, nipple=npr, virtual_nipple=nv, F_b=F_b, F_t=F_t,
+        evaluations_b=rb.evaluations, evaluations_t=0 if rt is None else rt.evaluations,
+        bracket_deg=(lo, hi), breast_contour=rot(virtual.breast_contour),
+        tumour_contours=[rot(t) for t in virtual.tumour_contours],
+        breast_objective=ob, tumour_objective=ot, config=cfg, warnings=warnings)
