@@ -383,7 +383,7 @@ def write_dicom_series(
         ds.file_meta.TransferSyntaxUID = ExplicitVRLittleEndian
         ds.PixelData = arr.tobytes()
         if ts != ExplicitVRLittleEndian:
-            ds.compress(ts, arr)
+            ds.compress(ts, arr, generate_instance_uid=False)
         path = folder / f"slice_{k:04d}.dcm"
         with atomic_path(path) as tmp:
             ds.save_as(tmp, enforce_file_format=True)

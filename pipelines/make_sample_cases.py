@@ -1,0 +1,297 @@
+"""Build the bundled sample cases: ``sample_cases/phantom01`` and ``sample_cases/pelicano_exam03``.
+
+Usage::
+
+    .venv/bin/python pipelines/make_sample_cases.py [--only phantom01|pelicano_exam03]
+        [--out sample_cases] [--shared-data ../shared/data]
+
+* ``phantom01``: the default :class:`regtrack.phantom.PhantomParams` (seed 1): a DICOM MR
+  series (one file per slice, JPEG 2000 lossless), the label map (int8 NIfTI) and the
+  ground truth in ``truth/`` (never read by the pipeline).
+* ``pelicano_exam03``: the right breast of Pelicano exam 03 (simple labels), cropped with
+  its real-world geometry intact, int8 NIfTI, with the citation.  Needs ../shared/data.
+
+Both are deterministic: re-running gives identical label maps and DICOM files.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+from pathlib import Path
+
+import numpy as np
+from scipy import ndimage
+
+from regtrack import _io
+from regtrack.imaging.readers import read_label_map, write_dicom_series, write_label_map
+from regtrack.imaging.volume import LabelVolume
+from regtrack.phantom import PhantomParams, make_phantom
+
+log = logging.getLogger("make_sample_cases")
+REPO = Path(__file__).resolve().parents[1]
+
+PELICANO_CITATION = """\
+A. C. Pelicano, M. C. T. Gonçalves, D. M. Godinho, T. Castela, M. L. Orvalho, N. A. M. Araújo,
+E. Porter and R. C. Conceição, "Development of 3D MRI-Based Anatomically Realistic Models of
+Breast Tissues and Tumours for Microwave Imaging Diagnosis", *Sensors* 21(24):8265, 2021.
+
+A. C. Pelicano et al., "Anatomically realistic MRI-based breast models with tumours"
+(breast models repository and data description), *PLoS One*, 2024.
+"""
+
+
+# ----------------------------------------------------------------------------- phantom01
+
+
+def phantom_case_toml(case_id: str, truth: dict) -> str:
+    nip = ", ".join(f"{v:.2f}" for v in truth["nipple_lps_mm"])
+    return f'''# Synthetic prone breast phantom made by pipelines/make_sample_cases.py
+# (regtrack.phantom, seed {truth["params"]["seed"]}).  Ground truth: truth/phantom_truth.json.
+[case]
+id = "{case_id}"
+title = "Synthetic prone breast phantom (right breast, 25x22x25 mm tumour)"
+
+[mri]
+labels = "mri/labels.nii.gz"
+series = "mri/dicom"
+scheme = "pelicano-detailed"
+side = "R"
+# the generator's exact nipple (LPS, mm) is in truth/; uncomment to override detection:
+# nipple_lps_mm = [{nip}]
+
+# Mammograms for this case come in a later issue:
+# [views.CC]
+# mammogram = "mammo/cc.dcm"
+# tumour_polygon = "mammo/cc_tumour.json"
+# [views.MLO]
+# mammogram = "mammo/mlo.dcm"
+# tumour_polygon = "mammo/mlo_tumour.json"
+'''
+
+
+def make_phantom01(out: Path, *, case_id: str = "phantom01") -> Path:
+    """Write the phantom case folder; returns it."""
+    case = out / case_id
+    params = PhantomParams()
+    mri, labels, truth = make_phantom(params)
+    write_label_map(labels, case / "mri" / "labels.nii.gz")
+    write_dicom_series(mri, case / "mri" / "dicom", patient=case_id,
+                       series_description="synthetic T1 prone breast (regtrack.phantom)",
+                       uid_seed=f"regtrack-{case_id}", progress=True)
+    _io.write_json(case / "truth" / "phantom_truth.json", truth)
+    _io.write_text(case / "case.toml", phantom_case_toml(case_id, truth))
+    _io.write_text(case / "README.md", PHANTOM_README.format(case_id=case_id, **_fmt_truth(truth)))
+    return case
+
+
+def _fmt_truth(t: dict) -> dict:
+    f = lambda v: "[" + ", ".join(f"{x:.1f}" for x in v) + "]"  # noqa: E731
+    return {"nipple": f(t["nipple_lps_mm"]), "tumour": f(t["tumour_centroid_lps_mm"]),
+            "extent": f(t["tumour_extent_lps_mm"]), "tvol": f"{t['tumour_volume_mm3']:.0f}",
+            "bvol": f"{t['breast_mound_volume_mm3'] / 1000:.0f}", "shape": "x".join(map(str, t["shape"]))}
+
+
+PHANTOM_README = """\
+# {case_id}: synthetic prone breast phantom
+
+Made by `pipelines/make_sample_cases.py` with `regtrack.phantom.make_phantom(PhantomParams())`
+(seed 1).  Nothing here comes from a patient.
+
+* `mri/dicom/`: T1-like MR series, one file per axial slice (MR Image Storage, JPEG 2000
+  lossless), {shape} voxels of 0.66 x 0.66 x 1.4 mm, head-first prone, LPS geometry in
+  ImagePositionPatient / ImageOrientationPatient / PixelSpacing / SliceThickness.
+* `mri/labels.nii.gz`: label map on the same grid, detailed Pelicano convention: -3 tumour,
+  -2 skin (with the nipple), -1 pectoral muscle, 0 background, 1-3 fibroglandular,
+  4 transition, 5-7 fat.
+* `truth/phantom_truth.json`: ground truth (the pipeline never reads it): nipple {nipple} mm,
+  tumour centroid {tumour} mm and extent {extent} mm (LPS), tumour volume {tvol} mm^3,
+  breast mound volume {bvol} cm^3, and every generator parameter.
+* `case.toml`: the case description (mammograms come in a later issue).
+"""
+
+
+# ----------------------------------------------------------------------------- pelicano
+
+
+def _lr_axis(vol: LabelVolume) -> int:
+    """Array axis closest to the LPS x (left-right) direction."""
+    return int(np.argmax(np.abs(vol.direction[0, :])))
+
+
+def _bin_min(keys: np.ndarray, values: np.ndarray, n: int) -> np.ndarray:
+    out = np.full(n, np.inf)
+    np.minimum.at(out, keys, values)
+    return out
+
+
+def crop_tumour_breast(vol: LabelVolume, *, tumour_labels=(-3, -4), muscle_label: int = -1,
+                       min_thickness_mm: float = 25.0, rel_thickness: float = 0.4, margin_mm: float = 15.0,
+                       bin_mm: float = 2.0) -> tuple[LabelVolume, dict]:
+    """Crop the breast holding the tumour, keeping its muscle and skin and the LPS affine.
+
+    Works in LPS coordinates (any voxel orientation).  On a grid of ``bin_mm`` columns in
+    the (x = LR, z = SI) plane:
+
+    * the cleavage is the LR position between the two breasts where the body's anterior
+      extent (min y) is most posterior;
+    * a column belongs to the breast when it holds muscle and the body reaches more than
+      ``max(min_thickness_mm, rel_thickness * thickest)`` anterior of the column's muscle
+      front (the chest wall), on the tumour's side, connected to the thickest column (this
+      leaves out the chest and abdomen wall, which are thinner than the breast);
+    * the box spans those columns plus ``margin_mm`` (never past the cleavage), from
+      ``margin_mm`` anterior of the breast to 3 mm behind the muscle under it.
+    """
+    data = vol.data
+    idx = np.argwhere(data != 0)
+    xyz = vol.index_to_world(idx)
+    lab = data[tuple(idx.T)]
+    tum = np.isin(lab, tumour_labels)
+    if not tum.any():
+        raise ValueError(f"{vol.source}: no tumour label {tumour_labels}")
+    x_t = xyz[tum, 0].mean()
+    # cleavage from the anterior extent per LR bin
+    bx = np.floor(xyz[:, 0] / bin_mm).astype(int)
+    bx0 = bx.min()
+    front_x = _bin_min(bx - bx0, xyz[:, 1], bx.max() - bx0 + 1)
+    cx = (np.arange(front_x.size) + bx0 + 0.5) * bin_mm
+    ok = np.isfinite(front_x)
+    mid = 0.5 * (cx[ok].min() + cx[ok].max())
+    peaks = [cx[ok & sel][np.argmin(front_x[ok & sel])] for sel in (cx < mid, cx >= mid)]
+    between = ok & (cx > min(peaks)) & (cx < max(peaks))
+    cleavage = float(cx[between][np.argmax(front_x[between])])
+    side = "R" if x_t < cleavage else "L"  # LPS: patient right is -x
+    # breast columns: body far anterior of the chest wall
+    bz = np.floor(xyz[:, 2] / bin_mm).astype(int)
+    bz0 = bz.min()
+    nz = bz.max() - bz0 + 1
+    key = (bx - bx0) * nz + (bz - bz0)
+    n = front_x.size * nz
+    front = _bin_min(key, xyz[:, 1], n)
+    mus = lab == muscle_label
+    muscle_front = _bin_min(key[mus], xyz[mus, 1], n)
+    half = xyz[:, 0] < cleavage if side == "R" else xyz[:, 0] >= cleavage
+    thick = np.zeros(n)
+    has = np.isfinite(muscle_front) & np.isfinite(front)
+    thick[has] = muscle_front[has] - front[has]
+    side_cols = np.zeros(n, bool)
+    side_cols[key[half]] = True
+    thick[~side_cols] = 0.0
+    thr = max(min_thickness_mm, rel_thickness * thick.max())
+    comp, _ = ndimage.label((thick > thr).reshape(-1, nz))
+    col_breast = (comp.ravel() == comp.ravel()[np.argmax(thick)]) & (thick > thr)
+    breast = half & col_breast[key]
+    if not breast.any():
+        raise ValueError(f"{vol.source}: no breast column thicker than {min_thickness_mm} mm")
+    lo_w = xyz[breast].min(0) - margin_mm
+    hi_w = xyz[breast].max(0) + margin_mm
+    in_lr_si = ((xyz[:, 0] >= lo_w[0]) & (xyz[:, 0] <= hi_w[0]) & (xyz[:, 2] >= lo_w[2])
+                & (xyz[:, 2] <= hi_w[2]) & half)
+    hi_w[1] = xyz[in_lr_si & mus, 1].max() + 3.0
+    if side == "R":
+        hi_w[0] = min(hi_w[0], cleavage)
+    else:
+        lo_w[0] = max(lo_w[0], cleavage)
+    corners = np.array([[a, b, c] for a in (lo_w[0], hi_w[0]) for b in (lo_w[1], hi_w[1])
+                        for c in (lo_w[2], hi_w[2])])
+    ijk = vol.world_to_index(corners)
+    lo = np.maximum(np.floor(ijk.min(0)).astype(int), 0)
+    hi = np.minimum(np.ceil(ijk.max(0)).astype(int) + 1, vol.shape)
+    cropped = vol.crop(lo, hi)
+    info = {"side": side, "cleavage_lps_x_mm": cleavage, "index_lo": lo.tolist(),
+            "index_hi": hi.tolist(), "source_shape": list(vol.shape),
+            "source_affine": vol.affine.tolist()}
+    return cropped, info
+
+
+PELICANO_README = """\
+# pelicano_exam{exam}: one real breast (Pelicano exam {exam}, {side_word} breast)
+
+`mri/labels.nii.gz` is the {side_word} breast of exam {exam} of the Pelicano breast models,
+cropped from `Exam_{exam}/{src_name}` (simple labels: -4 benign tumour, -3 malignant tumour,
+-2 skin, -1 muscle, 0 background, 1 fat and gland) and stored as int8 gzip NIfTI.  Only the
+crop and the file format changed: the labels and the real-world geometry (origin, spacing,
+direction in LPS, from the MetaImage header) are the original ones; `provenance.json` gives
+the crop box in the original voxel indices and the original affine.
+
+Published tumour of this exam: right breast, small malignant (8.5 x 11.2 x 9.2 mm).
+Derived from 3.0 T prone breast MRI at Hospital da Luz, Lisbon.  There are no mammograms
+for this exam, so the case has no `[views.*]`.
+
+## Source and citation
+
+The label maps were made and published for research by A. C. Pelicano and colleagues.
+If you use this case, cite:
+
+{citation}
+## Terms
+
+As stated in the project's data notes: the Pelicano label maps were "made by other people and
+published for research"; this repository may bundle exactly this one cropped, single-breast,
+compressed label map as a real-geometry sample case, with this citation.  Use it for research
+and testing only, and cite the papers above.  No other file of that data set is part of this
+repository.
+"""
+
+
+def pelicano_case_toml(exam: str, side: str) -> str:
+    return f'''# One real breast from the Pelicano breast models (exam {exam}); see README.md for the citation.
+[case]
+id = "pelicano_exam{exam}"
+title = "Pelicano exam {exam}, {"right" if side == "R" else "left"} breast (real MRI-derived label map)"
+
+[mri]
+labels = "mri/labels.nii.gz"
+scheme = "pelicano-simple"
+side = "{side}"
+
+# No mammograms are published for this exam; add [views.CC] / [views.MLO] to use your own.
+'''
+
+
+def make_pelicano_case(out: Path, shared: Path, *, exam: str = "03") -> Path:
+    """Crop the tumour breast of a Pelicano exam into ``out/pelicano_exam<exam>``."""
+    folder = shared / "pelicano" / f"Exam_{exam}"
+    src = next((p for p in sorted(folder.glob("*.zip")) if "simple" in p.name.lower()), None)
+    if src is None:
+        raise FileNotFoundError(f"{folder}: no *simple*.zip label map (is ../shared/data there?)")
+    vol = read_label_map(src, label_dtype=np.int8)
+    cropped, info = crop_tumour_breast(vol)
+    case = out / f"pelicano_exam{exam}"
+    write_label_map(cropped, case / "mri" / "labels.nii.gz")
+    info.update(source=f"pelicano/Exam_{exam}/{src.name}", cropped_shape=list(cropped.shape),
+                cropped_affine=cropped.affine.tolist(),
+                label_voxel_counts={int(k): int(c) for k, c in zip(*np.unique(cropped.data, return_counts=True))})
+    _io.write_json(case / "provenance.json", info)
+    _io.write_text(case / "case.toml", pelicano_case_toml(exam, info["side"]))
+    _io.write_text(case / "README.md", PELICANO_README.format(
+        exam=exam, side_word="right" if info["side"] == "R" else "left", src_name=src.name,
+        citation=PELICANO_CITATION))
+    _io.write_text(case / "CITATION.md", PELICANO_CITATION)
+    return case
+
+
+def _size_mb(folder: Path) -> float:
+    return sum(p.stat().st_size for p in folder.rglob("*") if p.is_file()) / 1e6
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--out", type=Path, default=REPO / "sample_cases")
+    ap.add_argument("--shared-data", type=Path, default=REPO.parent / "shared" / "data")
+    ap.add_argument("--only", choices=("phantom01", "pelicano_exam03"))
+    args = ap.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+    made = []
+    if args.only in (None, "phantom01"):
+        made.append(make_phantom01(args.out))
+    if args.only in (None, "pelicano_exam03"):
+        made.append(make_pelicano_case(args.out, args.shared_data, exam="03"))
+    for case in made:
+        log.info("%s: %.2f MB", case, _size_mb(case))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
