@@ -164,7 +164,7 @@ def test_case_toml_path_and_shallow_mode(case_dir: Path) -> None:
 def test_summary_mentions_the_essentials(case_dir: Path) -> None:
     text = format_summary(load_case(case_dir))
     assert text.count("\n") < 40  # one screen
-    for needle in ("synth01", "14 x 12 x 10 voxels", "1 x 1 x 1.5 mm", "tumour", "-3: 8 vox",
+    for needle in ("synth01", "14 x 12 x 10 voxels", "1 x 1 x 1.5 mm", "tumour", "-3 malignant tumour: 8 vox",
                    "40 x 30 px", "0.1 x 0.1 mm (ImagerPixelSpacing)", "[mechanics] nu = 0.495"):
         assert needle in text, needle
 
@@ -533,3 +533,64 @@ def test_real_pelicano_labels_and_cbis_ddsm_mammograms(tmp_path: Path) -> None:
     cc = case.mammograms["CC"]
     assert (cc.rows, cc.columns, cc.laterality, cc.spacing_source) == (4560, 2864, "R", "case.toml")
     assert any("no tumour_polygon or tumour_mask" in w for w in case.warnings)
+
+
+# ----------------------------------------------------------------------------- extras
+def _write_series(folder: Path, *, origin=ORIGIN) -> None:
+    from regtrack.imaging.dicom_series import write_dicom_series
+    from regtrack.imaging.volume import ImageVolume, make_affine
+
+    vol = ImageVolume(label_data().astype(float) * 10 + 100, make_affine(origin, SPACING))
+    write_dicom_series(vol, folder, transfer_syntax="explicit")
+
+
+def test_mri_series_on_the_label_grid(case_dir: Path) -> None:
+    _write_series(case_dir / "mri" / "dicom")
+    doc = valid_doc()
+    doc["mri"]["series"] = "mri/dicom"
+    write_doc(case_dir, doc)
+    assert load_case(case_dir).mri.series == case_dir / "mri" / "dicom"
+
+
+def test_mri_series_off_the_label_grid(case_dir: Path) -> None:
+    """A series shifted by 2 mm (> half of the 1.5 mm largest voxel size) is refused."""
+    _write_series(case_dir / "mri" / "dicom", origin=(ORIGIN[0] + 2.0, ORIGIN[1], ORIGIN[2]))
+    doc = valid_doc()
+    doc["mri"]["series"] = "mri/dicom"
+    write_doc(case_dir, doc)
+    with pytest.raises(CaseError, match=r"\[mri\] series = 'mri/dicom': voxel grid is 2\.00 mm "
+                                        r"away from the label map's \(tolerance 0\.75 mm\)"):
+        load_case(case_dir)
+
+
+def test_protocol_file_override(case_dir: Path) -> None:
+    from importlib import resources
+
+    shipped = resources.files("regtrack.mechanics") / "data" / "protocols" / "mlo.toml"
+    (case_dir / "my_mlo.toml").write_text(shipped.read_text(encoding="utf-8"))
+    doc = valid_doc()
+    doc["protocol"] = {"MLO": {"protocol": "my_mlo.toml", "target_D": 0.3}}
+    write_doc(case_dir, doc)
+    case = load_case(case_dir)
+    assert case.override_table("protocol.MLO") == {"protocol": "my_mlo.toml", "target_D": 0.3}
+    assert case.config("protocol.MLO").target_D == 0.3
+    doc["protocol"] = {"CC": {"protocol": "my_mlo.toml"}}  # an MLO protocol for the CC view
+    write_doc(case_dir, doc)
+    with pytest.raises(CaseError, match=r"\[protocol\.CC\] protocol = 'my_mlo\.toml': .*is a MLO "
+                                        r"protocol; give a CC protocol"):
+        load_case(case_dir)
+    doc["protocol"] = {"CC": {"protocol": "../my_cc.toml"}}
+    write_doc(case_dir, doc)
+    with pytest.raises(CaseError, match=r"\[protocol\.CC\] protocol = '\.\./my_cc\.toml': the path "
+                                        r"leaves the case folder"):
+        load_case(case_dir, deep=False)
+
+
+def test_config_defaults_for_absent_sections(case_dir: Path) -> None:
+    from regtrack.case import config_class
+
+    case = load_case(case_dir, deep=False)
+    for section in ("contact", "registration", "model"):
+        cls = config_class(section)
+        if cls is not None:
+            assert case.config(section) == cls()

@@ -69,3 +69,11 @@ def resolve_inside(root: Path, value: str, *, at: str, kind: Literal["file", "di
         return None, (f"{shown}: unsupported file type '{_suffix(candidate) or '(none)'}'; "
                       "use one of " + ", ".join(suffixes))
     return candidate, None
+
+
+def strip_path(message: str, path: Path) -> str:
+    """Drop a leading ``"<path>: "`` from a reader's message (the caller names the file)."""
+    for prefix in (f"{path}: ", f"{path.name}: "):
+        if message.startswith(prefix):
+            return message[len(prefix):]
+    return message

@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
+from regtrack.case._paths import strip_path
 from regtrack.case.schema import LabelMapInfo, MriInput
 from regtrack.errors import RegtrackError
 from regtrack.imaging.volume import LabelVolume, make_affine
@@ -130,14 +131,6 @@ def check_nipple(vol: LabelVolume, nipple_lps_mm, *, where: str, name: str) -> l
     return [f"{where} [mri] nipple_lps_mm = {list(nipple_lps_mm)}: outside {name} (LPS extent "
             f"{np.round(lo, 1).tolist()} to {np.round(hi, 1).tolist()} mm); give the nipple in "
             "the label map's patient coordinates (LPS, mm)"]
-
-
-def strip_path(message: str, path: Path) -> str:
-    """Drop a leading ``"<path>: "`` from a reader's message (the caller names the file)."""
-    for prefix in (f"{path}: ", f"{path.name}: "):
-        if message.startswith(prefix):
-            return message[len(prefix):]
-    return message
 
 
 def check_label_map(mri: MriInput, *, where: str,

@@ -15,7 +15,7 @@ import tomllib
 from pathlib import Path
 
 from regtrack.case._paths import resolve_inside
-from regtrack.case.overrides import parse_overrides
+from regtrack.case.overrides import check_protocol_files, parse_overrides
 from regtrack.case.schema import (
     LABEL_SUFFIXES,
     MASK_SUFFIXES,
@@ -260,6 +260,7 @@ def load_case(path: str | os.PathLike, *, deep: bool = True) -> Case:
     views = _parse_views(doc, root, where, f)
     parsed, p, w = parse_overrides(doc, where=where)
     f.add(p, w)
+    f.add(check_protocol_files(parsed, root, where=where, deep=deep))
     overrides = {sec: Overrides(section=sec, target=_target(sec), table=tbl, config=cfg)
                  for sec, (tbl, cfg) in parsed.items()}
     label_map: LabelMapInfo | None = None

@@ -13,8 +13,8 @@ from pathlib import Path
 
 import numpy as np
 
+from regtrack.case._paths import strip_path
 from regtrack.case.annotations import read_tumour_mask, read_tumour_polygons
-from regtrack.case.inputs import strip_path
 from regtrack.case.schema import MammogramInfo, ViewInput
 from regtrack.errors import RegtrackError
 

@@ -11,8 +11,10 @@ from __future__ import annotations
 
 import importlib
 import logging
+from pathlib import Path
 from typing import Any
 
+from regtrack.case._paths import resolve_inside, strip_path
 from regtrack.config import closest_key, parse_section
 from regtrack.views import VIEWS
 
@@ -99,3 +101,28 @@ def parse_overrides(doc: dict, *, where: str) -> tuple[dict[str, tuple[dict, Any
         warnings += w
         out[section] = (table, obj)
     return out, problems, warnings
+
+
+def check_protocol_files(parsed: dict[str, tuple[dict, Any]], root: Path, *, where: str,
+                         deep: bool) -> list[str]:
+    """``[protocol.<V>] protocol = FILE`` must be a ``.toml`` inside the case folder; with
+    ``deep`` the file is also parsed and must be a protocol of view ``<V>``."""
+    problems: list[str] = []
+    for section, (table, cfg) in parsed.items():
+        value = getattr(cfg, "protocol", None) if section.startswith("protocol.") else None
+        if not isinstance(value, str):
+            continue
+        at = f"{where} [{section}] protocol"
+        path, prob = resolve_inside(root, value, at=at, suffixes=(".toml",))
+        if prob:
+            problems.append(prob)
+            continue
+        if deep:
+            from regtrack.errors import RegtrackError
+            from regtrack.mechanics.protocol import protocol_for_view
+
+            try:
+                protocol_for_view(section.split(".")[1], table, where=where, base_dir=root)
+            except RegtrackError as exc:
+                problems.append(f"{at} = {value!r}: {strip_path(str(exc), path)}")  # type: ignore[arg-type]
+    return problems

@@ -32,8 +32,13 @@ def _labels_line(case: Case) -> list[str]:
         present = [(v, lm.counts[v]) for v in values if v in lm.counts]
         if not values:
             continue
-        text = ", ".join(f"{v}: {n} vox ({n * vol_ml:.3g} mL)" for v, n in present) or "absent"
-        out.append(f"  {cls:<14} {text}")
+        if not present:
+            out.append(f"  {cls:<14} absent (values {list(values)})")
+            continue
+        names = scheme.names if cls == "tumour" else {}
+        text = ", ".join(f"{v}{' ' + names[v] if v in names else ''}: {n}" for v, n in present)
+        total = sum(n for _, n in present)
+        out.append(f"  {cls:<14} {text} vox ({total * vol_ml:.3g} mL)")
     return out
 
 
