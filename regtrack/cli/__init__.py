@@ -21,6 +21,7 @@ import sys
 COMMANDS: dict[str, str] = {
     "validate": "regtrack.cli.validate",
     "study": "regtrack.cli.study",
+    "project": "regtrack.cli.project",
 }
 
 
