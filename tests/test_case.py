@@ -594,3 +594,52 @@ def test_config_defaults_for_absent_sections(case_dir: Path) -> None:
         cls = config_class(section)
         if cls is not None:
             assert case.config(section) == cls()
+
+
+def test_tumour_values_required_without_preset(case_dir: Path) -> None:
+    doc = valid_doc()
+    del doc["mri"]["scheme"]
+    doc["mri"]["label_values"] = {"tissue": [2, 7], "skin": [-2], "muscle": [-1]}
+    write_doc(case_dir, doc)
+    with pytest.raises(CaseError, match=r"\[mri\.label_values\] tumour: no tumour label values"):
+        load_case(case_dir, deep=False)
+
+
+# ----------------------------------------------------------------------------- docs
+DOC = Path(__file__).resolve().parents[1] / "docs" / "case-format.md"
+
+
+def _doc_example() -> dict:
+    import tomllib
+
+    text = DOC.read_text(encoding="utf-8")
+    block = text.split("## A complete example", 1)[1].split("```toml", 1)[1].split("```", 1)[0]
+    return tomllib.loads(block)
+
+
+def test_documented_example_is_valid_toml_without_warnings(tmp_path: Path) -> None:
+    """Every key of the example in docs/case-format.md is known and in range."""
+    from regtrack.case.overrides import parse_overrides
+    from regtrack.case.schema import CaseTable, MriTable, ViewTable
+    from regtrack.config import parse_section
+
+    doc = _doc_example()
+    problems, warnings = [], []
+    for cls, table, where in [(CaseTable, doc["case"], "[case]"), (MriTable, doc["mri"], "[mri]")] + [
+            (ViewTable, t, f"[views.{v}]") for v, t in doc["views"].items()]:
+        _, p, w = parse_section(cls, table, where=where)
+        problems += p
+        warnings += w
+    _, p, w = parse_overrides(doc, where="example")
+    assert problems + p == [] and warnings + w == []
+    assert set(doc["views"]) == {"CC", "MLO"}
+
+
+def test_generated_key_reference_is_up_to_date() -> None:
+    from regtrack.case.reference import BEGIN, END, format_reference
+
+    text = DOC.read_text(encoding="utf-8")
+    current = BEGIN + text.split(BEGIN, 1)[1].split(END, 1)[0] + END
+    assert current == format_reference(), (
+        "docs/case-format.md key reference is stale: run "
+        "`python -m regtrack.case.reference --write docs/case-format.md`")

@@ -125,6 +125,10 @@ def _parse_scheme(mri: MriTable, where: str, f: _Findings) -> tuple[LabelScheme 
     except CaseError as exc:
         f.problems += exc.problems
         return None, None
+    if not scheme.tumour:
+        f.problems.append(f"{where} [mri.label_values] tumour: no tumour label values; list "
+                          "them, e.g. tumour = [-3, -4]")
+        return None, None
     return scheme, mri.scheme
 
 
