@@ -192,65 +192,90 @@ class Engine:
 
     def _compute(self, pending: list[RunSpec], done_groups: set[str], ex: Execution,
                  prog: _Progress) -> None:
+        """Submit, collect and retry until every pending run has an outcome.
+
+        Worker deaths on a local pool break the whole pool, so the culprit is unknown
+        when several runs were in flight: they all become *suspects*, are not charged a
+        retry, and are re-run one at a time; a death with a single run in flight is
+        charged to that run.  An innocent run therefore never fails because of another.
+        """
         backend = self.backend()
         inflight: dict[object, RunSpec] = {}
         busy: Counter[str] = Counter()
         attempts: Counter[str] = Counter()
+        suspects: set[str] = set()
         while pending or inflight:
-            i = 0
-            while len(inflight) < backend.capacity() and i < len(pending):
-                spec = pending[i]
-                if all(g in done_groups or busy[g] == 0 for g in spec.groups):
-                    pending.pop(i)
-                    fut = backend.submit(self.runner, spec, attempts[spec.run_key])
-                    inflight[fut] = spec
-                    busy.update(spec.groups)
-                else:
-                    i += 1
+            self._fill(pending, inflight, busy, done_groups, suspects, attempts, backend)
             finished = backend.wait(list(inflight))
-            died = False
-            for fut in finished:
-                spec = inflight.pop(fut)
+            batch = [(fut, inflight.pop(fut)) for fut in finished]
+            results = [(spec, *self._result(fut, backend)) for fut, spec in batch]
+            if backend.death_breaks_all and any(kind == "died" for _, kind, _ in results):
+                # a broken local pool fails every run in flight: collect them, restart it
+                rest = [(fut, inflight.pop(fut)) for fut in list(inflight)]
+                results += [(spec, *self._result(fut, backend)) for fut, spec in rest]
+                backend.recover()
+            n_died = sum(kind == "died" for _, kind, _ in results)
+            for spec, kind, value in results:
                 busy.subtract(spec.groups)
-                out = self._outcome(fut, spec, attempts, backend)
-                if out is None:  # worker died, re-submitted
-                    died = True
-                    pending.insert(0, spec)
-                    ex.retried += 1
-                    prog.update("retried")
-                    continue
-                died = died or out.get("error_type") == "WorkerDied"
-                self._record(spec, out, ex, prog)
-                done_groups.update(spec.groups)
-            if died and backend.death_breaks_all:
-                # a broken local pool fails every run in flight: collect them, then restart
-                for fut in list(inflight):
-                    spec = inflight.pop(fut)
-                    busy.subtract(spec.groups)
-                    out = self._outcome(fut, spec, attempts, backend)
+                if kind == "died":
+                    charged = n_died == 1 or not backend.death_breaks_all
+                    out = self._died(spec, value, attempts, charged=charged)
                     if out is None:
+                        if backend.death_breaks_all:
+                            suspects.add(spec.run_key)
                         pending.insert(0, spec)
                         ex.retried += 1
                         prog.update("retried")
-                    else:
-                        self._record(spec, out, ex, prog)
-                        done_groups.update(spec.groups)
-                backend.recover()
+                        continue
+                else:
+                    out = value if kind == "ok" else _error_record(spec, value)
+                suspects.discard(spec.run_key)
+                self._record(spec, out, ex, prog)
+                done_groups.update(spec.groups)
 
-    def _outcome(self, fut, spec: RunSpec, attempts: Counter, backend) -> dict | None:
-        """The run's outcome; None when its worker died and it should be re-submitted."""
+    def _fill(self, pending, inflight, busy, done_groups, suspects, attempts, backend) -> None:
+        """Submit ready runs up to the backend's capacity (suspects alone, one at a time)."""
+        if any(s.run_key in suspects for s in inflight.values()):
+            return
+        first_suspect = next((s for s in pending if s.run_key in suspects), None)
+        if first_suspect is not None:
+            if not inflight:
+                pending.remove(first_suspect)
+                inflight[backend.submit(self.runner, first_suspect,
+                                        attempts[first_suspect.run_key])] = first_suspect
+                busy.update(first_suspect.groups)
+            return
+        i = 0
+        while len(inflight) < backend.capacity() and i < len(pending):
+            spec = pending[i]
+            if all(g in done_groups or busy[g] == 0 for g in spec.groups):
+                pending.pop(i)
+                inflight[backend.submit(self.runner, spec, attempts[spec.run_key])] = spec
+                busy.update(spec.groups)
+            else:
+                i += 1
+
+    @staticmethod
+    def _result(fut, backend) -> tuple[str, object]:
+        """``("ok", outcome)``, ``("died", exc)`` or ``("error", exc)`` of a finished future."""
         try:
-            return fut.result()
+            return "ok", fut.result()
         except Exception as exc:  # noqa: BLE001 - recorded, the study goes on
-            if backend.died(exc):
-                attempts[spec.run_key] += 1
-                n = attempts[spec.run_key]
-                if n <= self.retries:
-                    log.warning("worker died running case %s (run %s); retry %d of %d",
-                                spec.case_id, spec.run_key, n, self.retries)
-                    return None
-                return _died_record(spec, exc, n)
-            return _error_record(spec, exc)
+            return ("died" if backend.died(exc) else "error"), exc
+
+    def _died(self, spec: RunSpec, exc, attempts: Counter, *, charged: bool) -> dict | None:
+        """None to re-submit the run whose worker died, or its failure record."""
+        if not charged:
+            log.warning("a worker died with case %s (run %s) among the runs in flight; "
+                        "re-running it alone", spec.case_id, spec.run_key)
+            return None
+        attempts[spec.run_key] += 1
+        n = attempts[spec.run_key]
+        if n <= self.retries:
+            log.warning("worker died running case %s (run %s); retry %d of %d",
+                        spec.case_id, spec.run_key, n, self.retries)
+            return None
+        return _died_record(spec, exc, n)
 
     def _record(self, spec: RunSpec, out: dict, ex: Execution, prog: _Progress) -> None:
         ex.outcomes[spec.run_key] = out

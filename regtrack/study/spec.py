@@ -70,7 +70,8 @@ class StudyTable:
     combine: str = param("product", "", "how parameter lists combine",
                          choices=("product", "zip"))
 
-    def problems(self) -> list[str]:
+    def check(self) -> list[str]:
+        """Cross-field problems (views, outputs, runner), checked even when keys are bad."""
         out = []
         bad_views = [v for v in self.views if v not in VIEWS]
         if bad_views or not self.views or len(set(self.views)) != len(self.views):
@@ -289,7 +290,7 @@ def load_study(path: str | os.PathLike, *, out: str | os.PathLike | None = None,
             near = closest_key(k, TOP_LEVEL)
             problems.append(f"{where}: unknown section [{k}]" + (f" (did you mean [{near}]?)" if near else ""))
     st, p, w = parse_section(StudyTable, doc.get("study"), where=f"{where} [study]")
-    problems += p
+    problems += p + [f"{where} [study] {q}" for q in st.check()]
     warnings += w
     cases, p = _parse_cases(doc.get("cases"), root=root, where=f"{where} [cases]")
     problems += p
