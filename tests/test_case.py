@@ -54,7 +54,8 @@ def label_data() -> np.ndarray:
 
 
 def write_dicom(path: Path, *, spacing_tag: str | None = "ImagerPixelSpacing",
-                laterality: str = "R", view: str = "CC", modality: str = "MG") -> None:
+                laterality: str = "R", view: str = "CC", modality: str = "MG",
+                magnification: float | None = None) -> None:
     """A tiny but complete DICOM MG file (explicit VR little endian, 16-bit pixels)."""
     from pydicom.dataset import FileDataset, FileMetaDataset
     from pydicom.uid import ExplicitVRLittleEndian, generate_uid
@@ -75,6 +76,8 @@ def write_dicom(path: Path, *, spacing_tag: str | None = "ImagerPixelSpacing",
     ds.BitsAllocated, ds.BitsStored, ds.HighBit, ds.PixelRepresentation = 16, 12, 11, 0
     if spacing_tag:
         setattr(ds, spacing_tag, [0.1, 0.1])
+    if magnification is not None:
+        ds.EstimatedRadiographicMagnificationFactor = magnification
     ds.PixelData = (np.arange(ROWS * COLS, dtype=np.uint16) % 4096).tobytes()
     path.parent.mkdir(parents=True, exist_ok=True)
     ds.save_as(path, enforce_file_format=True)
@@ -189,6 +192,15 @@ def test_user_spacing_for_dicom_without_spacing_tag(case_dir: Path) -> None:
     write_doc(case_dir, doc)
     cc = load_case(case_dir).mammograms["CC"]
     assert cc.spacing_mm == (0.085, 0.085) and cc.spacing_source == "case.toml"
+
+
+def test_imager_spacing_is_corrected_for_magnification(case_dir: Path) -> None:
+    """ImagerPixelSpacing is at the detector; at the breast it is divided by the
+    EstimatedRadiographicMagnificationFactor (DICOM PS3.3 C.8.11.7): 0.1 / 1.25 = 0.08 mm."""
+    write_dicom(case_dir / "mammo" / "cc.dcm", magnification=1.25)
+    cc = load_case(case_dir).mammograms["CC"]
+    np.testing.assert_allclose(cc.spacing_mm, (0.08, 0.08), rtol=1e-12)
+    assert cc.spacing_source == "ImagerPixelSpacing / magnification 1.25"
 
 
 def test_user_spacing_contradicting_the_tag_is_warned(case_dir: Path) -> None:
@@ -356,6 +368,8 @@ BROKEN: list[tuple[str, Mutation, str]] = [
     ("intensity image as label map", _labels(_float_intensities),
      r"\[mri\] labels = 'mri/labels\.nii\.gz': (labels are not integers|has non-integer "
      r"values) .*intensity image"),
+    ("corrupt label map", _write("mri/labels.nii.gz", "not an image"),
+     r"\[mri\] labels = 'mri/labels\.nii\.gz': cannot read the image"),
     ("unknown scheme", _set("mri", "scheme", "pelicano"),
      r"\[mri\] scheme = 'pelicano': unknown label scheme; use one of 'pelicano-simple'"),
     ("spacing missing", lambda root, doc: write_dicom(root / "mammo" / "cc.dcm", spacing_tag=None),

@@ -15,7 +15,7 @@ import numpy as np
 from regtrack.case._paths import strip_path
 from regtrack.case.schema import LabelMapInfo, MriInput
 from regtrack.errors import RegtrackError
-from regtrack.imaging.volume import LabelVolume, make_affine
+from regtrack.imaging.volume import LabelVolume
 from regtrack.model.labels import CLASSES
 
 log = logging.getLogger(__name__)
@@ -28,48 +28,18 @@ def _fmt(values) -> str:
     return ", ".join(str(int(v)) for v in values) or "(none)"
 
 
-def _read_with_sitk(path: Path) -> LabelVolume:
-    """Fallback reader for NIfTI / MetaImage / NRRD while ``regtrack.imaging.readers`` is absent."""
-    import SimpleITK as sitk
-
-    img = sitk.ReadImage(str(path))
-    if img.GetDimension() != 3:
-        raise RegtrackError(f"{path}: {img.GetDimension()}-D image, expected a 3-D label map")
-    data = sitk.GetArrayFromImage(img).transpose(2, 1, 0)  # ITK index order (i, j, k)
-    affine = make_affine(img.GetOrigin(), img.GetSpacing(), np.reshape(img.GetDirection(), (3, 3)))
-    return LabelVolume(data, affine, source=path)
-
-
 def read_label_volume(path: Path) -> LabelVolume:
-    """Read a label map with :func:`regtrack.imaging.readers.read_label_map`.
+    """Read a label map with :func:`regtrack.imaging.readers.read_label_map` (imported
+    lazily: it pulls in SimpleITK)."""
+    from regtrack.imaging.readers import read_label_map
 
-    While that reader does not exist, NIfTI / MetaImage / NRRD files are read with
-    SimpleITK directly (``.zip`` archives then raise :class:`LookupError`).
-    """
-    try:
-        from regtrack.imaging.readers import read_label_map
-    except ImportError:
-        log.debug("regtrack.imaging.readers not available; reading %s with SimpleITK", path)
-        if path.name.lower().endswith(".zip"):
-            raise LookupError("reading .zip label maps needs regtrack.imaging.readers") from None
-        return _read_with_sitk(path)
     return read_label_map(path)
 
 
-def _label_counts(data: np.ndarray) -> tuple[dict[int, int] | None, str | None]:
-    if data.dtype.kind == "f":
-        if not np.all(np.isfinite(data)):
-            return None, "contains NaN or infinite values"
-        r = np.rint(data)
-        if not np.array_equal(r, data):
-            bad = data[r != data][:3]
-            return None, (f"has non-integer values (e.g. {', '.join(f'{v:g}' for v in bad)}); "
-                          "is it an intensity image rather than a label map?")
-        data = r.astype(np.int64)
-    elif data.dtype.kind not in "iub":
-        return None, f"has data type {data.dtype}, expected integer labels"
+def _label_counts(data: np.ndarray) -> dict[int, int]:
+    """Voxel count of each label value (the reader guarantees integer labels)."""
     values, counts = np.unique(data, return_counts=True)
-    return {int(v): int(c) for v, c in zip(values, counts)}, None
+    return {int(v): int(c) for v, c in zip(values, counts)}
 
 
 def check_label_values(counts: dict[int, int], mri: MriInput, *, where: str,
@@ -144,17 +114,13 @@ def check_label_map(mri: MriInput, *, where: str,
     at = f"{where} [mri] labels = {rel!r}"
     try:
         vol = read_label_volume(mri.labels)
-    except LookupError as exc:
-        return None, [], [f"{at}: label values not checked ({exc})"]
     except RegtrackError as exc:
         return None, [f"{at}: {strip_path(str(exc), mri.labels)}"], []
     except (OSError, RuntimeError, ValueError) as exc:  # SimpleITK raises RuntimeError
         first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
         return None, [f"{at}: cannot read the label map ({first}); check the file is a "
                       "complete NIfTI/MHA/NRRD image"], []
-    counts, bad = _label_counts(vol.data)
-    if counts is None:
-        return None, [f"{at}: {bad}"], []
+    counts = _label_counts(vol.data)
     problems, warnings = check_label_values(counts, mri, where=where, name=name)
     if mri.nipple_lps_mm is not None:
         problems += check_nipple(vol, mri.nipple_lps_mm, where=where, name=name)

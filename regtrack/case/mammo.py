@@ -74,7 +74,18 @@ def _spacing(ds, view: ViewInput, at: str, at_file: str, p: list[str], w: list[s
                  "in the DICOM; add pixel_spacing_mm = [row_mm, col_mm] to "
                  f"[views.{view.name}]")
         return None, "none"
+    mag = _float(getattr(ds, "EstimatedRadiographicMagnificationFactor", None))
+    if tag == "ImagerPixelSpacing" and mag is not None and mag > 0:
+        # detector spacing -> spacing at the breast (as regtrack.imaging.mammogram does)
+        return (found[0] / mag, found[1] / mag), f"ImagerPixelSpacing / magnification {mag:g}"
     return found, tag
+
+
+def _float(value) -> float | None:
+    try:
+        return None if value is None else float(value)
+    except (TypeError, ValueError):
+        return None
 
 
 def _annotations(view: ViewInput, rows: int, cols: int, at: str, root: Path,
@@ -135,14 +146,15 @@ def check_view(view: ViewInput, *, where: str,
     if position and position not in VIEW_POSITIONS[view.name]:
         w.append(f"{at} mammogram = {mammo!r}: ViewPosition {position} in a "
                  f"[views.{view.name}] table; check the file belongs to this view")
-    laterality = str(getattr(ds, "ImageLaterality", "") or getattr(ds, "Laterality", "") or "")
+    laterality = next((v for v in (str(getattr(ds, kw, "") or "").strip().upper()
+                                   for kw in ("ImageLaterality", "Laterality")) if v in ("L", "R")), "")
     spacing, source = _spacing(ds, view, at, f"{at} mammogram = {mammo!r}", p, w)
     if view.nipple_px is not None and not _inside(np.asarray(view.nipple_px), rows, cols)[0]:
         p.append(f"{at} nipple_px = {list(view.nipple_px)}: outside the {rows}x{cols} image; give "
                  "[row, col] in the mammogram's own pixel grid")
     n_tumours = _annotations(view, rows, cols, at, root, p)
     info = MammogramInfo(rows=rows, columns=cols, spacing_mm=spacing, spacing_source=source,
-                         modality=modality, laterality=laterality.upper(),
+                         modality=modality, laterality=laterality,
                          view_position=position, tumour_polygons=n_tumours)
     return info, p, w
 

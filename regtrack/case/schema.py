@@ -49,9 +49,10 @@ class MriTable:
                                "must match the label map")
     scheme: str | None = param(None, "", "label preset of regtrack.model.labels "
                                "('pelicano-simple', 'pelicano-detailed'); required unless "
-                               "[mri.label_values] lists every class")
-    side: str | None = param(None, "", "breast to model; default: from the mammograms' "
-                             "ImageLaterality or the tumour position", choices=LATERALITIES)
+                               "[mri.label_values] lists tissue and tumour")
+    side: str | None = param(None, "", "breast to model; must match the mammograms' "
+                             "laterality; default: chosen by the model stage",
+                             choices=LATERALITIES)
     nipple_lps_mm: tuple[float, ...] | None = param(
         None, "mm", "explicit nipple point (L, P, S) in the label map's patient frame; "
         "default: detected on the skin surface")
