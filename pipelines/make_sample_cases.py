@@ -33,12 +33,10 @@ log = logging.getLogger("make_sample_cases")
 REPO = Path(__file__).resolve().parents[1]
 
 PELICANO_CITATION = """\
-A. C. Pelicano, M. C. T. Gonçalves, D. M. Godinho, T. Castela, M. L. Orvalho, N. A. M. Araújo,
-E. Porter and R. C. Conceição, "Development of 3D MRI-Based Anatomically Realistic Models of
-Breast Tissues and Tumours for Microwave Imaging Diagnosis", *Sensors* 21(24):8265, 2021.
-
-A. C. Pelicano et al., "Anatomically realistic MRI-based breast models with tumours"
-(breast models repository and data description), *PLoS One*, 2024.
+* A. C. Pelicano et al., "Development of 3D MRI-Based Anatomically Realistic Models of Breast
+  Tissues and Tumours for Microwave Imaging Diagnosis", *Sensors*, 2021.
+* A. C. Pelicano et al., *PLoS One*, 2024 (the companion paper of the breast models
+  repository; see that repository for the full reference).
 """
 
 
