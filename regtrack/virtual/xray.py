@@ -15,8 +15,9 @@ height, entry faces subtract it.  The image is the line integral
 
 .. math:: A(q) = \\sum_g \\mu_g L_g(q)
 
-(Beer-Lambert: the detected intensity is ``I0 exp(-A)``); the displayed image is
-``(1 - exp(-A)) / (1 - exp(-max A))`` so that dense is bright, as on a mammogram.
+(Beer-Lambert: the detected intensity is ``I0 exp(-A)``); the displayed image is the
+log-transformed intensity ``ln(I0 / I) / max = A / max A``, as on a processed ("for
+presentation") mammogram: dense is bright, and contrast does not saturate in thick breasts.
 
 Point source (optional).  With a source at distance ``SID`` above the detector plane
 (foot ``(X0, Y0)``), the projective map
@@ -136,5 +137,5 @@ def render(lengths: dict[int, np.ndarray], mu_per_mm: dict[int, float]) -> tuple
     for g, length in lengths.items():
         a += mu_per_mm.get(g, 0.0) * length
     top = float(a.max()) if a.size else 0.0
-    img = (1.0 - np.exp(-a)) / (1.0 - np.exp(-top)) if top > 0 else np.zeros_like(a)
+    img = a / top if top > 0 else np.zeros_like(a)
     return a, np.clip(img, 0.0, 1.0)
