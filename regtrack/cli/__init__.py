@@ -21,7 +21,9 @@ import sys
 COMMANDS: dict[str, str] = {
     "validate": "regtrack.cli.validate",
     "study": "regtrack.cli.study",
+    "calibrate": "regtrack.cli.calibrate",
     "project": "regtrack.cli.project",
+    "mammogram": "regtrack.cli.mammogram",
 }
 
 

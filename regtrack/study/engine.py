@@ -174,10 +174,12 @@ class Engine:
             ex.outcomes[spec.run_key] = out
             ex.cached.append(spec.run_key)
             done_groups.update(spec.groups)
-        log.info("%s: %d runs, %d cached, %d to compute", label, len(ex.cached) + len(pending),
-                 len(ex.cached), len(pending))
+        log.log(logging.INFO if len(runs) > 1 else logging.DEBUG,
+                "%s: %d runs, %d cached, %d to compute", label, len(ex.cached) + len(pending),
+                len(ex.cached), len(pending))
         if pending:
-            prog = _Progress(enabled=self.progress, label=label, total=len(pending),
+            prog = _Progress(enabled=self.progress and len(pending) > 1, label=label,
+                             total=len(pending),
                              cached=len(ex.cached))
             try:
                 self._compute(pending, done_groups, ex, prog)

@@ -156,3 +156,59 @@ def write_study_figures(result) -> list[Path]:
                     pdf.savefig(fig)
         written.append(st.out_dir / "study.pdf")
     return written
+
+
+def calibration_figure(result) -> Figure:
+    """Score S (%) on the calibration grid, D-infeasible points crossed, optimum starred.
+
+    Two calibrated parameters: a scatter map over (first, second); one: S against it.
+    """
+    names = list(result.bounds)
+    fig = Figure(figsize=(6.4, 4.8), layout="constrained")
+    ax = fig.subplots()
+    ok = [e for e in result.grid if math.isfinite(e.score)]
+    feas = [e for e in ok if e.violation == 0]
+    infeas = [e for e in ok if e.violation > 0]
+    opt = result.optimum
+    if len(names) == 1:
+        n = names[0]
+        pts = sorted(ok, key=lambda e: e.params[n])
+        ax.plot([e.params[n] for e in pts], [e.score for e in pts], "o-", label="grid")
+        ax.plot([e.params[n] for e in infeas], [e.score for e in infeas], "rx", ms=10,
+                label="D outside range")
+        ax.plot([e.params[n] for e in result.path], [e.score for e in result.path], ".",
+                color="0.5", label="optimiser")
+        ax.plot([opt.params[n]], [opt.score], "*", ms=16, color="gold", mec="k", label="optimum")
+        ax.set_xlabel(n)
+        ax.set_ylabel(f"S = {result.objective} (%)")
+    else:
+        a, b = names[:2]
+        sc = ax.scatter([e.params[a] for e in ok], [e.params[b] for e in ok],
+                        c=[e.score for e in ok], s=160, cmap="viridis")
+        fig.colorbar(sc, ax=ax, label=f"S = {result.objective} (%)")
+        ax.plot([e.params[a] for e in infeas], [e.params[b] for e in infeas], "rx", ms=12,
+                label="D outside range")
+        ax.plot([e.params[a] for e in result.path], [e.params[b] for e in result.path], ".-",
+                color="0.5", lw=0.6, label="optimiser")
+        ax.plot([opt.params[a]], [opt.params[b]], "*", ms=18, color="gold", mec="k",
+                label="optimum")
+        ax.set_xlabel(a)
+        ax.set_ylabel(b)
+        if a == "c1":
+            from matplotlib.ticker import FormatStrFormatter, NullFormatter
+
+            ax.set_xscale("log")
+            ax.xaxis.set_major_formatter(FormatStrFormatter("%g"))
+            ax.xaxis.set_minor_formatter(NullFormatter())
+    del feas
+    ax.legend(fontsize=8)
+    ax.grid(alpha=0.3)
+    lo, hi = result.d_range
+    ax.set_title(f"calibration of {result.case_id}: " + ", ".join(
+        f"{k} = {v:g}" for k, v in opt.params.items()) + f"  (D in [{lo:g}, {hi:g}])", fontsize=9)
+    return fig
+
+
+def save_figure(fig: Figure, path: Path) -> Path:
+    """Write a figure atomically (PNG/PDF by suffix)."""
+    return _save_png(fig, path)

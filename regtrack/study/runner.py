@@ -166,30 +166,38 @@ def execute(runner_ref: str, spec: RunSpec) -> dict:
             "deterministic": True, "traceback": None, "seconds": time.perf_counter() - t0}
 
 
-def make_runs(study: Any) -> list[RunSpec]:
-    """Expand a :class:`regtrack.study.spec.Study` into its runs (case-major order).
+def make_run(case: Any, digest: str, point: dict, *, base: dict, views: tuple[str, ...],
+             runner: str, cache_dir: Path, out_root: Path | None = None, index: int = 0) -> RunSpec:
+    """The run of one case (a :class:`~regtrack.study.spec.CaseRef`) at one parameter point.
 
-    Each run's key is the fingerprint of the runner, the case folder's content, the
-    overrides and the views, so an edited case or a changed parameter gives a new key.
+    Its key is the fingerprint of the runner, the case id and folder content (``digest``),
+    the overrides and the views, so an edited case or a changed parameter gives a new key.
     """
-    from regtrack.pipeline.cache import file_digest, fingerprint
+    from regtrack.pipeline.cache import fingerprint
     from regtrack.study.params import apply_point
 
+    ov = apply_point(base, point, views=views)
+    key = fingerprint("study-run", runner, case.case_id, digest, ov, list(views))
+    mesh_group = fingerprint("mesh", digest, ov.get("model", {}))
+    sim_group = fingerprint("sim", digest, {k: v for k, v in ov.items() if k != "registration"},
+                            list(views))
+    return RunSpec(case_dir=str(case.case_dir), case_id=case.case_id, overrides=ov,
+                   views=tuple(views), cache_dir=str(cache_dir), run_key=key, params=dict(point),
+                   out_dir=str(out_root / case.case_id / key) if out_root else None, index=index,
+                   groups=(mesh_group, sim_group))
+
+
+def make_runs(study: Any) -> list[RunSpec]:
+    """Expand a :class:`regtrack.study.spec.Study` into its runs (case-major order)."""
+    from regtrack.pipeline.cache import file_digest
+
     points = study.points()
-    runs = []
+    out_root = study.out_dir / "runs" if "run_files" in study.outputs else None
+    runs: list[RunSpec] = []
     for case in study.cases:
         digest = file_digest(case.case_dir)
         for point in points:
-            ov = apply_point(study.overrides, point, views=study.views)
-            key = fingerprint("study-run", study.runner, digest, ov, list(study.views))
-            mesh_group = fingerprint("mesh", digest, ov.get("model", {}))
-            sim_group = fingerprint("sim", digest, {k: v for k, v in ov.items()
-                                                     if k != "registration"}, list(study.views))
-            out = None
-            if "run_files" in study.outputs:
-                out = str(study.out_dir / "runs" / case.case_id / key)
-            runs.append(RunSpec(case_dir=str(case.case_dir), case_id=case.case_id, overrides=ov,
-                                views=tuple(study.views), cache_dir=str(study.cache_dir),
-                                run_key=key, params=dict(point), out_dir=out, index=len(runs),
-                                groups=(mesh_group, sim_group)))
+            runs.append(make_run(case, digest, point, base=study.overrides, views=study.views,
+                                 runner=study.runner, cache_dir=study.cache_dir,
+                                 out_root=out_root, index=len(runs)))
     return runs

@@ -1,0 +1,305 @@
+"""Calibration of a case's material parameters (c1, nu, optionally friction).
+
+The paper chose c1 and nu by hand from its parametric study (Figure 8): the values that
+maximise the registration indicators while the compression degree stays clinical.  This
+module automates that choice:
+
+* objective ``S(p) = mean over views of (BS_Av + TS_Av) / 2`` (%, or one indicator alone);
+* constraint ``D_lo <= D(p) <= D_hi`` for every view, as the penalty
+  ``f(p) = -S(p) + 1000 * max_views max(0, D_lo - D, D - D_hi)`` (D is a fraction; 0.01
+  outside the range costs 10 points of S);
+* a coarse grid (``grid`` values per parameter, geometric for c1, linear otherwise) run in
+  parallel through the study engine, then a bounded local optimiser started at the best
+  grid point inside its neighbouring cells: :func:`scipy.optimize.minimize_scalar`
+  (``method="bounded"``) for one parameter, Nelder-Mead with bounds for more, in
+  coordinates normalised to one grid step;
+* sensitivity at the optimum: central differences ``dS/dp`` with a step of 5 % of a grid
+  step, and the spread ``max S - min S`` along each parameter's grid line through the best
+  grid point.
+
+Parameter values are rounded to 4 significant digits before a run, so the optimiser's
+nearby points and every later calibration re-use cached runs.
+"""
+
+from __future__ import annotations
+
+import itertools
+import logging
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from scipy import optimize
+
+from regtrack.errors import ConfigError
+from regtrack.study.engine import Engine
+from regtrack.study.params import check_value
+from regtrack.study.runner import FAILED, RunSpec, make_run
+from regtrack.study.spec import DEFAULT_RUNNER, CaseRef, case_id_of
+
+log = logging.getLogger(__name__)
+
+OBJECTIVES = ("mean", "BS_Av", "TS_Av")
+PENALTY = 1000.0  # objective points per unit of D outside the range
+FAILED_VALUE = 1e6
+LOG_PARAMS = ("c1",)
+
+
+@dataclass
+class Evaluation:
+    """One evaluated point: parameters, score S (%), worst D violation, objective f."""
+
+    params: dict
+    score: float
+    violation: float
+    f: float
+    rows: list = field(default_factory=list)
+    error: str | None = None
+
+
+@dataclass
+class CalibrationResult:
+    """Optimum, its metrics, the grid, the optimiser path and the sensitivity."""
+
+    case_id: str
+    optimum: Evaluation
+    best_grid: Evaluation
+    grid: list[Evaluation]
+    path: list[Evaluation]
+    sensitivity: dict[str, dict]
+    bounds: dict[str, tuple[float, float]]
+    d_range: tuple[float, float]
+    objective: str
+    computed: int = 0
+    cached: int = 0
+
+    @property
+    def feasible(self) -> bool:
+        return self.optimum.violation == 0.0 and self.optimum.error is None
+
+
+def _round(x: float) -> float:
+    return float(f"{x:.4g}")
+
+
+def score_rows(rows: list[dict], *, objective: str) -> tuple[float, list[float]]:
+    """S (%) and the D of each view from a run's rows; NaN when a metric is missing."""
+    vals, ds = [], []
+    for r in rows:
+        bs, ts = r.get("BS_Av"), r.get("TS_Av")
+        if objective == "mean":
+            v = (bs + ts) / 2 if bs is not None and ts is not None else math.nan
+        else:
+            v = r.get(objective) if r.get(objective) is not None else math.nan
+        vals.append(float(v))
+        ds.append(float(r["D"]) if r.get("D") is not None else math.nan)
+    return (float(np.mean(vals)) if vals else math.nan), ds
+
+
+def evaluate(outcome: dict, params: dict, *, objective: str,
+             d_range: tuple[float, float]) -> Evaluation:
+    """Objective value of one run outcome (penalised; failed runs get a huge value)."""
+    if outcome["status"] == FAILED:
+        return Evaluation(params, math.nan, math.inf, FAILED_VALUE, error=outcome.get("error"))
+    score, ds = score_rows(outcome["rows"], objective=objective)
+    lo, hi = d_range
+    viol = max((max(0.0, lo - d, d - hi) if math.isfinite(d) else math.inf) for d in ds)
+    f = -score + PENALTY * viol if math.isfinite(score) and math.isfinite(viol) else FAILED_VALUE
+    return Evaluation(params, score, viol, f, rows=outcome["rows"])
+
+
+def grid_values(name: str, lo: float, hi: float, n: int) -> list[float]:
+    """``n`` grid values on [lo, hi]: geometric for c1, linear otherwise (4 digits)."""
+    fn = np.geomspace if name in LOG_PARAMS else np.linspace
+    return [_round(v) for v in fn(lo, hi, n)]
+
+
+def _check_bounds(bounds: dict, fixed: dict) -> None:
+    problems = []
+    if not bounds:
+        problems.append("calibrate: no parameter to calibrate; give at least one range "
+                        "(--c1 LO HI, --nu LO HI or --friction LO HI)")
+    for name, (lo, hi) in bounds.items():
+        if name in fixed:
+            problems.append(f"calibrate: {name} is both calibrated and fixed; drop one")
+        if not lo < hi:
+            problems.append(f"calibrate --{name} {lo} {hi}: the lower bound must be below the upper")
+        for v in (lo, hi):
+            problems += check_value(name, v, where="calibrate")[1]
+    for name, v in fixed.items():
+        problems += check_value(name, v, where="calibrate --fix")[1]
+    if problems:
+        raise ConfigError("; ".join(problems))
+
+
+class _Problem:
+    """Runs points of one case through the engine, memoising evaluations."""
+
+    def __init__(self, engine: Engine, case: CaseRef, *, fixed: dict, views, runner, cache_dir,
+                 objective: str, d_range: tuple[float, float]):
+        from regtrack.pipeline.cache import file_digest
+
+        self.engine, self.case, self.fixed = engine, case, fixed
+        self.views, self.runner, self.cache_dir = tuple(views), runner, Path(cache_dir)
+        self.objective, self.d_range = objective, d_range
+        self.digest = file_digest(case.case_dir)
+        self.memo: dict[tuple, Evaluation] = {}
+        self.computed = self.cached = 0
+
+    def _spec(self, point: dict, index: int) -> RunSpec:
+        return make_run(self.case, self.digest, {**self.fixed, **point}, base={},
+                        views=self.views, runner=self.runner, cache_dir=self.cache_dir,
+                        index=index)
+
+    def run(self, points: list[dict], *, label: str) -> list[Evaluation]:
+        points = [{k: _round(v) for k, v in p.items()} for p in points]
+        todo = [p for p in points if tuple(sorted(p.items())) not in self.memo]
+        if todo:
+            specs = [self._spec(p, i) for i, p in enumerate(todo)]
+            ex = self.engine.run(specs, label=label)
+            self.computed += len(ex.computed)
+            self.cached += len(ex.cached)
+            for p, s in zip(todo, specs):
+                self.memo[tuple(sorted(p.items()))] = evaluate(
+                    ex.outcomes[s.run_key], p, objective=self.objective, d_range=self.d_range)
+        return [self.memo[tuple(sorted(p.items()))] for p in points]
+
+
+def _to_unit(name: str, v: float, lo: float, hi: float) -> float:
+    if name in LOG_PARAMS:
+        return (math.log(v) - math.log(lo)) / (math.log(hi) - math.log(lo))
+    return (v - lo) / (hi - lo)
+
+
+def _from_unit(name: str, t: float, lo: float, hi: float) -> float:
+    t = min(1.0, max(0.0, t))
+    if name in LOG_PARAMS:
+        return math.exp(math.log(lo) + t * (math.log(hi) - math.log(lo)))
+    return lo + t * (hi - lo)
+
+
+def _local_search(prob: _Problem, start: Evaluation, bounds: dict, grid: int,
+                  max_evals: int) -> list[Evaluation]:
+    names = list(bounds)
+    step = 1.0 / (grid - 1)
+    t0 = np.array([_to_unit(n, start.params[n], *bounds[n]) for n in names])
+    box = [(max(0.0, t - step), min(1.0, t + step)) for t in t0]
+    path: list[Evaluation] = []
+
+    def f(t) -> float:
+        t = np.atleast_1d(t)
+        point = {n: _from_unit(n, float(ti), *bounds[n]) for n, ti in zip(names, t)}
+        ev = prob.run([point], label="calibrate: optimiser")[0]
+        path.append(ev)
+        return ev.f
+
+    if len(names) == 1:
+        optimize.minimize_scalar(f, bounds=box[0], method="bounded",
+                                 options={"xatol": step / 100, "maxiter": max_evals})
+    else:
+        simplex = [t0] + [np.clip(t0 + np.eye(len(names))[i] * step / 2 * (1 if t0[i] < 0.5 else -1),
+                                  0, 1) for i in range(len(names))]
+        optimize.minimize(f, t0, method="Nelder-Mead", bounds=box,
+                          options={"initial_simplex": np.array(simplex), "xatol": step / 100,
+                                   "fatol": 1e-3, "maxfev": max_evals})
+    return path
+
+
+def _sensitivity(prob: _Problem, best: Evaluation, best_grid: Evaluation,
+                 grid_evals: list[Evaluation], bounds: dict, grid: int) -> dict[str, dict]:
+    out: dict[str, dict] = {}
+    pts = []
+    for n, (lo, hi) in bounds.items():
+        t = _to_unit(n, best.params[n], lo, hi)
+        h = 0.05 / (grid - 1)
+        a, b = _from_unit(n, t - h, lo, hi), _from_unit(n, t + h, lo, hi)
+        pts += [{**best.params, n: a}, {**best.params, n: b}]
+    evs = prob.run(pts, label="calibrate: sensitivity")
+    for i, n in enumerate(bounds):
+        ea, eb = evs[2 * i], evs[2 * i + 1]
+        da = eb.params[n] - ea.params[n]
+        line = [e.score for e in grid_evals
+                if all(e.params[m] == best_grid.params[m] for m in bounds if m != n)
+                and math.isfinite(e.score)]
+        out[n] = {"dS_dparam": (eb.score - ea.score) / da if da else math.nan,
+                  "step": da, "grid_spread": (max(line) - min(line)) if line else math.nan}
+    return out
+
+
+def calibrate(case_dir: str | Path, *, bounds: dict[str, tuple[float, float]],
+              fixed: dict | None = None, views: tuple[str, ...] = ("CC",),
+              d_range: tuple[float, float] = (0.2, 0.6), objective: str = "mean",
+              grid: int = 4, max_evals: int = 25, runner: str = DEFAULT_RUNNER,
+              cache_dir: str | Path, scheduler: str | None = None, workers: int = 0,
+              progress: bool = True) -> CalibrationResult:
+    """Find the parameters maximising the indicators with D in ``d_range``.
+
+    Parameters
+    ----------
+    case_dir : path
+        The case folder.
+    bounds : dict
+        Parameter name (see :mod:`regtrack.study.params`) -> (low, high); c1 in kPa.
+    fixed : dict, optional
+        Parameters held fixed (e.g. ``{"friction": 0.2}``).
+    d_range : (float, float)
+        Clinical range of the compression degree D (fraction of breast thickness).
+    objective : {"mean", "BS_Av", "TS_Av"}
+        What to maximise: (BS_Av + TS_Av) / 2 or one indicator (%).
+    grid : int
+        Grid values per parameter (>= 2); ``grid ** len(bounds)`` runs.
+    max_evals : int
+        Most runs of the local optimiser.
+    """
+    fixed = dict(fixed or {})
+    _check_bounds(bounds, fixed)
+    if objective not in OBJECTIVES:
+        raise ConfigError(f"calibrate --objective {objective!r}: use one of {', '.join(OBJECTIVES)}")
+    if grid < 2 or not 0 <= d_range[0] < d_range[1] <= 1:
+        raise ConfigError(f"calibrate: need --grid >= 2 (got {grid}) and 0 <= D_lo < D_hi <= 1 "
+                          f"(got {d_range})")
+    case_dir = Path(case_dir).resolve()
+    if not (case_dir / "case.toml").is_file():
+        raise ConfigError(f"{case_dir}: not a case folder (no case.toml); give a case folder")
+    case = CaseRef(case_dir, case_id_of(case_dir))
+    with Engine(runner=runner, cache_dir=Path(cache_dir), scheduler=scheduler, workers=workers,
+                progress=progress) as engine:
+        prob = _Problem(engine, case, fixed=fixed, views=views, runner=runner,
+                        cache_dir=cache_dir, objective=objective, d_range=d_range)
+        axes = {n: grid_values(n, lo, hi, grid) for n, (lo, hi) in bounds.items()}
+        points = [dict(zip(axes, combo)) for combo in itertools.product(*axes.values())]
+        grid_evals = prob.run(points, label="calibrate: grid")
+        best_grid = min(grid_evals, key=lambda e: e.f)
+        if best_grid.f >= FAILED_VALUE:
+            raise ConfigError(f"{case_dir}: every grid run failed ({best_grid.error}); run "
+                              "'regtrack study' on the case to see why")
+        path = _local_search(prob, best_grid, bounds, grid, max_evals)
+        best = min([best_grid, *path], key=lambda e: e.f)
+        sens = _sensitivity(prob, best, best_grid, grid_evals, bounds, grid)
+    log.info("calibration of %s: %s S = %.2f %% (violation %.3g); %d runs computed, %d cached",
+             case.case_id, best.params, best.score, best.violation, prob.computed, prob.cached)
+    return CalibrationResult(case_id=case.case_id, optimum=best, best_grid=best_grid,
+                             grid=grid_evals, path=path, sensitivity=sens, bounds=dict(bounds),
+                             d_range=tuple(d_range), objective=objective,
+                             computed=prob.computed, cached=prob.cached)
+
+
+def to_json(result: CalibrationResult) -> dict:
+    """JSON-ready summary (NaN/inf become None)."""
+
+    def num(x):
+        return None if x is None or (isinstance(x, float) and not math.isfinite(x)) else x
+
+    def ev(e: Evaluation) -> dict:
+        return {"params": e.params, "score": num(e.score), "violation": num(e.violation),
+                "f": num(e.f), "error": e.error}
+
+    return {"case_id": result.case_id, "objective": result.objective,
+            "d_range": list(result.d_range), "bounds": {k: list(v) for k, v in result.bounds.items()},
+            "optimum": {**ev(result.optimum), "rows": result.optimum.rows},
+            "feasible": result.feasible, "best_grid": ev(result.best_grid),
+            "sensitivity": {k: {kk: num(vv) for kk, vv in s.items()}
+                            for k, s in result.sensitivity.items()},
+            "grid": [ev(e) for e in result.grid], "path": [ev(e) for e in result.path],
+            "runs_computed": result.computed, "runs_cached": result.cached}

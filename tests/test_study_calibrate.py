@@ -1,0 +1,74 @@
+"""Calibration (coarse grid + bounded optimiser) on the fake pipeline, whose optimum is known.
+
+The fake score S = (BS_Av + TS_Av)/2 = 86 - 10 ln(c1/0.8)^2 - 5e4 (nu - 0.47)^2 - 2.5 friction
+peaks at c1 = 0.8 kPa, nu = 0.47; its D = 0.45 - 0.1 ln(c1/0.54) (tests/_study_fakes.py).
+Tolerances: parameters are rounded to 4 significant digits and the optimiser stops at
+1/100 of a grid step, within 40 evaluations; 1 % on c1 and 0.001 on nu are a few such steps.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+
+import pytest
+
+from regtrack.cli import main
+from regtrack.errors import ConfigError
+from regtrack.study.calibrate import calibrate
+from tests._study_fakes import make_case
+
+FAKE = "tests._study_fakes:fake_runner"
+
+
+def test_finds_known_optimum_and_reuses_cache(tmp_path):
+    case = make_case(tmp_path, "A")
+    kw = dict(bounds={"c1": (0.2, 3.0), "nu": (0.45, 0.49)}, runner=FAKE,
+              cache_dir=tmp_path / "cache", workers=2, progress=False, max_evals=40)
+    res = calibrate(case, **kw)
+    assert res.optimum.params["c1"] == pytest.approx(0.8, rel=0.01)
+    assert res.optimum.params["nu"] == pytest.approx(0.47, abs=1e-3)
+    assert res.feasible and res.optimum.score >= res.best_grid.score
+    assert len(res.grid) == 16 and res.cached == 0
+    # at the optimum the score is flat in c1; the grid spread shows c1 matters over the range
+    assert abs(res.sensitivity["c1"]["dS_dparam"]) < 1.0
+    assert res.sensitivity["c1"]["grid_spread"] > 10
+    again = calibrate(case, **kw)
+    assert again.computed == 0 and again.cached == res.computed
+    assert again.optimum.params == res.optimum.params
+
+
+def test_compression_constraint_is_respected(tmp_path):
+    case = make_case(tmp_path, "A")
+    # D >= 0.43 <=> c1 <= 0.54 exp(0.2) = 0.6596 kPa: the optimum moves onto that bound
+    res = calibrate(case, bounds={"c1": (0.2, 3.0)}, fixed={"nu": 0.47}, d_range=(0.43, 0.6),
+                    runner=FAKE, cache_dir=tmp_path / "cache", workers=1, progress=False)
+    c1_bound = 0.54 * math.exp(0.2)
+    assert res.optimum.params["c1"] == pytest.approx(c1_bound, rel=0.01)
+    assert res.optimum.rows[0]["D"] >= 0.43 - 1e-3
+    assert any(e.violation > 0 for e in res.grid)
+
+
+def test_cli_writes_json_and_figure(tmp_path):
+    case = make_case(tmp_path, "A")
+    rc = main(["-q", "calibrate", str(case), "--runner", FAKE, "--fix", "nu=0.47",
+               "--friction", "0.0", "0.4", "--grid", "3", "--no-progress", "--workers", "1",
+               "--out", str(tmp_path / "cal")])
+    assert rc == 0
+    out = json.loads((tmp_path / "cal" / "calibration.json").read_text())
+    assert set(out["optimum"]["params"]) == {"c1", "friction"}
+    assert out["optimum"]["params"]["friction"] == pytest.approx(0.0, abs=0.01)  # S falls with friction
+    assert (tmp_path / "cal" / "calibration.png").stat().st_size > 1000
+
+
+@pytest.mark.parametrize("kw, match", [
+    (dict(bounds={"c1": (2.0, 1.0)}), "lower bound must be below"),
+    (dict(bounds={"nu": (0.45, 0.5)}), "nu = 0.5: must be < 0.5"),
+    (dict(bounds={}), "no parameter to calibrate"),
+    (dict(bounds={"c1": (0.2, 2.0)}, objective="max"), "--objective 'max'"),
+])
+def test_bad_calibration_requests(tmp_path, kw, match):
+    case = make_case(tmp_path, "A")
+    with pytest.raises(ConfigError, match=match):
+        calibrate(case, runner=FAKE, cache_dir=tmp_path / "c", progress=False, **kw)
+    assert not (tmp_path / "c").exists()
