@@ -188,7 +188,7 @@ class _Newton:
         alpha = 1.0
         t0 = time.perf_counter()
         try:
-            for _ in range(o.line_search_max + 4):
+            for trial in range(o.line_search_max + 4):
                 R1, _, _ = self.residual(u + alpha * du, fext, want_k=False)
                 self.stats.line_search_trials += 1
                 if R1 is None:
@@ -197,7 +197,7 @@ class _Newton:
                 if not search:
                     return alpha
                 s1 = float(du[cons.free] @ R1[cons.free])
-                if s1 <= o.line_search_ratio * abs(s0) or _ >= o.line_search_max - 1:
+                if s1 <= o.line_search_ratio * abs(s0) or trial >= o.line_search_max - 1:
                     return alpha
                 alpha *= float(np.clip(s0 / (s0 - s1), 0.1, 1.0))
             raise _Failed("line search could not avoid inverted elements")
