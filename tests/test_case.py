@@ -167,7 +167,8 @@ def test_case_toml_path_and_shallow_mode(case_dir: Path) -> None:
 def test_summary_mentions_the_essentials(case_dir: Path) -> None:
     text = format_summary(load_case(case_dir))
     assert text.count("\n") < 40  # one screen
-    for needle in ("synth01", "14 x 12 x 10 voxels", "1 x 1 x 1.5 mm", "tumour", "-3 malignant tumour: 8 vox",
+    for needle in ("synth01", "14 x 12 x 10 voxels", "1 x 1 x 1.5 mm", "tumour",
+                   "-3 malignant tumour: 8 vox",
                    "40 x 30 px", "0.1 x 0.1 mm (ImagerPixelSpacing)", "[mechanics] nu = 0.495"):
         assert needle in text, needle
 
@@ -345,6 +346,11 @@ def _both_annotations(root: Path, doc: dict) -> None:
     doc["views"]["MLO"]["tumour_mask"] = "mammo/mlo_mask.png"
 
 
+def _text_labels(root: Path, doc: dict) -> None:
+    (root / "mri" / "labels.txt").write_text("1")
+    doc["mri"]["labels"] = "mri/labels.txt"
+
+
 def _scheme_simple(root: Path, doc: dict) -> None:
     doc["mri"]["scheme"] = "pelicano-simple"  # the map is in the detailed convention
 
@@ -374,7 +380,8 @@ BROKEN: list[tuple[str, Mutation, str]] = [
      r"\[mri\] scheme = 'pelicano': unknown label scheme; use one of 'pelicano-simple'"),
     ("spacing missing", lambda root, doc: write_dicom(root / "mammo" / "cc.dcm", spacing_tag=None),
      r"\[views\.CC\] mammogram = 'mammo/cc\.dcm': spacing missing: neither PixelSpacing nor "
-     r"ImagerPixelSpacing in the DICOM; add pixel_spacing_mm = \[row_mm, col_mm\] to \[views\.CC\]"),
+     r"ImagerPixelSpacing in the DICOM; add pixel_spacing_mm = \[row_mm, col_mm\] to "
+     r"\[views\.CC\]"),
     ("nipple outside the mammogram", _set("views.CC", "nipple_px", [20.0, 30.0]),
      r"\[views\.CC\] nipple_px = \[20\.0, 30\.0\]: outside the 40x30 image"),
     ("nipple outside the label map", _set("mri", "nipple_lps_mm", [-2.0, 26.0, 50.0]),
@@ -398,8 +405,8 @@ BROKEN: list[tuple[str, Mutation, str]] = [
      r"\[views\.CC\] mammogram = 'mammo/cc\.dcm': resolves to .*elsewhere\.dcm, outside the "
      r"case folder \(symbolic link\)"),
     ("polygon with two points", _write("mammo/cc_tumour.json", '{"points_rc": [[1, 1], [2, 2]]}'),
-     r"\[views\.CC\] tumour_polygon = 'mammo/cc_tumour\.json': points_rc has 2 point\(s\); a polygon "
-     r"needs at least 3"),
+     r"\[views\.CC\] tumour_polygon = 'mammo/cc_tumour\.json': points_rc has 2 point\(s\); "
+     r"a polygon needs at least 3"),
     ("polygon not JSON", _write("mammo/mlo_tumour.json", "points: 1, 2"),
      r"\[views\.MLO\] tumour_polygon = 'mammo/mlo_tumour\.json': invalid JSON"),
     ("polygon outside the image", _write("mammo/cc_tumour.json",
@@ -425,8 +432,7 @@ BROKEN: list[tuple[str, Mutation, str]] = [
     ("mask of another size", _mask_of_shape((ROWS, COLS + 1)),
      r"\[views\.CC\] tumour_mask = 'mammo/cc_mask\.png': 40x31 pixels but the mammogram has "
      r"40x30"),
-    ("unsupported label format", lambda root, doc: (
-        (root / "mri" / "labels.txt").write_text("1"), _set("mri", "labels", "mri/labels.txt")(root, doc)),
+    ("unsupported label format", _text_labels,
      r"\[mri\] labels = 'mri/labels\.txt': unsupported file type '\.txt'; use one of \.nii"),
     ("protocol for an unknown view", _set("protocol.LMO", "target_D", 0.4),
      r"\[protocol\.LMO\]: unknown view 'LMO'; valid views: CC, MLO"),
@@ -639,8 +645,9 @@ def test_documented_example_is_valid_toml_without_warnings(tmp_path: Path) -> No
 
     doc = _doc_example()
     problems, warnings = [], []
-    for cls, table, where in [(CaseTable, doc["case"], "[case]"), (MriTable, doc["mri"], "[mri]")] + [
-            (ViewTable, t, f"[views.{v}]") for v, t in doc["views"].items()]:
+    sections = [(CaseTable, doc["case"], "[case]"), (MriTable, doc["mri"], "[mri]")]
+    sections += [(ViewTable, t, f"[views.{v}]") for v, t in doc["views"].items()]
+    for cls, table, where in sections:
         _, p, w = parse_section(cls, table, where=where)
         problems += p
         warnings += w

@@ -7,9 +7,9 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
+from test_case import build_case, snapshot, valid_doc, write_doc
 
 from regtrack.cli import main
-from test_case import build_case, snapshot, valid_doc, write_doc
 
 
 @pytest.fixture

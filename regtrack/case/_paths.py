@@ -54,7 +54,8 @@ def resolve_inside(root: Path, value: str, *, at: str, kind: Literal["file", "di
                       "folder and give a path relative to it")
     if not candidate.exists() and not candidate.is_symlink():
         what = "folder" if kind == "dir" else "file"
-        return None, f"{shown}: {what} not found in {root}; fix the path (relative to the case folder)"
+        return None, (f"{shown}: {what} not found in {root}; fix the path (relative to the "
+                      "case folder)")
     real = candidate.resolve()
     if not real.is_relative_to(root.resolve()):
         return None, (f"{shown}: resolves to {real}, outside the case folder (symbolic link); "

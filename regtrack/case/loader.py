@@ -292,7 +292,7 @@ def _target(section: str) -> str:
 def _deep(mri: MriInput | None, views: dict[str, ViewInput], root: Path, where: str,
           f: _Findings) -> tuple[LabelMapInfo | None, dict[str, MammogramInfo]]:
     from regtrack.case.inputs import check_label_map, check_series
-    from regtrack.case.mammo import check_view, check_lateralities
+    from regtrack.case.mammo import check_lateralities, check_view
 
     label_map = None
     if mri is not None:

@@ -97,7 +97,8 @@ def _annotations(view: ViewInput, rows: int, cols: int, at: str, root: Path,
                 out = ~_inside(poly, rows, cols)
                 if out.any():
                     k = int(np.argmax(out))
-                    p.append(f"{at} tumour_polygon = {os.path.relpath(view.tumour_polygon, root)!r}: point "
+                    rel = os.path.relpath(view.tumour_polygon, root)
+                    p.append(f"{at} tumour_polygon = {rel!r}: point "
                              f"{poly[k].tolist()} (row, col) of polygon {i} lies outside the "
                              f"{rows}x{cols} image; the points must be (row, col) pixels of "
                              "the mammogram's own grid")
@@ -106,7 +107,8 @@ def _annotations(view: ViewInput, rows: int, cols: int, at: str, root: Path,
         if view.tumour_mask is not None:
             mask = read_tumour_mask(view.tumour_mask)
             if mask.shape != (rows, cols):
-                p.append(f"{at} tumour_mask = {os.path.relpath(view.tumour_mask, root)!r}: {mask.shape[0]}x"
+                rel = os.path.relpath(view.tumour_mask, root)
+                p.append(f"{at} tumour_mask = {rel!r}: {mask.shape[0]}x"
                          f"{mask.shape[1]} pixels but the mammogram has {rows}x{cols}; draw "
                          "the mask on the mammogram's own pixel grid")
                 return 0
@@ -146,8 +148,9 @@ def check_view(view: ViewInput, *, where: str,
     if position and position not in VIEW_POSITIONS[view.name]:
         w.append(f"{at} mammogram = {mammo!r}: ViewPosition {position} in a "
                  f"[views.{view.name}] table; check the file belongs to this view")
-    laterality = next((v for v in (str(getattr(ds, kw, "") or "").strip().upper()
-                                   for kw in ("ImageLaterality", "Laterality")) if v in ("L", "R")), "")
+    tags = (str(getattr(ds, kw, "") or "").strip().upper()
+            for kw in ("ImageLaterality", "Laterality"))
+    laterality = next((v for v in tags if v in ("L", "R")), "")
     spacing, source = _spacing(ds, view, at, f"{at} mammogram = {mammo!r}", p, w)
     if view.nipple_px is not None and not _inside(np.asarray(view.nipple_px), rows, cols)[0]:
         p.append(f"{at} nipple_px = {list(view.nipple_px)}: outside the {rows}x{cols} image; give "

@@ -19,7 +19,8 @@ from regtrack.case.schema import CaseTable, MriTable, ViewTable
 from regtrack.config import describe
 from regtrack.model.labels import CLASSES
 
-BEGIN = "<!-- BEGIN GENERATED KEY REFERENCE (python -m regtrack.case.reference --write docs/case-format.md) -->"
+BEGIN = ("<!-- BEGIN GENERATED KEY REFERENCE "
+         "(python -m regtrack.case.reference --write docs/case-format.md) -->")
 END = "<!-- END GENERATED KEY REFERENCE -->"
 
 

@@ -20,7 +20,7 @@ import numpy as np
 
 from regtrack.config import param
 from regtrack.model.labels import LabelScheme
-from regtrack.views import LATERALITIES, VIEWS
+from regtrack.views import LATERALITIES
 
 #: Suffixes accepted for ``[mri] labels`` (lower case).
 LABEL_SUFFIXES = (".nii", ".nii.gz", ".mha", ".mhd", ".nrrd", ".nhdr", ".zip")
