@@ -8,11 +8,12 @@ Public API::
                         tumour_seed_px=None, nipple_px=None)   # -> regtrack.views.MammogramView
 """
 
+from .config import MammogramConfig
 from .dicom import MammogramImage, mammogram_from_array, read_mammogram
 from .extract import extract_view
 from .orient import Orientation
 from .overlay import write_overlay
 from .segment import BreastSegmentation, segment_breast
 
-__all__ = ["MammogramImage", "Orientation", "BreastSegmentation", "read_mammogram",
+__all__ = ["MammogramConfig", "MammogramImage", "Orientation", "BreastSegmentation", "read_mammogram",
            "mammogram_from_array", "extract_view", "segment_breast", "write_overlay"]

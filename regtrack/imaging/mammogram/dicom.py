@@ -28,7 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
-from regtrack.errors import DicomError
+from regtrack.errors import DicomError, MammogramError
 
 from .orient import (Orientation, orientation_from_hanging, orientation_from_tag,
                      parse_patient_orientation)
@@ -280,7 +280,10 @@ def _canonicalise(img: np.ndarray, spacing: np.ndarray, *, name: str, meta: dict
     """Decide laterality, view and flips (tags first, image content as fall-back)."""
     from .segment import chest_wall_side
 
-    side, side_conf = chest_wall_side(img, spacing)
+    try:
+        side, side_conf = chest_wall_side(img, spacing)
+    except MammogramError as err:
+        raise MammogramError(f"{name}: {str(err).removeprefix('mammogram: ')}") from err
     meta["chest_wall_side_in_file"] = {"side": side, "confidence": round(side_conf, 3)}
     if laterality is None:
         laterality = "L" if side == "left" else "R"
@@ -337,7 +340,9 @@ def _view_from_content(canon: np.ndarray, spacing: np.ndarray) -> tuple[str, str
     """MLO when a pectoral muscle is found in the top-left corner, else CC."""
     from .segment import segment_breast
 
-    seg = segment_breast(canon, spacing, view="MLO", working_spacing_mm=1.0)
+    from .config import MammogramConfig
+
+    seg = segment_breast(canon, spacing, view="MLO", config=MammogramConfig(working_spacing_mm=1.0))
     if seg.pectoral is not None:
         return "MLO", f"image content (pectoral muscle found, contrast {seg.pectoral['contrast']:.3f})"
     return "CC", "image content (no pectoral muscle in the top-left corner)"

@@ -10,6 +10,7 @@ keep full-resolution accuracy while the stored image stays small.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 
 import numpy as np
@@ -17,6 +18,7 @@ import numpy as np
 from regtrack.errors import MammogramError
 from regtrack.views import MammogramView
 
+from .config import MammogramConfig
 from .contour import open_contour, polygon_area, smooth_polyline
 from .dicom import MammogramImage
 from .nipple import detect_nipple
@@ -49,8 +51,8 @@ def _contour_distance(p: np.ndarray, poly: np.ndarray) -> float:
 
 
 def extract_view(img: MammogramImage, *, tumour_polygon_px=None, tumour_mask=None,
-                 tumour_seed_px=None, nipple_px=None, working_spacing_mm: float = 0.5,
-                 remove_pectoral: bool = True, contour_sigma_mm: float = 1.0) -> MammogramView:
+                 tumour_seed_px=None, nipple_px=None,
+                 config: MammogramConfig | None = None) -> MammogramView:
     """Extract breast contour, nipple and tumour contour(s) of a mammogram.
 
     Parameters
@@ -65,12 +67,8 @@ def extract_view(img: MammogramImage, *, tumour_polygon_px=None, tumour_mask=Non
         (row, col) of a point inside the tumour (DICOM grid): semi-automatic outline.
     nipple_px : (2,) float, optional
         (row, col) of the nipple (DICOM grid); detected when absent.
-    working_spacing_mm : float
-        Segmentation grid spacing (mm).
-    remove_pectoral : bool
-        Remove the pectoral muscle on MLO views.
-    contour_sigma_mm : float
-        Gaussian smoothing of the traced skin line along its arc length (mm).
+    config : MammogramConfig, optional
+        Segmentation, contour and nipple parameters (defaults when None).
 
     Returns
     -------
@@ -78,19 +76,25 @@ def extract_view(img: MammogramImage, *, tumour_polygon_px=None, tumour_mask=Non
         Contours and nipple in mm of the canonical frame; ``meta`` records how each was
         obtained (segmentation figures, pectoral line, nipple confidence, orientation).
     """
+    cfg = config or MammogramConfig()
     sp = np.asarray(img.pixel_spacing, float)
-    seg = segment_breast(img.image, sp, view=img.view, working_spacing_mm=working_spacing_mm,
-                         remove_pectoral=remove_pectoral)
-    band = max([b["width_mm"] + 1.0 for b in seg.removed.get("film_edge_bands", [])
-                if b["edge"] == "left"], default=0.0)
-    skin_w, closed_w = open_contour(seg.mask, pectoral=seg.pectoral,
-                                    chest_band_px=band / float(seg.spacing[1]))
-    skin = smooth_polyline(_px_to_mm(seg.to_full_px(skin_w), sp), sigma_mm=contour_sigma_mm)
+    try:
+        seg = segment_breast(img.image, sp, view=img.view, config=cfg)
+        band = max([b["width_mm"] + 1.0 for b in seg.removed.get("film_edge_bands", [])
+                    if b["edge"] == "left"], default=0.0)
+        skin_w, closed_w = open_contour(seg.mask, pectoral=seg.pectoral,
+                                        chest_band_px=band / float(seg.spacing[1]))
+    except MammogramError as err:
+        raise MammogramError(f"{img.source}: {str(err).removeprefix('mammogram: ')}") from err
+    skin = smooth_polyline(_px_to_mm(seg.to_full_px(skin_w), sp), sigma_mm=cfg.contour_sigma_mm)
     closed = _px_to_mm(seg.to_full_px(closed_w), sp)
-    meta: dict = {"image": dict(img.meta), "segmentation": dict(seg.removed)}
+    meta: dict = {"image": dict(img.meta), "segmentation": dict(seg.removed),
+                  "config": dataclasses.asdict(cfg)}
     meta["segmentation"]["working_spacing_mm"] = seg.spacing.tolist()
-    meta["breast_area_mm2"] = abs(polygon_area(skin[:, ::-1]))
-    meta["breast_mask_area_mm2"] = float(seg.mask.sum() * seg.spacing[0] * seg.spacing[1])
+    # area inside the closed boundary (skin line + chest-wall side), and inside the open
+    # skin line closed by the straight chord between its ends
+    meta["breast_area_mm2"] = abs(polygon_area(closed[:, ::-1]))
+    meta["contour_chord_area_mm2"] = abs(polygon_area(skin[:, ::-1]))
     chest_wall = None
     if img.view == "MLO":
         if seg.pectoral is not None:
@@ -119,7 +123,7 @@ def extract_view(img: MammogramImage, *, tumour_polygon_px=None, tumour_mask=Non
         if dist > 10.0:
             log.warning("%s: the given nipple is %.1f mm from the breast contour", img.source, dist)
     else:
-        nipple, info = detect_nipple(skin, chest_wall=chest_wall)
+        nipple, info = detect_nipple(skin, chest_wall=chest_wall, delta_mm=cfg.nipple_delta_mm)
         meta["nipple"] = info
     tumours: list[np.ndarray] = []
     if tumour_polygon_px is not None:
@@ -138,7 +142,7 @@ def extract_view(img: MammogramImage, *, tumour_polygon_px=None, tumour_mask=Non
         tumours += cs
     if tumour_seed_px is not None:
         rc = img.to_canonical_px(np.asarray(tumour_seed_px, float))
-        c, info = tumour_from_seed(img.image, sp, rc)
+        c, info = tumour_from_seed(img.image, sp, rc, roi_mm=cfg.seed_roi_mm)
         meta["tumour"] = info
         tumours.append(c)
     tumours_mm = [_px_to_mm(c, sp) for c in tumours]

@@ -1,7 +1,8 @@
 """Breast segmentation of a canonical mammogram (chest wall on the left).
 
-Works on a block-averaged copy of the image at about ``working_spacing_mm`` (0.5 mm by
-default) and keeps the exact map back to full-resolution pixels: working pixel ``(i, j)``
+Works on a block-averaged copy of the image at about ``working_spacing_mm``
+(:class:`~regtrack.imaging.mammogram.config.MammogramConfig`, 0.5 mm by default) and
+keeps the exact map back to full-resolution pixels: working pixel ``(i, j)``
 is the mean of full pixels ``[i f_r, (i+1) f_r) x [j f_c, (j+1) f_c)``, so its centre is
 the full-resolution point ``(i f_r + (f_r - 1)/2, j f_c + (f_c - 1)/2)``.
 
@@ -34,6 +35,8 @@ import numpy as np
 from scipy import ndimage as ndi
 
 from regtrack.errors import MammogramError
+
+from .config import MammogramConfig
 
 log = logging.getLogger(__name__)
 
@@ -166,9 +169,8 @@ def remove_border_strips(mask: np.ndarray, spacing, *, strip_max_mm: float = 15.
     return out, found
 
 
-def segment_breast(image: np.ndarray, spacing, *, view: str, working_spacing_mm: float = 0.5,
-                   smooth_mm: float = 0.5, open_mm: float = 2.0,
-                   remove_pectoral: bool = True) -> BreastSegmentation:
+def segment_breast(image: np.ndarray, spacing, *, view: str,
+                   config: MammogramConfig | None = None) -> BreastSegmentation:
     """Segment the breast of a canonical mammogram (values in [0, 1], chest wall left).
 
     Parameters
@@ -178,22 +180,19 @@ def segment_breast(image: np.ndarray, spacing, *, view: str, working_spacing_mm:
     spacing : (2,) float
         Pixel spacing (row, col) of ``image`` in mm.
     view : {"CC", "MLO"}
-        The pectoral muscle is removed for MLO.
-    working_spacing_mm : float
-        Segmentation grid spacing (mm).
-    smooth_mm, open_mm : float
-        Gaussian sigma and opening-disk radius (mm).
-    remove_pectoral : bool
-        Remove the pectoral muscle on MLO views.
+        The pectoral muscle is removed for MLO (``config.remove_pectoral``).
+    config : MammogramConfig, optional
+        Working spacing, smoothing, threshold, opening and film-edge parameters.
     """
-    small, factor = block_average(image, spacing, working_spacing_mm)
+    cfg = config or MammogramConfig()
+    small, factor = block_average(image, spacing, cfg.working_spacing_mm)
     wsp = np.asarray(spacing, float) * np.asarray(factor, float)
     if min(small.shape) < 16:
         raise MammogramError(f"mammogram: image too small to segment ({image.shape} px)")
-    smooth = ndi.gaussian_filter(small, sigma=smooth_mm / wsp)
-    t = foreground_threshold(smooth)
+    smooth = ndi.gaussian_filter(small, sigma=cfg.smooth_mm / wsp)
+    t = foreground_threshold(smooth, k_rel=cfg.threshold_rel, k_noise=cfg.threshold_noise)
     fg = smooth > t
-    r_open = open_mm / float(wsp.min())
+    r_open = cfg.open_mm / float(wsp.min())
     opened = ndi.binary_opening(fg, structure=_disk(r_open))
     comp = _chest_component(opened)
     near = ndi.binary_dilation(comp, structure=_disk(r_open + 1))
@@ -203,7 +202,8 @@ def segment_breast(image: np.ndarray, spacing, *, view: str, working_spacing_mm:
     lab, _ = ndi.label(tissue)
     ids = np.unique(lab[comp])
     tissue = np.isin(lab, ids[ids > 0])
-    tissue, strips = remove_border_strips(tissue, wsp)
+    tissue, strips = remove_border_strips(tissue, wsp, strip_max_mm=cfg.strip_max_mm,
+                                          min_run_mm=cfg.strip_min_run_mm)
     lab, n = ndi.label(tissue)
     if n == 0:
         raise MammogramError("mammogram: no breast left after removing the film-edge bands")
@@ -218,17 +218,17 @@ def segment_breast(image: np.ndarray, spacing, *, view: str, working_spacing_mm:
         "components_removed": int(np.count_nonzero(outside)),
         "area_removed_mm2": float(np.count_nonzero(fg & ~tissue) * px_area),
         "threshold": float(t),
-        "open_radius_mm": open_mm,
+        "open_radius_mm": cfg.open_mm,
         "film_edge_bands": strips,
     }
     log.debug("segmentation: threshold %.4f, %d foreground components removed (%.0f mm^2)",
               t, removed["components_removed"], removed["area_removed_mm2"])
     mask = tissue
     pect = None
-    if view == "MLO" and remove_pectoral:
+    if view == "MLO" and cfg.remove_pectoral:
         from .pectoral import find_pectoral
 
-        pect = find_pectoral(smooth, tissue, wsp)
+        pect = find_pectoral(smooth, tissue, wsp, min_contrast=cfg.pectoral_min_contrast)
         if pect is not None:
             mask = tissue & ~pect.pop("mask")
             lab, n = ndi.label(mask)
