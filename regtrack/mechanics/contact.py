@@ -79,8 +79,6 @@ class ContactConfig:
                                "eps_N", gt=0.0, le=100.0)
     penetration_tol_mm: float = param(0.02, "mm", "augmented Lagrangian: largest accepted "
                                       "penetration", gt=0.0, le=5.0)
-    max_augmentations: int = param(20, "-", "augmented Lagrangian: updates per increment "
-                                   "before giving up", ge=1, le=1000)
     max_penetration_mm: float = param(0.1, "mm", "guard rail: a converged step with a deeper "
                                       "penetration is rejected", gt=0.0)
 
@@ -171,6 +169,25 @@ class PlateContact:
         self._plate0 = plate
         self._n_slip = 0
         self.motion: tuple[np.ndarray, np.ndarray] | None = None
+
+    # -- state snapshots (protocol engine: retry a plate move) ---------------------------
+    def get_state(self) -> dict:
+        """Copy of the committed state (plate, stick points, multipliers)."""
+        return {"plate": self.plate, "anchor": self._anchor.copy(), "lam": self._lam.copy(),
+                "motion": self.motion}
+
+    def set_state(self, state: dict) -> None:
+        """Restore a state returned by :meth:`get_state`."""
+        self.plate = self._plate0 = state["plate"]
+        self._anchor = state["anchor"].copy()
+        self._lam = state["lam"].copy()
+        self.lam = self._lam.copy()
+        self.motion = state["motion"]
+
+    def min_gap(self, u: np.ndarray) -> float:
+        """Smallest signed gap (mm) of the candidate nodes at displacement ``u`` (N, 3)."""
+        x = self.X[self.nodes] + np.asarray(u, float).reshape(-1, 3)[self.nodes]
+        return float(self.plate.query(x).gap.min())
 
     # -- plate motion -----------------------------------------------------------------
     def set_motion(self, start, end) -> None:
@@ -282,9 +299,9 @@ class PlateContact:
         elif act.any():
             new[act] = self.plate.to_local(x[act])
         self._anchor = new
-        # augmented Lagrangian: the converged pressures warm-start the next increment
-        self._lam = p.copy() if self.use_al else np.zeros_like(p)
-        self.lam = self._lam.copy()
+        # augmented Lagrangian: keep the multipliers of the converged solve, so the next
+        # increment starts in equilibrium (p = lambda - eps g is unchanged at this u)
+        self._lam = self.lam.copy()
         self._plate0 = self.plate
 
     def rollback(self) -> None:

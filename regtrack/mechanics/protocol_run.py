@@ -1,0 +1,350 @@
+"""The protocol engine: runs a :class:`~regtrack.mechanics.protocol.Protocol` step by step.
+
+The engine owns the protocol state (displacement, active gravity loads, the two plates
+with their frictional contact) and calls a *step solver* for each mechanical step::
+
+    solve(u0, g_start, g_end, contributions, step_name) -> (u, stats: dict)
+
+which must return an equilibrium ``u`` (N, 3) mm after ramping the gravity vector
+(m/s^2, model frame) from ``g_start`` to ``g_end`` while each contribution's
+``set_time(t)`` moves its plate (pseudo-time t: 0 -> 1).  :func:`solver_from_problem`
+adapts the mechanics core's ``solve_step``; tests use small mock solvers.
+
+Plate placement (plate frame ``n, e_x`` of :func:`regtrack.virtual.frames.plate_frame`):
+both plates have their chest-wall (posterior) edge rounded with ``edge_radius_mm``, at
+``x_cw + posterior_edge_mm`` where ``x_cw`` is the mean ``x`` of the chest-wall nodes, and
+are unbounded elsewhere.  The lower plate faces ``+n``, the upper one ``-n``; both start
+``clearance_mm`` away from the breast.
+
+Targets of an upper-plate move: the plate is first brought to touch the breast (no
+force), which measures the uncompressed thickness ``T_0`` (plate gap at first touch);
+then it travels to the gap ``(1 - D) T_0`` (degree), the given gap (gap), or until the
+plate force reaches the target within ``force_tol`` (force: marching + secant, each trial
+solved from the last accepted state).  After every step the penetration guard rail
+rejects a state with a node deeper than ``max_penetration_mm`` in a plate.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from regtrack.errors import ConfigError, ResultCheckError, SolverDidNotConvergeError
+from regtrack.mechanics import compression as comp
+from regtrack.mechanics.contact import (ContactConfig, PlateContact, automatic_penalty,
+                                        mean_edge_length, tributary_areas)
+from regtrack.mechanics.plates import RigidPlate
+from regtrack.mechanics.protocol import G_STANDARD, Protocol, Step
+
+log = logging.getLogger(__name__)
+
+StepSolver = Callable[[np.ndarray, np.ndarray, np.ndarray, list, str], tuple[np.ndarray, dict]]
+
+
+@dataclass
+class BodySetup:
+    """What the engine needs to know about the body (mm, model frame).
+
+    Attributes
+    ----------
+    points : (N, 3) float
+        Reference node coordinates.
+    tets : (E, 4) int
+    skin : (S, 3) int
+        Skin triangles (contact surface).
+    fixed : (N,) bool
+        Chest-wall nodes.
+    side : {"L", "R"}
+    young_mpa : float
+        Small-strain Young modulus of the tissue (MPa), for the automatic penalty.
+    """
+
+    points: np.ndarray
+    tets: np.ndarray
+    skin: np.ndarray
+    fixed: np.ndarray
+    side: str
+    young_mpa: float
+
+
+@dataclass
+class StepRecord:
+    """State and figures at the end of one protocol step."""
+
+    name: str
+    action: str
+    u: np.ndarray
+    gravity_ms2: np.ndarray
+    plates: dict
+    contact: dict
+    gap_mm: float
+    T0_mm: float | None = None
+    D: float | None = None
+    D_mean: float | None = None
+    max_penetration_mm: float = 0.0
+    solver: dict = field(default_factory=dict)
+
+    def to_dict(self) -> dict:
+        """JSON-ready figures (no displacement)."""
+        return {"name": self.name, "action": self.action, "gravity_ms2": self.gravity_ms2.tolist(),
+                "plates": self.plates, "contact": self.contact, "plate_gap_mm": self.gap_mm,
+                "T0_mm": self.T0_mm, "D": self.D, "D_mean": self.D_mean,
+                "max_penetration_mm": self.max_penetration_mm, "solver": self.solver}
+
+
+@dataclass
+class ProtocolResult:
+    """Records of the converged steps; ``error`` says where a run stopped."""
+
+    protocol: Protocol
+    steps: list[StepRecord]
+    plate_frame: dict
+    error: str | None = None
+
+    @property
+    def complete(self) -> bool:
+        return self.error is None and len(self.steps) == len(self.protocol.steps)
+
+    @property
+    def u(self) -> np.ndarray:
+        return self.steps[-1].u
+
+
+def make_plates(body: BodySetup, protocol: Protocol, *, config: ContactConfig
+                ) -> tuple[dict[str, PlateContact], Any]:
+    """The lower and upper :class:`PlateContact` of a protocol, placed around the body."""
+    from regtrack.virtual.frames import plate_frame
+
+    frame = plate_frame(protocol.view, body.side, angle_deg=protocol.angle_deg)
+    X = body.points
+    nodes = np.unique(body.skin)
+    nodes = nodes[~body.fixed[nodes]]
+    if len(nodes) == 0:
+        raise ConfigError("model has no free skin node: contact needs skin triangles")
+    areas = tributary_areas(X, body.skin)[nodes]
+    geo = protocol.plates
+    x_cw = float(X[body.fixed, 0].mean()) if body.fixed.any() else float(X[:, 0].min())
+    s_edge = x_cw + geo.posterior_edge_mm
+    n = frame.normal
+    over = X[nodes, 0] >= s_edge
+    if not over.any():
+        raise ConfigError(f"plates: no skin node anterior to the plate edge x = {s_edge:.1f} mm; "
+                          "lower [plates] posterior_edge_mm")
+    h = X[nodes] @ n
+    lo = float(h[over].min()) - geo.clearance_mm
+    hi = float(h[over].max()) + geo.clearance_mm
+    eps = automatic_penalty(config, young_mpa=body.young_mpa, h_mm=mean_edge_length(X, body.skin))
+    plates = {}
+    for name, normal, height in (("lower", n, lo), ("upper", -n, hi)):
+        pl = RigidPlate(name=name, origin=height * n, normal=normal, e1=frame.e_x,
+                        s_range=(s_edge, np.inf), edge_radius=geo.edge_radius_mm)
+        plates[name] = PlateContact(pl, X, nodes, areas, config=config, penalty=eps)
+    log.info("plates: normal %s, chest-wall edge x = %.1f mm, eps_N = %.3g MPa/mm",
+             np.round(n, 3).tolist(), s_edge, eps)
+    return plates, frame
+
+
+def _gap(plates: dict[str, PlateContact], n: np.ndarray) -> float:
+    return float((plates["upper"].plate.origin - plates["lower"].plate.origin) @ n)
+
+
+def _touch(pc: PlateContact, u: np.ndarray) -> None:
+    """Translate a plate along its normal until it just touches the body (no force)."""
+    pc.plate = pc._plate0 = pc.plate.translated(pc.min_gap(u) * pc.plate.normal)
+    pc.motion = None
+
+
+class ProtocolRunner:
+    """Run a protocol on a body with a step solver (see the module docstring)."""
+
+    def __init__(self, body: BodySetup, protocol: Protocol, solve: StepSolver, *,
+                 config: ContactConfig | None = None):
+        self.body = body
+        self.protocol = protocol
+        self.solve = solve
+        self.config = config or ContactConfig()
+        self.plates, self.frame = make_plates(body, protocol, config=self.config)
+        self.n = self.frame.normal
+        self.u = np.zeros_like(body.points)
+        self.g = np.zeros(3)
+        self.loads: dict[str, np.ndarray] = {}
+        self.records: list[StepRecord] = []
+        self._tmean0: float | None = None
+
+    # -- one solve ------------------------------------------------------------------
+    def _solve(self, g_end: np.ndarray, name: str) -> dict:
+        contribs = list(self.plates.values())
+        for c in contribs:
+            c.begin_step(name)
+        u, stats = self.solve(self.u, self.g, g_end, contribs, name)
+        self.u = np.asarray(u, float).reshape(-1, 3)
+        self.g = np.asarray(g_end, float)
+        for c in contribs:
+            c.set_time(1.0)
+            c.motion = None
+            c._plate0 = c.plate
+        return dict(stats or {})
+
+    def _penetration(self) -> tuple[float, dict]:
+        reps = {k: c.report(self.u) for k, c in self.plates.items()}
+        return max(r["max_penetration_mm"] for r in reps.values()), reps
+
+    def _move(self, pc: PlateContact, distance: float, name: str) -> dict:
+        start = pc.plate.origin.copy()
+        pc.set_motion(start, start + distance * pc.plate.normal)
+        return self._solve(self.g, name)
+
+    def _snapshot(self):
+        return (self.u.copy(), {k: c.get_state() for k, c in self.plates.items()})
+
+    def _restore(self, snap) -> None:
+        self.u = snap[0].copy()
+        for k, c in self.plates.items():
+            c.set_state(snap[1][k])
+
+    def _force_target(self, pc: PlateContact, step: Step, t0: float) -> dict:
+        """March the plate until its normal force reaches the target, then refine (secant)."""
+        target = float(step.target_force_N)
+        stats: dict = {"trials": 0}
+        d_done, f_done = 0.0, 0.0
+        chunk = 0.05 * t0
+        for _ in range(60):
+            snap = self._snapshot()
+            self._move(pc, chunk, step.name)
+            stats["trials"] += 1
+            f = pc.report(self.u)["normal_force_N"]
+            if abs(f - target) <= step.force_tol * target:
+                return stats
+            if f < target:
+                # accept and extrapolate (secant on the force-travel curve, growth <= 2x)
+                slope = (f - f_done) / chunk if f > f_done else 0.0
+                d_done, f_done = d_done + chunk, f
+                if d_done >= 0.9 * t0:
+                    raise ResultCheckError(f"step '{step.name}': the plate force {f:.3g} N stays "
+                                           f"below target_force_N = {target} N at 90 % compression; "
+                                           "lower the target")
+                want = (target - f) / slope if slope > 0 else chunk
+                chunk = float(np.clip(want, 0.2 * chunk, 2.0 * chunk))
+                continue
+            # overshoot: go back and take a secant-sized shorter move
+            self._restore(snap)
+            frac = (target - f_done) / (f - f_done) if f > f_done else 0.5
+            chunk = chunk * float(np.clip(frac, 0.1, 0.9))
+        raise ResultCheckError(f"step '{step.name}': target force {target} N not reached in 60 "
+                               "trials; give target_gap_mm or target_D instead")
+
+    # -- steps --------------------------------------------------------------------------
+    def _run_step(self, step: Step) -> StepRecord:
+        T0 = None
+        stats: dict = {}
+        if step.action == "gravity":
+            d = np.asarray(step.direction, float)
+            vec = step.factor * G_STANDARD * d / np.linalg.norm(d)
+            self.loads[step.load] = self.loads.get(step.load, np.zeros(3)) + vec
+            stats = self._solve(sum(self.loads.values(), np.zeros(3)), step.name)
+        elif step.action == "remove_gravity":
+            if step.load not in self.loads:
+                raise ConfigError(f"step '{step.name}': gravity load '{step.load}' is not active "
+                                  f"(active: {', '.join(self.loads) or 'none'})")
+            self.loads.pop(step.load)
+            stats = self._solve(sum(self.loads.values(), np.zeros(3)), step.name)
+        elif step.action == "hold":
+            stats = self._solve(self.g, step.name)
+        else:
+            pc = self.plates[step.plate]
+            if step.to == "position":
+                stats = self._move(pc, float(step.distance_mm), step.name)
+            else:
+                _touch(pc, self.u)
+                if step.to != "contact":
+                    if step.plate != "upper":
+                        raise ConfigError(f"step '{step.name}': to = '{step.to}' moves the upper "
+                                          "plate only; use to = 'contact' or 'position' for the lower")
+                    T0 = _gap(self.plates, self.n)
+                    self._tmean0 = self._mean_thickness()
+                    if step.to == "force":
+                        stats = self._force_target(pc, step, T0)
+                    else:
+                        gap = (comp.gap_for_degree(T0, step.target_D) if step.to == "degree"
+                               else float(step.target_gap_mm))
+                        if not 0 < gap < T0:
+                            raise ConfigError(f"step '{step.name}': target gap {gap:.2f} mm must "
+                                              f"be below the uncompressed thickness {T0:.2f} mm")
+                        stats = self._move(pc, T0 - gap, step.name)
+        pen, reps = self._penetration()
+        if pen > self.config.max_penetration_mm:
+            raise ResultCheckError(
+                f"step '{step.name}': a skin node is {pen:.3f} mm inside a plate (limit "
+                f"{self.config.max_penetration_mm} mm); use [contact] method = "
+                "\"augmented-lagrangian\" or raise penalty_factor")
+        gap = _gap(self.plates, self.n)
+        rec = StepRecord(name=step.name, action=step.action, u=self.u.copy(), gravity_ms2=self.g.copy(),
+                         plates={k: c.plate.to_dict() for k, c in self.plates.items()},
+                         contact=reps, gap_mm=gap, max_penetration_mm=pen, solver=stats)
+        if T0 is not None:
+            rec.T0_mm = T0
+            rec.D = comp.compression_degree(T0, gap)
+            if self._tmean0:
+                rec.D_mean = 1.0 - self._mean_thickness() / self._tmean0
+        return rec
+
+    def _mean_thickness(self) -> float:
+        b = self.body
+        x = b.points + self.u
+        edge = self.plates["lower"].plate.s_range[0]
+        tmask = b.points[b.tets].mean(axis=1)[:, 0] >= edge
+        smask = b.points[b.skin].mean(axis=1)[:, 0] >= edge
+        return comp.mean_thickness(x, b.tets, b.skin, self.n, tet_mask=tmask, skin_mask=smask)
+
+    def run(self) -> ProtocolResult:
+        """Run every step; on failure raise with the partial result in ``last_converged``."""
+        result = ProtocolResult(self.protocol, self.records, self.frame.to_dict())
+        for i, step in enumerate(self.protocol.steps):
+            log.info("protocol %s: step %d/%d '%s'", self.protocol.name, i + 1,
+                     len(self.protocol.steps), step.name)
+            try:
+                self.records.append(self._run_step(step))
+            except SolverDidNotConvergeError as err:
+                result.error = f"step '{step.name}' did not converge: {err}"
+                raise type(err)(f"protocol '{self.protocol.name}' step {i + 1} '{step.name}': "
+                                f"{err}", load_fraction=err.load_fraction,
+                                last_converged=result) from err
+            except ResultCheckError as err:
+                result.error = str(err)
+                err.last_converged = result  # type: ignore[attr-defined]
+                raise
+            rec = self.records[-1]
+            log.info("  gap %.2f mm, D %s, penetration %.4f mm, forces %s", rec.gap_mm,
+                     None if rec.D is None else round(rec.D, 4), rec.max_penetration_mm,
+                     {k: round(v["normal_force_N"], 4) for k, v in rec.contact.items()})
+        return result
+
+
+def solver_from_problem(problem: Any, *, options: Any = None, progress: Any = None,
+                        dirichlet: Any = None) -> StepSolver:
+    """Adapt :func:`regtrack.mechanics.solver.solve_step` to the engine's step solver.
+
+    Gravity is ramped linearly from ``g_start`` to ``g_end`` (m/s^2); the returned stats
+    dict is :meth:`StepStats.to_dict` plus the chest-wall reaction (N), the force the
+    fixed nodes exert on the body.
+    """
+    from regtrack.mechanics.solver import reaction_forces, solve_step
+
+    def solve(u0, g0, g1, contribs, name):
+        g0 = np.asarray(g0, float)
+        g1 = np.asarray(g1, float)
+        u, st = solve_step(problem, u0, gravity=lambda t: g0 + t * (g1 - g0), dirichlet=dirichlet,
+                           contributions=contribs, options=options, progress=progress,
+                           step_name=name, step=name)
+        out = st.to_dict()
+        out.pop("reports", None)
+        fixed = problem.model.fixed
+        if fixed.any():
+            r = reaction_forces(problem, u, gravity_ms2=g1, contributions=contribs)
+            out["chest_wall_reaction_N"] = r[fixed].sum(axis=0).tolist()
+        return u, out
+    return solve

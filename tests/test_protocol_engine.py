@@ -1,0 +1,173 @@
+"""Protocol schema and engine (regtrack.mechanics.protocol / protocol_run) with a mock solver.
+
+The mock "body" is a grid of nodes each tied to its reference position by a spring
+(k N/mm) and loaded by a nodal weight: no elasticity coupling, so every expected number
+(plate gap for a target D, force balance, gravity sums) follows by hand.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.spatial import Delaunay
+
+from regtrack.errors import ConfigError, ResultCheckError, SolverDidNotConvergeError
+from regtrack.mechanics.contact import ContactConfig
+from regtrack.mechanics.protocol import (ProtocolOverrides, apply_overrides, parse_protocol,
+                                         protocol_for_view, shipped_protocol)
+from regtrack.mechanics.protocol_run import BodySetup, ProtocolRunner
+
+K_SPRING = 0.05  # N/mm per node
+WEIGHT = 0.02 / 9.81  # N per (m/s^2) per node
+
+
+def _body(side="R"):
+    """A 40 x 30 x 30 mm block of nodes: x in [-40, 0] (chest wall at x = -40)."""
+    g = np.stack(np.meshgrid(np.linspace(-40, 0, 9), np.linspace(-15, 15, 7),
+                             np.linspace(-15, 15, 7), indexing="ij"), -1).reshape(-1, 3)
+    tets = Delaunay(g).simplices
+    hull = Delaunay(g).convex_hull
+    fixed = np.isclose(g[:, 0], -40)
+    skin = hull[~fixed[hull].all(axis=1)]
+    return BodySetup(points=g, tets=tets, skin=skin, fixed=fixed, side=side, young_mpa=1e-3)
+
+
+def mock_solver(X, fixed, *, increments=4, fail_at=None):
+    free = ~fixed
+
+    def solve(u0, g0, g1, contribs, name):
+        if fail_at == name:
+            raise SolverDidNotConvergeError("mock: no convergence", load_fraction=0.5)
+        u = u0.reshape(-1).copy()
+        it = 0
+        for t in np.linspace(0, 1, increments + 1)[1:]:
+            for c in contribs:
+                c.set_time(t)
+            g = g0 + t * (g1 - g0)
+            for _aug in range(30):
+                for _ in range(40):
+                    R = K_SPRING * u - np.tile(WEIGHT * g, len(X))
+                    Kd = K_SPRING * np.ones(u.size)
+                    Ks = None
+                    for c in contribs:
+                        r, K = c.residual_tangent(u)
+                        R += r
+                        Ks = K if Ks is None else (Ks + K if K is not None else Ks)
+                    mask = np.repeat(free, 3)
+                    R[~mask] = 0
+                    it += 1
+                    if np.linalg.norm(R) < 1e-11:
+                        break
+                    import scipy.sparse as sp
+                    A = sp.diags(Kd) + (Ks if Ks is not None else 0)
+                    A = sp.csr_matrix(A)[mask][:, mask]
+                    du = np.zeros_like(u)
+                    du[mask] = sp.linalg.spsolve(A.tocsc(), -R[mask])
+                    u += du
+                if all(c.augment(u) for c in contribs):
+                    break
+            for c in contribs:
+                c.commit(u)
+        return u.reshape(-1, 3), {"iterations": it}
+    return solve
+
+
+def _run(protocol, body=None, **kw):
+    body = body or _body()
+    runner = ProtocolRunner(body, protocol, mock_solver(body.points, body.fixed, **kw),
+                            config=ContactConfig(friction=0.1))
+    return runner.run(), runner
+
+
+def test_shipped_protocols_parse():
+    cc, mlo = shipped_protocol("cc"), shipped_protocol("mlo")
+    assert [s.action for s in cc.steps] == ["gravity", "move_plate", "gravity", "move_plate"]
+    assert cc.steps[-1].target_D == pytest.approx(0.38)
+    assert mlo.steps[-1].target_D == pytest.approx(0.28)
+    assert mlo.angle_deg == 45.0 and cc.view == "CC" and mlo.view == "MLO"
+    np.testing.assert_allclose(cc.steps[0].direction, [-1, 0, 0])
+    np.testing.assert_allclose(cc.steps[2].direction, [0, -1, 0])
+
+
+def test_cc_protocol_reaches_target_D_on_mock_body():
+    res, runner = _run(shipped_protocol("cc"))
+    assert res.complete
+    last = res.steps[-1]
+    # gap = (1 - D) T0 exactly, since D is defined on the plate gap
+    assert last.D == pytest.approx(0.38, abs=1e-9)
+    assert last.gap_mm == pytest.approx(0.62 * last.T0_mm, rel=1e-9)
+    # gravity loads add up: -x (unloading) + -y (standing), 9.81 m/s^2 each
+    np.testing.assert_allclose(last.gravity_ms2, [-9.81, -9.81, 0.0])
+    assert last.max_penetration_mm <= ContactConfig().penetration_tol_mm + 1e-12
+    # both plates press the body; the upper one pushes down (force on plate along +n)
+    up, lo = last.contact["upper"], last.contact["lower"]
+    assert up["normal_force_N"] > 0 and lo["normal_force_N"] > 0
+    # equilibrium of the free nodes: force on both plates = -(springs - weight)
+    body = runner.body
+    free = ~body.fixed
+    on_plates = np.add(up["force_N"], lo["force_N"])
+    expected = -(K_SPRING * last.u[free].sum(axis=0) - free.sum() * WEIGHT * last.gravity_ms2)
+    np.testing.assert_allclose(on_plates, expected, atol=1e-8)
+    assert last.D_mean is not None and 0.0 < last.D_mean < 1.0
+
+
+def test_mlo_plates_are_rotated_45_degrees():
+    res, runner = _run(shipped_protocol("mlo"))
+    n = runner.plates["lower"].plate.normal
+    # right breast: medial = -z, n = cos45 y + sin45 m
+    np.testing.assert_allclose(n, [0, np.sqrt(0.5), -np.sqrt(0.5)], atol=1e-12)
+    np.testing.assert_allclose(runner.plates["upper"].plate.normal, -n, atol=1e-12)
+    assert res.steps[-1].D == pytest.approx(0.28, abs=1e-9)
+
+
+def test_force_target_is_reached_within_tolerance():
+    proto = apply_overrides(shipped_protocol("cc"), ProtocolOverrides(target_force_N=0.5))
+    res, _ = _run(proto)
+    f = res.steps[-1].contact["upper"]["normal_force_N"]
+    assert f == pytest.approx(0.5, rel=0.02)
+
+
+def test_gap_override_and_too_large_gap():
+    proto = apply_overrides(shipped_protocol("cc"), ProtocolOverrides(target_gap_mm=20.0))
+    res, _ = _run(proto)
+    assert res.steps[-1].gap_mm == pytest.approx(20.0, abs=1e-9)
+    with pytest.raises(ConfigError, match="uncompressed thickness"):
+        _run(apply_overrides(shipped_protocol("cc"), ProtocolOverrides(target_gap_mm=500.0)))
+
+
+def test_failure_keeps_last_converged_state_and_names_the_step():
+    with pytest.raises(SolverDidNotConvergeError, match="step 3 'standing-gravity'") as ei:
+        _run(shipped_protocol("cc"), fail_at="standing-gravity")
+    partial = ei.value.last_converged
+    assert [r.name for r in partial.steps] == ["gravity-unloading", "lower-plate-contact"]
+    assert not partial.complete
+
+
+def test_penetration_guard_rejects_soft_penalty():
+    body = _body()
+    runner = ProtocolRunner(body, shipped_protocol("cc"), mock_solver(body.points, body.fixed),
+                            config=ContactConfig(method="penalty", penalty_factor=1e-3))
+    with pytest.raises(ResultCheckError, match="inside a plate"):
+        runner.run()
+
+
+@pytest.mark.parametrize("table, match", [
+    ({"view": "XX", "steps": [{"action": "hold"}]}, "view"),
+    ({"view": "CC"}, "steps"),
+    ({"view": "CC", "steps": [{"action": "gravity"}]}, "needs load"),
+    ({"view": "CC", "steps": [{"action": "move_plate", "to": "degree"}]}, "target_D"),
+    ({"view": "CC", "steps": [{"action": "jump"}]}, "action"),
+    ({"view": "CC", "steps": [{"action": "hold", "colour": 1}]}, "colour"),
+])
+def test_bad_protocols_name_the_key(table, match):
+    with pytest.raises(ConfigError, match=match):
+        parse_protocol(table, where="p.toml")
+
+
+def test_case_overrides_validation():
+    with pytest.raises(ConfigError, match=r"\[protocol.CC\].*only one"):
+        protocol_for_view("CC", {"target_D": 0.3, "target_gap_mm": 40.0})
+    with pytest.raises(ConfigError, match="target_D"):
+        protocol_for_view("MLO", {"target_D": 1.5})
+    p = protocol_for_view("mlo", {"target_D": 0.3, "angle_deg": 50.0})
+    assert p.steps[-1].target_D == 0.3 and p.angle_deg == 50.0
