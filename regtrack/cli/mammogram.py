@@ -30,7 +30,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="a pixel (row, col, DICOM grid) inside the tumour: outline it "
                         "semi-automatically")
     parser.add_argument("--out", default=None,
-                        help="output folder (default: <case>/output with CASE; required with --dicom)")
+                        help="output folder (default: <case>/output with CASE; required with "
+                        "--dicom)")
 
 
 def _inputs_from_case(args) -> dict:

@@ -15,5 +15,6 @@ from .orient import Orientation
 from .overlay import write_overlay
 from .segment import BreastSegmentation, segment_breast
 
-__all__ = ["MammogramConfig", "MammogramImage", "Orientation", "BreastSegmentation", "read_mammogram",
+__all__ = ["MammogramConfig", "MammogramImage", "Orientation", "BreastSegmentation",
+           "read_mammogram",
            "mammogram_from_array", "extract_view", "segment_breast", "write_overlay"]

@@ -113,7 +113,8 @@ def _spacing_from_tags(ds, name: str, user) -> tuple[np.ndarray, str]:
         sp = np.asarray([float(v) for v in ds.ImagerPixelSpacing])
         mag = ds.get("EstimatedRadiographicMagnificationFactor")
         if mag is not None and float(mag) > 0:
-            return sp / float(mag), f"ImagerPixelSpacing / EstimatedRadiographicMagnificationFactor ({float(mag):g})"
+            return sp / float(mag), ("ImagerPixelSpacing / EstimatedRadiographicMagnification"
+                                     f"Factor ({float(mag):g})")
         return sp, "ImagerPixelSpacing"
     raise DicomError(f"{name}: no PixelSpacing or ImagerPixelSpacing tag; give "
                      "pixel_spacing_mm = [row, col] (mm) under [views.<VIEW>] in case.toml "
@@ -258,9 +259,9 @@ def mammogram_from_array(image, *, pixel_spacing_mm, view: str | None = None,
     lo, hi = float(arr.min()), float(arr.max())
     if not hi > lo:
         raise DicomError(f"{source}: image is constant; not a mammogram")
-    sp, _ = _spacing_from_tags({}, source, pixel_spacing_mm) if pixel_spacing_mm is not None else (None, "")
-    if sp is None:
+    if pixel_spacing_mm is None:
         raise DicomError(f"{source}: pixel_spacing_mm is required for an array")
+    sp, _ = _spacing_from_tags({}, source, pixel_spacing_mm)
     meta: dict = {"modality": None, "notes": [], "spacing_source": "user (pixel_spacing_mm)"}
     lat_user, view_user = _norm_lat(laterality, source), _norm_view(view, source)
     return _canonicalise(((arr - lo) / (hi - lo)).astype(np.float32), sp, name=source, meta=meta,
@@ -313,7 +314,8 @@ def _canonicalise(img: np.ndarray, spacing: np.ndarray, *, name: str, meta: dict
             _note(meta, f"{name}: {orient.rule} puts the chest wall on the right, but the "
                         f"breast rests on the {side} edge of the stored image; flipped "
                         "left-right from the image content")
-            orient = orient.with_flip_lr(want_flip, orient.rule + " + left-right flip from image content")
+            orient = orient.with_flip_lr(want_flip,
+                                         orient.rule + " + left-right flip from image content")
     canon = orient.apply(img)
     sp = spacing[::-1].copy() if orient.transpose else spacing.copy()
     if view_guess_needed:
@@ -344,5 +346,6 @@ def _view_from_content(canon: np.ndarray, spacing: np.ndarray) -> tuple[str, str
 
     seg = segment_breast(canon, spacing, view="MLO", config=MammogramConfig(working_spacing_mm=1.0))
     if seg.pectoral is not None:
-        return "MLO", f"image content (pectoral muscle found, contrast {seg.pectoral['contrast']:.3f})"
+        contrast = seg.pectoral["contrast"]
+        return "MLO", f"image content (pectoral muscle found, contrast {contrast:.3f})"
     return "CC", "image content (no pectoral muscle in the top-left corner)"

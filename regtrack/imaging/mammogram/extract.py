@@ -115,7 +115,8 @@ def extract_view(img: MammogramImage, *, tumour_polygon_px=None, tumour_mask=Non
         if not (0 <= rc[0] <= h - 1 and 0 <= rc[1] <= w - 1):
             raise MammogramError(f"{img.source}: nipple_px {list(nipple_px)} lies outside the "
                                  f"image ({img.orientation.source_shape[0]}x"
-                                 f"{img.orientation.source_shape[1]} px); give [row, col] in the DICOM grid")
+                                 f"{img.orientation.source_shape[1]} px); give [row, col] in "
+                                 "the DICOM grid")
         nipple = _px_to_mm(rc, sp)
         dist = _contour_distance(nipple, skin)
         meta["nipple"] = {"method": "given (nipple_px)", "confidence": 1.0,
@@ -134,7 +135,8 @@ def extract_view(img: MammogramImage, *, tumour_polygon_px=None, tumour_mask=Non
         m = np.asarray(tumour_mask, bool)
         if m.shape != tuple(img.orientation.source_shape):
             raise MammogramError(f"{img.source}: tumour mask shape {m.shape} differs from the "
-                                 f"image {tuple(img.orientation.source_shape)}; draw it on the DICOM grid")
+                                 f"image {tuple(img.orientation.source_shape)}; draw it on the "
+                                 "DICOM grid")
         cs = mask_to_contours(img.orientation.apply(m))
         if not cs:
             raise MammogramError(f"{img.source}: the tumour mask is empty")

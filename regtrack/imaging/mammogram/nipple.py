@@ -16,7 +16,10 @@ from __future__ import annotations
 import numpy as np
 
 
-def chest_wall_distance(xy: np.ndarray, *, chest_wall: tuple[np.ndarray, np.ndarray] | None) -> np.ndarray:
+ChestWall = tuple[np.ndarray, np.ndarray]
+
+
+def chest_wall_distance(xy: np.ndarray, *, chest_wall: ChestWall | None) -> np.ndarray:
     """Distance (mm) of points ``xy`` (N, 2) from the chest wall.
 
     ``chest_wall`` is a line given by a point and a unit normal pointing anteriorly (mm);
@@ -28,7 +31,7 @@ def chest_wall_distance(xy: np.ndarray, *, chest_wall: tuple[np.ndarray, np.ndar
     return (xy - p) @ n
 
 
-def detect_nipple(contour_xy: np.ndarray, *, chest_wall: tuple[np.ndarray, np.ndarray] | None = None,
+def detect_nipple(contour_xy: np.ndarray, *, chest_wall: ChestWall | None = None,
                   delta_mm: float = 1.0, u0_mm: float = 10.0) -> tuple[np.ndarray, dict]:
     """Detect the nipple on an open contour.
 

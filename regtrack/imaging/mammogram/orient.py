@@ -143,12 +143,13 @@ def orientation_from_tag(po: tuple[str, str], *, shape: tuple[int, int], view: s
         notes.append(f"PatientOrientation {po[0]}\\{po[1]} does not fix the vertical axis; "
                      "kept as stored")
     rule = f"PatientOrientation {po[0]}\\{po[1]}"
-    return Orientation(tuple(shape), transpose, flip_lr, flip_ud, rule), notes  # type: ignore[arg-type]
+    shape2 = (int(shape[0]), int(shape[1]))
+    return Orientation(shape2, transpose, flip_lr, flip_ud, rule), notes
 
 
 def orientation_from_hanging(*, shape: tuple[int, int], laterality: str, view: str) -> Orientation:
     """IHE standard hanging: left breasts stored as A\\R (A\\FR), right as P\\L (P\\FL)."""
     std = ("A\\R" if view == "CC" else "A\\FR") if laterality == "L" else (
         "P\\L" if view == "CC" else "P\\FL")
-    return Orientation(tuple(shape), False, laterality == "R", False,  # type: ignore[arg-type]
+    return Orientation((int(shape[0]), int(shape[1])), False, laterality == "R", False,
                        f"IHE standard hanging for {laterality}{view} (stored as {std})")

@@ -13,10 +13,11 @@ the mean intensity drop across it,
 .. math::  S(x_0, y_0) = \\frac{1}{N}\\sum_k -\\nabla I_\\sigma(p_k)\\cdot n ,
 
 with ``p_k`` points of the segment inside the tissue and ``n`` its unit normal pointing
-away from the corner.  The search covers ``x0`` in [5 %, 100 %] of the tissue's extent along the top edge
-and ``y0`` in [25 %, 100 %] of its height (the muscle edge of an adequately positioned
-MLO reaches at least the upper quarter of the breast).  The line is accepted when the muscle triangle is brighter than a
-band in front of it by at least ``min_contrast`` (image units).
+away from the corner.  The search covers ``x0`` in [5 %, 100 %] of the tissue's extent
+along the top edge and ``y0`` in [25 %, 100 %] of its height (the muscle edge of an
+adequately positioned MLO reaches at least the upper quarter of the breast).  The line
+is accepted when the muscle triangle is brighter than a band in front of it by at least
+``min_contrast`` (image units).
 """
 
 from __future__ import annotations
@@ -95,7 +96,8 @@ def find_pectoral(smooth: np.ndarray, tissue: np.ndarray, spacing, *, grad_sigma
         return None
     contrast = float(smooth[muscle].mean() - smooth[band].mean())
     if contrast < min_contrast:
-        log.info("pectoral: best line contrast %.3f < %.3f; no muscle removed", contrast, min_contrast)
+        log.info("pectoral: best line contrast %.3f < %.3f; no muscle removed", contrast,
+                 min_contrast)
         return None
     log.debug("pectoral: x0 %.1f px, y0 %.1f px, contrast %.3f", x0, y0, contrast)
     return {"x0_px": x0, "y0_px": y0, "score": float(score[i, j]), "contrast": contrast,

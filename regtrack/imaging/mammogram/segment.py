@@ -81,7 +81,8 @@ class BreastSegmentation:
         return rc * f + (f - 1.0) / 2.0
 
 
-def block_average(image: np.ndarray, spacing, working_spacing_mm: float) -> tuple[np.ndarray, tuple[int, int]]:
+def block_average(image: np.ndarray, spacing,
+                  working_spacing_mm: float) -> tuple[np.ndarray, tuple[int, int]]:
     """Block-average ``image`` to about ``working_spacing_mm`` (never upsamples).
 
     Rows/columns beyond the last whole block (fewer than one block) are dropped.
@@ -136,7 +137,8 @@ def _depth_from_edge(mask: np.ndarray) -> np.ndarray:
 
 
 def remove_border_strips(mask: np.ndarray, spacing, *, strip_max_mm: float = 15.0,
-                         min_run_mm: float = 15.0, margin_mm: float = 1.0) -> tuple[np.ndarray, list]:
+                         min_run_mm: float = 15.0,
+                         margin_mm: float = 1.0) -> tuple[np.ndarray, list]:
     """Cut narrow bands that run along an image border (film-edge glow, film margins).
 
     For each border, ``d[i]`` is how far the mask reaches into the image from the border
@@ -150,7 +152,8 @@ def remove_border_strips(mask: np.ndarray, spacing, *, strip_max_mm: float = 15.
     out = mask.copy()
     found: list[dict] = []
     # (name, view of the mask with that border at column 0, spacing across, spacing along)
-    for name, k, flip in (("left", 0, False), ("right", 0, True), ("top", 1, False), ("bottom", 1, True)):
+    edges = (("left", 0, False), ("right", 0, True), ("top", 1, False), ("bottom", 1, True))
+    for name, k, flip in edges:
         m = out.T if k else out
         m = m[:, ::-1] if flip else m
         across, along = (spacing[0], spacing[1]) if k else (spacing[1], spacing[0])

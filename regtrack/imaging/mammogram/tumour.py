@@ -13,7 +13,10 @@ the region's boundary (maximum boundary contrast, as in the "optimal iso-contour
 segmentation of Kupinski and Giger, IEEE TMI 17(4), 1998, without their constraint
 function):
 
-.. math::  t^* = \\arg\\max_t \\frac{1}{|\\partial R_t|}\\sum_{p\\in\\partial R_t} |\\nabla I_\\sigma(p)|
+.. math::
+
+    t^* = \\arg\\max_t \\frac{1}{|\\partial R_t|}
+          \\sum_{p\\in\\partial R_t} |\\nabla I_\\sigma(p)|
 
 Levels whose region reaches the border of the region of interest (leakage into the
 background tissue) are discarded.
@@ -111,8 +114,9 @@ def tumour_from_seed(image: np.ndarray, spacing, seed_rc, *, roi_mm: float = 60.
     core = ((rr - s[0]) * wsp[0]) ** 2 + ((cc - s[1]) * wsp[1]) ** 2 <= min_radius_mm ** 2
     top, bottom = float(sm[core].mean()), float(np.median(sm))
     if not top > bottom:
-        raise MammogramError(f"tumour seed {np.asarray(seed_rc).tolist()}: the seed is not brighter "
-                             "than its surroundings; outline the tumour as a polygon instead")
+        raise MammogramError(f"tumour seed {np.asarray(seed_rc).tolist()}: the seed is not "
+                             "brighter than its surroundings; outline the tumour as a polygon "
+                             "instead")
     best = (-np.inf, None, None)
     for t in np.linspace(bottom, top, n_levels + 2)[1:-1]:
         lab, _ = ndi.label(sm >= t)
