@@ -91,6 +91,23 @@ def test_laterality_and_view_from_content_when_tags_absent(tmp_path):
     assert (img.laterality, img.view) == ("L", "CC")
 
 
+def test_mlo_stored_upside_down_is_flipped_from_content(tmp_path):
+    mlo = synthetic_breast(shape=(720, 400), yc_mm=60, b_mm=90, a_mm=70, pectoral_mm=(30, 80))
+    canon = np.round(mlo.image * 4095).astype(np.uint16)
+    p = write_dicom(tmp_path / "m.dcm", canon[::-1], ImageLaterality="L", ViewPosition="MLO",
+                    PixelSpacing=SP)
+    img = read_mammogram(p)
+    np.testing.assert_allclose(img.image, _expected(canon), atol=1e-6)
+    assert img.meta["orientation"]["flip_ud"] is True
+    assert img.meta["orientation"]["rule"].endswith("up-down flip from image content")
+    # a valid PatientOrientation is trusted on the vertical axis (no content check)
+    q = write_dicom(tmp_path / "n.dcm", canon, ImageLaterality="L", ViewPosition="MLO",
+                    PixelSpacing=SP, PatientOrientation=["A", "FR"])
+    img = read_mammogram(q)
+    assert img.meta["orientation"]["flip_ud"] is False
+    assert "pectoral_contrast_top_bottom" not in img.meta
+
+
 def test_cbis_style_view_code_in_patient_orientation(tmp_path, canon):
     p = write_dicom(tmp_path / "m.dcm", canon[:, ::-1], Laterality="R", PatientOrientation="CC",
                     PixelSpacing=SP)

@@ -78,6 +78,7 @@ def test_film_view(extracted, name, key):
     side = img.meta["chest_wall_side_in_file"]["side"]
     assert side == ("left" if img.laterality == "L" else "right")
     assert img.meta["orientation"]["flip_lr"] == (img.laterality == "R")
+    assert img.meta["orientation"]["flip_ud"] is False
     h, w = img.image.shape
     assert img.image[:, : w // 10].mean() > 3 * img.image[:, -w // 10:].mean()
     m = v.breast_mask

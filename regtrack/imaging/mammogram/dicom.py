@@ -294,9 +294,10 @@ def _canonicalise(img: np.ndarray, spacing: np.ndarray, *, name: str, meta: dict
                     f"from the image content (confidence {side_conf:.2f}); give laterality "
                     "to override")
     po = parse_patient_orientation(patient_orientation)
-    view_guess_needed = view is None
-    if view_guess_needed:
-        view = "CC"  # provisional, decided from content below
+    if view is None:
+        view, view_source = _view_from_content(img[:, ::-1] if side == "right" else img, spacing)
+        _note(meta, f"{name}: no ViewPosition tag; view {view} from the image content; give "
+                    "view to override")
     if po is not None:
         orient, notes = orientation_from_tag(po, shape=img.shape, view=view, laterality=laterality)
         for n in notes:
@@ -307,8 +308,7 @@ def _canonicalise(img: np.ndarray, spacing: np.ndarray, *, name: str, meta: dict
                                  "valid orientation; IHE standard hanging assumed")
         orient = orientation_from_hanging(shape=img.shape, laterality=laterality, view=view)
     # check the left-right flip against the content: the chest wall must end on the left
-    file_side = side if not orient.transpose else None
-    if file_side is not None and side_conf > 0.2:
+    if not orient.transpose and side_conf > 0.2:
         want_flip = side == "right"
         if want_flip != orient.flip_lr:
             _note(meta, f"{name}: {orient.rule} puts the chest wall on the right, but the "
@@ -316,16 +316,20 @@ def _canonicalise(img: np.ndarray, spacing: np.ndarray, *, name: str, meta: dict
                         "left-right from the image content")
             orient = orient.with_flip_lr(want_flip,
                                          orient.rule + " + left-right flip from image content")
-    canon = orient.apply(img)
     sp = spacing[::-1].copy() if orient.transpose else spacing.copy()
-    if view_guess_needed:
-        view, view_src = _view_from_content(canon, sp)
-        view_source = view_src
-        _note(meta, f"{name}: no ViewPosition tag; view {view} from the image content; give "
-                    "view to override")
-        if po is None:
-            orient = orientation_from_hanging(shape=img.shape, laterality=laterality, view=view) \
-                .with_flip_lr(orient.flip_lr, orient.rule)
+    if view == "MLO" and po is None:
+        # without a usable PatientOrientation, check the vertical axis on the content:
+        # the pectoral muscle belongs in the top-left corner of the canonical MLO
+        canon = orient.apply(img)
+        top, bottom = _pectoral_contrast(canon, sp), _pectoral_contrast(canon[::-1], sp)
+        meta["pectoral_contrast_top_bottom"] = [top, bottom]
+        if bottom > 0 and bottom > 1.5 * top:
+            _note(meta, f"{name}: the pectoral muscle is in the bottom corner (contrast "
+                        f"{bottom:.2f} vs {top:.2f} at the top); flipped up-down from the "
+                        "image content")
+            orient = orient.with_flip_ud(not orient.flip_ud,
+                                         orient.rule + " + up-down flip from image content")
+    canon = orient.apply(img)
     meta["laterality_source"] = laterality_source
     meta["view_source"] = view_source
     meta["orientation"] = {"rule": orient.rule, "transpose": orient.transpose,
@@ -338,14 +342,22 @@ def _canonicalise(img: np.ndarray, spacing: np.ndarray, *, name: str, meta: dict
                           orientation=orient, source=name, meta=meta)
 
 
-def _view_from_content(canon: np.ndarray, spacing: np.ndarray) -> tuple[str, str]:
-    """MLO when a pectoral muscle is found in the top-left corner, else CC."""
+def _pectoral_contrast(canon: np.ndarray, spacing: np.ndarray) -> float:
+    """Contrast of the pectoral muscle found in the top-left corner (0 when none)."""
+    from .config import MammogramConfig
     from .segment import segment_breast
 
-    from .config import MammogramConfig
-
     seg = segment_breast(canon, spacing, view="MLO", config=MammogramConfig(working_spacing_mm=1.0))
-    if seg.pectoral is not None:
-        contrast = seg.pectoral["contrast"]
-        return "MLO", f"image content (pectoral muscle found, contrast {contrast:.3f})"
-    return "CC", "image content (no pectoral muscle in the top-left corner)"
+    return 0.0 if seg.pectoral is None else float(seg.pectoral["contrast"])
+
+
+def _view_from_content(img: np.ndarray, spacing: np.ndarray) -> tuple[str, str]:
+    """MLO when a pectoral muscle is found in a chest-wall corner, else CC.
+
+    ``img`` has the chest wall on the left; both the top-left and the bottom-left corner
+    are searched (the vertical orientation is not known yet).
+    """
+    c = max(_pectoral_contrast(img, spacing), _pectoral_contrast(img[::-1], spacing))
+    if c > 0:
+        return "MLO", f"image content (pectoral muscle found, contrast {c:.3f})"
+    return "CC", "image content (no pectoral muscle in a chest-wall corner)"
