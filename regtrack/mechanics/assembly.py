@@ -132,7 +132,7 @@ class AnpGroups:
 
     ``of[e, i]`` is the group of element ``e``'s local node ``i``; ``vol0`` the group's
     reference volume ``V_g = sum V_e / 4`` (mm^3) and ``kappa`` its bulk modulus (MPa).
-    The remaining arrays drive :func:`regtrack.mechanics.tissue.anp_rank_kernel`.
+    ``sptr/snodes``: the nodes of each group; ``mptr/members``: its (e*4 + i) members.
     """
 
     of: np.ndarray
@@ -143,8 +143,6 @@ class AnpGroups:
     mptr: np.ndarray
     members: np.ndarray
     pos: np.ndarray
-    pptr: np.ndarray | None = None
-    pairj: np.ndarray | None = None
 
     @property
     def n_groups(self) -> int:
@@ -183,33 +181,55 @@ def anp_groups(tets: np.ndarray, vol: np.ndarray, kappa: np.ndarray, group: np.n
     return AnpGroups(of, vol0, kap, sptr, sn, mptr, members, pos)
 
 
-def anp_adjacency(groups: AnpGroups, n_nodes: int) -> sp.csr_matrix:
-    """2-ring node adjacency: nodes sharing an ANP group."""
-    ng = groups.n_groups
-    cnt = np.diff(groups.sptr)
-    m = sp.csr_matrix((np.ones(len(groups.snodes), np.int8), groups.snodes, groups.sptr),
-                      shape=(ng, n_nodes))
-    adj = (m.T @ m).tocsr()
-    adj.sort_indices()
-    del cnt
-    return adj
+@dataclass
+class SystemLayout:
+    """CSR layout of the matrix the solver factorises.
+
+    Plain P1: the tangent itself (``k_pos`` None).  ANP: the augmented system
+    ``[[K, B^T], [B, -D]]`` of size 3N + G; ``k_pos`` maps the tangent's values into it,
+    ``b_pos/bt_pos`` the entries of ``B`` (E*48, layout order of
+    :func:`regtrack.mechanics.problem.evaluate`) and of ``B^T``, ``d_pos`` the diagonal of
+    the pressure block.
+    """
+
+    n: int
+    indptr: np.ndarray
+    indices: np.ndarray
+    k_pos: np.ndarray | None = None
+    b_rows: np.ndarray | None = None
+    b_cols: np.ndarray | None = None
+    b_pos: np.ndarray | None = None
+    bt_pos: np.ndarray | None = None
+    d_pos: np.ndarray | None = None
 
 
-def anp_pairs(groups: AnpGroups, pattern: Pattern) -> None:
-    """Fill ``groups.pptr/pairj``: adjacency positions of every node pair of each group."""
-    cnt = np.diff(groups.sptr)
-    pptr = np.zeros(groups.n_groups + 1, np.int64)
-    np.cumsum(cnt * cnt, out=pptr[1:])
-    total = int(pptr[-1])
-    g_of = np.repeat(np.arange(groups.n_groups), cnt * cnt)
-    local = np.arange(total) - pptr[g_of]
-    n_g = cnt[g_of]
-    s = local // n_g
-    t = local % n_g
-    p = groups.snodes[groups.sptr[g_of] + s]
-    q = groups.snodes[groups.sptr[g_of] + t]
-    j = pattern.node_positions(p, q)
-    if np.any(j < 0):
-        raise ValueError("ANP group pair outside the 2-ring pattern")
-    groups.pptr = pptr
-    groups.pairj = j.astype(np.int32)
+def _positions(indptr: np.ndarray, indices: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+    """Value positions of (rows, cols) in a CSR with sorted indices (all must exist)."""
+    n = len(indptr) - 1
+    keys = np.repeat(np.arange(n, dtype=np.int64), np.diff(indptr)) * n + indices
+    pos = np.searchsorted(keys, rows.astype(np.int64) * n + cols)
+    assert np.all(keys[np.minimum(pos, len(keys) - 1)] == rows.astype(np.int64) * n + cols)
+    return pos
+
+
+def system_layout(pattern: Pattern, tets: np.ndarray, groups: AnpGroups | None) -> SystemLayout:
+    """Build the solver matrix layout (see :class:`SystemLayout`)."""
+    n3 = 3 * pattern.n_nodes
+    if groups is None:
+        return SystemLayout(n3, pattern.indptr, pattern.indices)
+    ne, ng = len(tets), groups.n_groups
+    b_rows = np.repeat(groups.of.reshape(-1), 12)  # (e, i) -> 4 nodes x 3 comps
+    b_cols = np.broadcast_to((3 * tets[:, None, :, None] + np.arange(3)), (ne, 4, 4, 3)).reshape(-1)
+    K = pattern.matrix(np.ones(pattern.nnz))
+    B = sp.csr_matrix((np.ones(len(b_rows)), (b_rows, b_cols)), shape=(ng, n3))
+    A = sp.bmat([[K, B.T], [B, sp.identity(ng)]], format="csr")
+    A.sum_duplicates()
+    A.sort_indices()
+    kr = np.repeat(np.arange(n3, dtype=np.int64), np.diff(pattern.indptr))
+    k_pos = _positions(A.indptr, A.indices, kr, pattern.indices)
+    b_pos = _positions(A.indptr, A.indices, n3 + b_rows, b_cols)
+    bt_pos = _positions(A.indptr, A.indices, b_cols, n3 + b_rows)
+    d = n3 + np.arange(ng)
+    d_pos = _positions(A.indptr, A.indices, d, d)
+    return SystemLayout(n3 + ng, A.indptr.astype(np.int64), A.indices.astype(np.int32), k_pos, b_rows,
+                        b_cols, b_pos, bt_pos, d_pos)

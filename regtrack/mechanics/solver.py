@@ -36,7 +36,8 @@ from regtrack.errors import ContactDidNotConvergeError, SolverDidNotConvergeErro
 from regtrack.mechanics.config import SolverOptions
 from regtrack.mechanics.contributions import Contribution
 from regtrack.mechanics.linsolve import LinearSolver
-from regtrack.mechanics.problem import Problem, body_force, build_problem, evaluate, internal_force, tangent
+from regtrack.mechanics.problem import (Problem, body_force, build_problem, evaluate, internal_force,
+                                        scatter_add, system_matrix, tangent)
 from regtrack.mechanics.types import StepStats
 
 __all__ = ["Problem", "build_problem", "internal_force", "tangent", "solve_step", "reaction_forces"]
@@ -53,18 +54,22 @@ class _Failed(Exception):
 
 
 class _Constraints:
-    """Constrained dofs and the CSR value positions that the identity rows replace."""
+    """Constrained dofs and the system-matrix value positions that identity rows replace."""
 
     def __init__(self, problem: Problem, dofs: np.ndarray):
-        pat = problem.pattern
+        lay = problem.layout
         self.dofs = dofs
         mask = np.zeros(problem.n_dofs, bool)
         mask[dofs] = True
         self.mask = mask
         self.free = ~mask
-        rows = np.repeat(mask, np.diff(pat.indptr))
-        self.zero = rows | mask[pat.indices]
-        self.diag = pat.dof_positions(dofs, dofs)
+        smask = np.zeros(lay.n, bool)
+        smask[dofs] = True
+        self.system_mask = smask
+        rows = np.repeat(smask, np.diff(lay.indptr))
+        self.zero = rows | smask[lay.indices]
+        diag = problem.pattern.dof_positions(dofs, dofs)
+        self.diag = diag if lay.k_pos is None else lay.k_pos[diag]
 
 
 def _constraint_targets(problem: Problem, u_start: np.ndarray, dirichlet: Dirichlet | None, t: float):
@@ -116,18 +121,24 @@ class _Newton:
         self.stats.t_contrib += time.perf_counter() - t0
         return R, ev, ktan
 
-    def matrix(self, data: np.ndarray, ktan: list, cons: _Constraints):
-        """Tangent with contributions, before the constraint rows are replaced."""
+    def matrix(self, ev, ktan: list):
+        """System matrix with contributions, before the constraint rows are replaced."""
         pat = self.p.pattern
+        data = ev.data
+        n = self.p.layout.n
         extra = []
+        self.symmetric = True
         for kc in ktan:
             kc = sp.coo_matrix(kc)
+            asym = abs(kc - kc.T)
+            if asym.nnz and asym.max() > 1e-12 * abs(kc).max():
+                self.symmetric = False
             pos = pat.dof_positions(kc.row, kc.col)
             if np.all(pos >= 0):
-                np.add.at(data, pos, kc.data)
+                scatter_add(data, pos, kc.data.astype(float))
             else:
-                extra.append(kc)
-        K = pat.matrix(data)
+                extra.append(sp.coo_matrix((kc.data, (kc.row, kc.col)), shape=(n, n)))
+        K = system_matrix(self.p, ev, data)
         for kc in extra:  # outside the pattern: generic sum (new analysis)
             log.debug("contribution tangent outside the pattern: generic assembly")
             K = (K + kc).tocsr()
@@ -159,19 +170,21 @@ class _Newton:
             if it > 2 and rn > 1e8 * max(hist[0], o.force_floor_n):
                 raise _Failed("residual diverged")
             self.stats.iterations += 1
-            K = self.matrix(ev.data, ktan, cons)
-            rhs = -R
+            K = self.matrix(ev, ktan)
+            n3, n = len(u), K.shape[0]
+            rhs = np.zeros(n)
+            rhs[:n3] = -R
             if np.any(ducon):
-                rhs = rhs - K @ ducon
-            rhs[cons.mask] = ducon[cons.mask]
-            if K.indices is self.p.pattern.indices:
+                rhs -= K @ np.concatenate([ducon, np.zeros(n - n3)])
+            rhs[:n3][cons.mask] = ducon[cons.mask]
+            if K.indices is self.p.layout.indices:
                 K.data[cons.zero] = 0.0
                 K.data[cons.diag] = 1.0
             else:
-                dm = sp.diags(cons.free.astype(float))
-                K = (dm @ K @ dm + sp.diags(cons.mask.astype(float))).tocsr()
+                keep = (~cons.system_mask).astype(float)
+                K = (sp.diags(keep) @ K @ sp.diags(keep) + sp.diags(1.0 - keep)).tocsr()
             t0 = time.perf_counter()
-            du = self.ls.solve(K, rhs)
+            du = self.ls.solve(K, rhs, symmetric=self.symmetric)[:n3]
             self.stats.t_solve += time.perf_counter() - t0
             if not np.all(np.isfinite(du)):
                 raise _Failed("linear solve returned non-finite values")

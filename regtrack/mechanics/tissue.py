@@ -19,7 +19,7 @@ tangent is :math:`K^e_{ab,ik} = V_e \sum_{JL} G_{aJ} A_{iJkL} G_{bL}` with
         + (p' J + p) J H_{iJ}H_{kL} - p J H_{kJ}H_{iL},
 
 ``p' = dp/dJ`` (``K`` for P1; 0 in the element part of ANP, whose volumetric rank
-term is assembled in :mod:`.assembly`).  ``G`` are the reference shape-function
+term enters through the augmented system, :mod:`.problem`).  ``G`` are the reference shape-function
 gradients (1/mm), ``V_e`` the reference volume (mm^3).  Units: mm, N, MPa.
 """
 
@@ -158,38 +158,3 @@ def tet_kernel(x, tets, G, V, c1, p, dp, want_k, f, data, base, rowstride, dv):
                             v += mu_e * gg
                         data[b0 + i * rs + k] += V[e] * v
     return energy, bad
-
-
-@njit(cache=True)
-def anp_rank_kernel(tets, dv, coef, sptr, snodes, mptr, members, pos, pptr, pairj, nptr, rowstride, data):
-    """Add the ANP volumetric rank term ``sum_g coef_g b_g b_g^T`` to the CSR ``data``.
-
-    ``b_g = sum_{(e,i) in g} dv_e / 4`` is the derivative of the nodal current volume
-    ``v_g`` (mm^2) and ``coef_g = K_g / V_g`` (MPa/mm^3).  ``sptr/snodes``: nodes of each
-    group (sorted); ``mptr/members``: its (element*4 + local node) members; ``pos``
-    (E, 4, 4): index within the group's node list of element node ``a`` for member
-    ``(e, i)``; ``pairj``: adjacency position of node pair (s, t) of the group.
-    """
-    ng = sptr.shape[0] - 1
-    for g in range(ng):
-        n = sptr[g + 1] - sptr[g]
-        b = np.zeros((n, 3))
-        for m in range(mptr[g], mptr[g + 1]):
-            e = members[m] // 4
-            il = members[m] % 4
-            for a in range(4):
-                s = pos[e, il, a]
-                for i in range(3):
-                    b[s, i] += 0.25 * dv[e, a, i]
-        c = coef[g]
-        off = pptr[g]
-        for s in range(n):
-            pnode = snodes[sptr[g] + s]
-            rs = rowstride[pnode]
-            rb = 9 * nptr[pnode]
-            for t in range(n):
-                b0 = rb + 3 * pairj[off + s * n + t]
-                for i in range(3):
-                    ci = c * b[s, i]
-                    for k in range(3):
-                        data[b0 + i * rs + k] += ci * b[t, k]
