@@ -24,6 +24,7 @@ COMMANDS: dict[str, str] = {
     "calibrate": "regtrack.cli.calibrate",
     "project": "regtrack.cli.project",
     "mammogram": "regtrack.cli.mammogram",
+    "simulate": "regtrack.cli.simulate",
 }
 
 
