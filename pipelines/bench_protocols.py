@@ -1,0 +1,61 @@
+"""Benchmark: the shipped CC and MLO protocols on a ~10,000-node hemisphere (issue 5).
+
+Usage::
+
+    .venv/bin/python pipelines/bench_protocols.py [--lc 3.0] [--views cc mlo] [--out DIR]
+
+Prints one table row per protocol step (increments, Newton iterations, augmentations,
+assembly / contact / linear-solve / total seconds) and the totals, plus ratios measured
+within the run.  Timings depend on machine load: compare ratios, not absolute figures
+across runs.  With other jobs on the CPU, set MKL_NUM_THREADS=1 (PARDISO's threads
+otherwise spin against them).
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import time
+from pathlib import Path
+
+from regtrack.mechanics.config import MechanicsConfig
+from regtrack.mechanics.meshes import hemisphere_model
+from regtrack.mechanics.protocol import shipped_protocol
+from regtrack.mechanics.run_view import run_protocol_on_model, summarise, write_outputs
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--lc", type=float, default=3.0, help="mesh size (mm); 3.0 gives ~10k nodes")
+    ap.add_argument("--views", nargs="+", default=["cc", "mlo"])
+    ap.add_argument("--out", type=Path, default=None, help="also write the result files here")
+    args = ap.parse_args()
+    logging.basicConfig(level=logging.WARNING)
+    t = time.perf_counter()
+    model = hemisphere_model(50.0, args.lc, tumour_radius=8.0)
+    t_mesh = time.perf_counter() - t
+    print(f"model: {model.n_nodes} nodes, {model.n_tets} tets (meshing {t_mesh:.1f} s)")
+    hdr = f"{'view':5} {'step':22} {'incr':>4} {'iter':>4} {'aug':>3} {'asm s':>7} {'cont s':>7} {'solve s':>7} {'total s':>7}"
+    grand = 0.0
+    for view in args.views:
+        res, timing = run_protocol_on_model(model, shipped_protocol(view), mechanics=MechanicsConfig())
+        print(hdr)
+        for st in res.steps:
+            s = st.solver
+            print(f"{view:5} {st.name:22} {s.get('increments', 0):4d} {s.get('iterations', 0):4d} "
+                  f"{s.get('augmentations', 0):3d} {s.get('t_assembly', 0):7.2f} {s.get('t_contrib', 0):7.2f} "
+                  f"{s.get('t_solve', 0):7.2f} {s.get('t_total', 0):7.2f}")
+        sm = summarise(res, timing)
+        tot = timing["total_s"]
+        grand += tot
+        solve = sum(st.solver.get("t_solve", 0) for st in res.steps)
+        print(f"{view}: D = {100 * sm['D']:.1f} %, upper force {sm['upper_force_N']:.2f} N, penetration "
+              f"{sm['max_penetration_mm']:.4f} mm, {sm['iterations']} iterations, total {tot:.1f} s "
+              f"(setup {timing['setup_s']:.1f} s; linear solves {100 * solve / tot:.0f} %)\n")
+        if args.out:
+            write_outputs(res, model, args.out, stem=f"bench_{view}")
+    print(f"all views: {grand:.1f} s")
+
+
+if __name__ == "__main__":
+    main()
