@@ -77,3 +77,22 @@ def test_centroid_distances_and_dice_for_radial_shifts():
     assert m.D == 0.4
     d = m.to_dict()
     assert '"d_T"' in _io.to_json(d) and d["tumour_distance"]["n_points"] > 0
+
+
+def test_metrics_refuse_other_view():
+    from regtrack.errors import RegistrationError
+
+    t = np.linspace(-np.pi / 2, np.pi / 2, 181)
+    breast = np.stack([80 * np.cos(t), 60 * np.sin(t) + 5 * np.cos(t) ** 2 * np.sin(2 * t)], 1)
+    real = MammogramView("CC", "R", breast, np.array([80.0, 0.0]), [_circle((40.0, 10.0), 5.0)])
+    virt = MammogramView("CC", "R", rotate_about(breast, np.array([80.0, 0.0]), 3.0),
+                         np.array([80.0, 0.0]), [rotate_about(_circle((40.0, 10.0), 5.0),
+                                                              np.array([80.0, 0.0]), 3.0)])
+    al = align(real, virt)
+    m = compute_metrics(al, real, virt)
+    # virtual = real turned by +3 deg about the nipple: every similarity is ~100 %
+    assert min(m.bs_av, m.bs_av_b, m.ts_av, m.ts_av_t) > 99.0
+    assert al.theta_p == pytest.approx(-3.0, abs=0.1)
+    virt.view = "MLO"
+    with pytest.raises(RegistrationError, match="cannot be scored"):
+        compute_metrics(al, real, virt)

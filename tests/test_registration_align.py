@@ -146,3 +146,11 @@ def test_degenerate_inputs(kind, match):
     real, virt = _degenerate(kind)
     with pytest.raises(RegistrationError, match=match):
         align(real, virt)
+
+
+def test_registration_overlay_png(tmp_path):
+    from regtrack.registration.figures import save_registration_png
+
+    real, virt = _views(8.0, np.array([2.0, 3.0]))
+    p = save_registration_png(real, align(real, virt), tmp_path / "reg.png")
+    assert p.read_bytes()[:4] == b"\x89PNG"

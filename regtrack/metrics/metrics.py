@@ -42,6 +42,8 @@ class Metrics:
     view: str
     bs_av: float
     ts_av: float
+    bs_av_b: float
+    ts_av_t: float
     theta_p_b: float
     theta_p_t: float
     theta_p: float
@@ -138,7 +140,9 @@ def compute_metrics(alignment: Alignment, real: MammogramView, virtual: Mammogra
     """Metrics of an alignment.
 
     * :math:`BS_{Av}` (eq. 4), :math:`TS_{Av}` (eq. 5): :func:`similarity_percent` of the
-      breast and tumour objectives at :math:`\\theta_p`.
+      breast and tumour objectives at the common angle :math:`\\theta_p` (the rotation
+      applied to the view); ``bs_av_b`` and ``ts_av_t`` are the same at each contour's own
+      optimum :math:`\\theta_{p,b}`, :math:`\\theta_{p,t}`.
     * :math:`\\theta_{p,b}`, :math:`\\theta_{p,t}`, :math:`\\theta_p = (\\theta_{p,b} +
       \\theta_{p,t})/2` (deg): from the golden-section searches.
     * ``D`` (-): compression degree of the simulation, passed through
@@ -151,16 +155,22 @@ def compute_metrics(alignment: Alignment, real: MammogramView, virtual: Mammogra
     * Dice (-): :func:`dice` of the breast regions (clipped to the common anterior part,
       see ``_breast_regions``) and of the tumour regions.
     """
+    from regtrack.errors import RegistrationError
+
+    if virtual.view.upper() != alignment.view.upper() or real.view.upper() != alignment.view.upper():
+        raise RegistrationError(f"metrics: alignment of the {alignment.view} view cannot be scored "
+                                f"with real {real.view} / virtual {virtual.view} views")
     spacing = alignment.config.resample_mm
     rb, vb = _breast_regions(real.breast_contour, alignment.breast_contour)
     cb_r, cb_v = G.polygon(real.breast_contour).centroid, G.polygon(alignment.breast_contour).centroid
     d_B = float(math.hypot(cb_r.x - cb_v.x, cb_r.y - cb_v.y))
     bstats = distance_stats(alignment.breast_contour, real.breast_contour, closed=False,
                             spacing=spacing)
-    ts_av = d_T = dice_t = float("nan")
+    ts_av = ts_av_t = d_T = dice_t = float("nan")
     tstats = None
     if alignment.tumour_objective is not None:
         ts_av = similarity_percent(alignment.tumour_objective, alignment.theta_p)
+        ts_av_t = similarity_percent(alignment.tumour_objective, alignment.theta_p_t)
         tr, tv = _union(real.tumour_contours), _union(alignment.tumour_contours)
         d_T = float(math.hypot(tr.centroid.x - tv.centroid.x, tr.centroid.y - tv.centroid.y))
         dice_t = dice(tr, tv)
@@ -170,7 +180,8 @@ def compute_metrics(alignment: Alignment, real: MammogramView, virtual: Mammogra
     return Metrics(
         view=alignment.view,
         bs_av=similarity_percent(alignment.breast_objective, alignment.theta_p),
-        ts_av=ts_av, theta_p_b=alignment.theta_p_b, theta_p_t=alignment.theta_p_t,
+        ts_av=ts_av, bs_av_b=similarity_percent(alignment.breast_objective, alignment.theta_p_b),
+        ts_av_t=ts_av_t, theta_p_b=alignment.theta_p_b, theta_p_t=alignment.theta_p_t,
         theta_p=alignment.theta_p, D=D, d_T=d_T, d_B=d_B, breast_distance=bstats,
         tumour_distance=tstats, dice_breast=dice(rb, vb), dice_tumour=dice_t,
         evaluations_b=alignment.evaluations_b, evaluations_t=alignment.evaluations_t)
