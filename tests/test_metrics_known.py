@@ -8,7 +8,13 @@ import numpy as np
 import pytest
 
 from regtrack import _io
-from regtrack.metrics import compression_degree, compute_metrics, dice, distance_stats, similarity_percent
+from regtrack.metrics import (
+    compression_degree,
+    compute_metrics,
+    dice,
+    distance_stats,
+    similarity_percent,
+)
 from regtrack.registration import align
 from regtrack.registration.align import Objective
 from regtrack.registration.geometry import ClosestPoints, polygon, rotate_about

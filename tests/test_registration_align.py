@@ -11,8 +11,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-
 from conftest import shared_data
+
 from regtrack.errors import RegistrationError
 from regtrack.metrics import compute_metrics
 from regtrack.registration import RegistrationConfig, align

@@ -7,12 +7,12 @@ import json
 import meshio
 import numpy as np
 import pytest
+from test_virtual_mammogram import _box
 
 from regtrack.cli import main
 from regtrack.model.io import save_model
 from regtrack.model.types import AnatomicalFrame, BreastModel
 from regtrack.virtual.surface import boundary_faces
-from test_virtual_mammogram import _box
 
 
 @pytest.fixture

@@ -8,8 +8,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-
 from conftest import shared_data
+
 from regtrack.virtual import xray
 from regtrack.virtual.contours import mask_contours, polygon_area
 from regtrack.virtual.raster import grid_around, rasterise

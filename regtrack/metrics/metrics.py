@@ -100,7 +100,7 @@ def distance_stats(points: np.ndarray, contour: np.ndarray, *, closed: bool,
     d = np.linalg.norm(v - G.ClosestPoints(r, closed=closed)(v), axis=1)
     back = np.linalg.norm(r - G.ClosestPoints(v, closed=closed)(r), axis=1)
     return DistanceStats(float(d.mean()), float(np.percentile(d, 95)), float(d.max()),
-                         float(max(d.max(), back.max())), int(len(v)))
+                         float(max(d.max(), back.max())), len(v))
 
 
 def dice(a, b) -> float:

@@ -97,7 +97,7 @@ class PlateFrame:
         """(..., 3) plate coordinates (X, Y, h) (mm) -> model points."""
         return np.asarray(local, float) @ self.rotation + self.origin
 
-    def with_origin(self, origin) -> "PlateFrame":
+    def with_origin(self, origin) -> PlateFrame:
         """The same orientation through another origin (mm, model frame)."""
         return PlateFrame(np.asarray(origin, float).reshape(3), self.normal, self.e_x,
                           self.e_down, self.view, self.side, self.angle_deg)

@@ -114,7 +114,7 @@ def path_lengths(local: np.ndarray, tets: np.ndarray, groups: np.ndarray, grid: 
     else:
         q = perspective(local, source)
         hs = source.height
-        post = lambda w: hs - 1.0 / w  # noqa: E731  (height back from w, mm)
+        post = lambda w: hs - 1.0 / w
         xc, yc = grid.centres()
         r2 = (xc[None, :] - source.foot[0]) ** 2 + (yc[:, None] - source.foot[1]) ** 2
         sec = np.sqrt(1.0 + r2 / source.sid**2)
