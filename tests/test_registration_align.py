@@ -154,3 +154,13 @@ def test_registration_overlay_png(tmp_path):
     real, virt = _views(8.0, np.array([2.0, 3.0]))
     p = save_registration_png(real, align(real, virt), tmp_path / "reg.png")
     assert p.read_bytes()[:4] == b"\x89PNG"
+
+
+def test_two_tumours():
+    t1, t2 = _ellipse((45.0, 25.0), 6.0, 4.0), _ellipse((30.0, -20.0), 5.0, 5.0, rot=0.0)
+    real, virt = _views(-7.5, np.array([1.0, 1.0]), tumour=t1)
+    real.tumour_contours.append(t2)
+    virt.tumour_contours.append(rotate_about(t2, real.nipple, 7.5) + [1.0, 1.0])
+    al = align(real, virt)
+    assert al.theta_p_t == pytest.approx(-7.5, abs=0.1)
+    assert compute_metrics(al, real, virt).dice_tumour > 0.99

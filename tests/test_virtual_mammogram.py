@@ -234,3 +234,14 @@ def test_nonfinite_positions_are_refused(ellipsoid):
 def test_source_inside_breast_is_refused(ellipsoid):
     with pytest.raises(ResultCheckError, match="source_to_image_mm"):
         project_model(ellipsoid, view="CC", config=VirtualConfig(source_to_image_mm=30.0))
+
+
+def test_missing_chest_wall_falls_back_with_a_record(ellipsoid):
+    from regtrack.virtual.surface import boundary_faces as bf
+
+    m = BreastModel(ellipsoid.points, ellipsoid.tets, ellipsoid.region, ellipsoid.tumour_id,
+                    bf(ellipsoid.tets, ellipsoid.points), np.zeros(len(ellipsoid.points), bool),
+                    ellipsoid.nipple, ellipsoid.frame)
+    vm = project_model(m, view="CC", config=VirtualConfig(pixel_mm=0.5, render=False))
+    assert any("no chest-wall faces" in f for f in vm.view.meta["fallbacks"])
+    assert vm.view.breast_contour[:, 0].min() > -A + 0.5

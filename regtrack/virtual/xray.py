@@ -114,7 +114,10 @@ def path_lengths(local: np.ndarray, tets: np.ndarray, groups: np.ndarray, grid: 
     else:
         q = perspective(local, source)
         hs = source.height
-        post = lambda w: hs - 1.0 / w
+
+        def post(w: np.ndarray) -> np.ndarray:
+            return hs - 1.0 / w  # height (mm) back from w = 1 / (h_s - h)
+
         xc, yc = grid.centres()
         r2 = (xc[None, :] - source.foot[0]) ** 2 + (yc[:, None] - source.foot[1]) ** 2
         sec = np.sqrt(1.0 + r2 / source.sid**2)
