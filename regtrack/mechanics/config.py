@@ -29,7 +29,8 @@ class SolverOptions:
     """
 
     force_tol: float = param(1e-6, "-", "relative residual tolerance (vs external force / reaction)", gt=0, lt=1)
-    disp_tol: float = param(1e-6, "-", "relative displacement-correction tolerance", gt=0, lt=1)
+    disp_tol: float = param(1e-4, "-", "relative displacement-correction tolerance (the error left is "
+                            "~ the next, quadratically smaller correction)", gt=0, lt=1)
     force_floor_n: float = param(1e-9, "N", "absolute force floor of the residual reference", gt=0)
     disp_floor_mm: float = param(1e-6, "mm", "absolute displacement floor of the correction reference", gt=0)
     max_iterations: int = param(15, "-", "Newton iterations per increment before a cut-back", ge=2, le=200)

@@ -149,21 +149,27 @@ class _Newton:
         o = self.o
         cons = self.constraints(dofs)
         u = u_start.copy()
-        fnorm_ext = np.linalg.norm(fext)
+        fnorm_ext = float(np.linalg.norm(fext))
         du_prev = np.inf
+
+        def check(R, ev, u, du_last):
+            """(residual norm, converged?) of the state u reached by the correction du_last."""
+            ducon = np.zeros_like(u)
+            ducon[dofs] = vals - u[dofs]
+            f_ref = max(fnorm_ext, float(np.linalg.norm(R[cons.mask])),
+                        float(np.linalg.norm(ev.f)) / np.sqrt(len(u)), o.force_floor_n)
+            rn = float(np.linalg.norm(R[cons.free]))
+            u_ref = max(float(np.max(np.abs(u - u_start), initial=0.0)), o.disp_floor_mm)
+            cons_ok = not np.any(ducon) or float(np.max(np.abs(ducon))) <= o.disp_tol * u_ref
+            return rn, ducon, (rn <= o.force_tol * f_ref and cons_ok and du_last <= o.disp_tol * u_ref)
+
         for it in range(o.max_iterations + 1):
             R, ev, ktan = self.residual(u, fext, want_k=True)
             if R is None:
                 raise _Failed("inverted elements or non-finite forces")
-            ducon = np.zeros_like(u)
-            ducon[dofs] = vals - u[dofs]
-            f_ref = max(fnorm_ext, np.linalg.norm(R[cons.mask]), np.linalg.norm(ev.f) / np.sqrt(len(u)),
-                        o.force_floor_n)
-            rn = float(np.linalg.norm(R[cons.free]))
+            rn, ducon, ok = check(R, ev, u, 0.0 if it == 0 else du_prev)
             hist.append(rn)
-            u_ref = max(float(np.max(np.abs(u - u_start), initial=0.0)), o.disp_floor_mm)
-            cons_ok = not np.any(ducon) or float(np.max(np.abs(ducon))) <= o.disp_tol * u_ref
-            if rn <= o.force_tol * f_ref and cons_ok and (du_prev <= o.disp_tol * u_ref or it == 0):
+            if ok:
                 return u
             if it == o.max_iterations:
                 break
@@ -188,13 +194,19 @@ class _Newton:
             self.stats.t_solve += time.perf_counter() - t0
             if not np.all(np.isfinite(du)):
                 raise _Failed("linear solve returned non-finite values")
-            alpha = self.line_search(u, du, R, fext, cons)
+            alpha, R1, ev1 = self.line_search(u, du, R, fext, cons)
             u = u + alpha * du
             du_prev = float(np.max(np.abs(alpha * du)))
+            if R1 is not None:  # the line search already has R at the new state: skip a tangent
+                rn1, _, ok1 = check(R1, ev1, u, du_prev)
+                if ok1:
+                    hist.append(rn1)
+                    return u
         raise _Failed(f"no convergence in {o.max_iterations} iterations (|R| = {hist[-1]:.3g} N)")
 
-    def line_search(self, u, du, R, fext, cons) -> float:
-        """Step length in (0, 1]: halve on inversion; secant on ``s(a) = du.R(u + a du)``."""
+    def line_search(self, u, du, R, fext, cons):
+        """Step length in (0, 1] (halve on inversion; secant on ``s(a) = du.R(u + a du)``),
+        with the residual and evaluation at the accepted point (None if not evaluated)."""
         o = self.o
         s0 = float(du[cons.free] @ R[cons.free])
         search = o.line_search and s0 < 0
@@ -202,16 +214,18 @@ class _Newton:
         t0 = time.perf_counter()
         try:
             for trial in range(o.line_search_max + 4):
-                R1, _, _ = self.residual(u + alpha * du, fext, want_k=False)
+                R1, ev1, _ = self.residual(u + alpha * du, fext, want_k=False)
                 self.stats.line_search_trials += 1
                 if R1 is None:
                     alpha *= 0.5
                     continue
                 if not search:
-                    return alpha
+                    return alpha, R1, ev1
                 s1 = float(du[cons.free] @ R1[cons.free])
-                if s1 <= o.line_search_ratio * abs(s0) or trial >= o.line_search_max - 1:
-                    return alpha
+                if s1 <= o.line_search_ratio * abs(s0):
+                    return alpha, R1, ev1
+                if trial >= o.line_search_max - 1:
+                    return alpha, None, None
                 alpha *= float(np.clip(s0 / (s0 - s1), 0.1, 1.0))
             raise _Failed("line search could not avoid inverted elements")
         finally:
