@@ -1,0 +1,256 @@
+"""The stages of ``regtrack run``, each a small function over :class:`RunContext`.
+
+Expensive stages (mesh, simulate) are cached; the 2-D stages (virtual mammogram, real
+mammogram, alignment, metrics) take seconds and are recomputed from the cached
+simulation, so changing a registration setting never re-simulates.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from regtrack import _io
+from regtrack.config import to_table
+from regtrack.errors import ResultCheckError
+from regtrack.pipeline.cache import file_digest, fingerprint
+
+
+@dataclass
+class MeshOutput:
+    key: str
+    folder: Path
+    model: Any  # BreastModel
+
+    @property
+    def vtu(self) -> Path:
+        return self.folder / "model.vtu"
+
+    @property
+    def pictures(self) -> list[Path]:
+        return sorted(self.folder.glob("*.png"))
+
+
+@dataclass
+class SimOutput:
+    view: str
+    key: str
+    folder: Path
+    summary: dict
+    steps: list[dict]
+    positions: np.ndarray  # deformed node positions (mm, model frame)
+    angle_deg: float | None
+
+    @property
+    def pictures(self) -> list[Path]:
+        return sorted(self.folder.glob("*.png"))
+
+
+@dataclass
+class ViewOutcome:
+    view: str
+    sim_key: str
+    row: dict
+    real: Any
+    virtual: Any  # VirtualMammogram
+    alignment: Any
+    metrics: Any
+    sim: SimOutput
+    extra: dict = field(default_factory=dict)
+
+
+def _timed(ctx, name: str, t0: float) -> None:
+    ctx.timings[name] = ctx.timings.get(name, 0.0) + time.perf_counter() - t0
+
+
+# -- mesh ---------------------------------------------------------------------------------
+def mesh_key(ctx) -> str:
+    case = ctx.case
+    mri = case.mri
+    return fingerprint("mesh", file_digest(mri.labels), to_table(mri.scheme), mri.side,
+                       mri.nipple_lps_mm, to_table(ctx.configs["model"]))
+
+
+def mesh_stage(ctx) -> MeshOutput:
+    """Build (or find) the patient model of the case."""
+    from regtrack.model.io import load_model, save_model
+
+    key = mesh_key(ctx)
+    hit = ctx.cache.lookup("mesh", key)
+    t0 = time.perf_counter()
+    if hit is None:
+        from regtrack.imaging.readers import read_label_map
+        from regtrack.model.build import build_model
+
+        ctx.say("mesh: building the patient model from the label map")
+        mri = ctx.case.mri
+        labels = read_label_map(mri.labels)
+        nipple = None if mri.nipple_lps_mm is None else np.asarray(mri.nipple_lps_mm, float)
+        model = build_model(labels, scheme=mri.scheme, config=ctx.configs["model"], side=mri.side,
+                            nipple_lps=nipple, progress=lambda m: ctx.say(f"mesh: {m}"))
+        with ctx.cache.produce("mesh", key, info={"nodes": model.n_nodes, "tets": model.n_tets}) as d:
+            save_model(model, d / "model.vtu")
+            _model_pictures(model, d)
+        hit = ctx.cache.folder("mesh", key)
+    else:
+        ctx.say("mesh: found in the cache")
+    model = load_model(hit / "model.vtu")
+    _timed(ctx, "mesh", t0)
+    return MeshOutput(key, hit, model)
+
+
+def _model_pictures(model, folder: Path) -> None:
+    try:
+        from regtrack.model import pictures
+    except ImportError:  # pictures module optional
+        return
+    pictures.save_pictures(model, folder)
+
+
+# -- simulate -----------------------------------------------------------------------------
+def _protocol(ctx, view: str):
+    from regtrack.mechanics.protocol import protocol_for_view
+
+    return protocol_for_view(view, ctx.protocol_tables.get(view) or None,
+                             where=str(ctx.case.toml_path), base_dir=ctx.case.root)
+
+
+def simulate_stage(ctx, mesh: MeshOutput, view: str) -> SimOutput:
+    """Simulate the mammography of ``view`` on the model (or find it in the cache)."""
+    from regtrack.virtual.io import read_result_positions
+
+    protocol = _protocol(ctx, view)
+    mech, contact = ctx.configs["mechanics"], ctx.configs["contact"]
+    key = fingerprint("simulate", mesh.key, view, to_table(mech), to_table(contact), protocol.to_dict())
+    hit = ctx.cache.lookup("simulate", key)
+    t0 = time.perf_counter()
+    if hit is None:
+        from regtrack.mechanics.run_view import simulate_view
+
+        ctx.say(f"simulate {view}: {protocol.name} protocol ({len(protocol.steps)} steps)")
+        with ctx.cache.produce("simulate", key, info={"view": view}) as d:
+            simulate_view(ctx.case, mesh.model, view, out_dir=d, mechanics=mech, contact=contact,
+                          protocol=protocol, progress=None)
+            for f in d.iterdir():  # fixed names inside the cache folder
+                suffix = "_steps.png" if f.name.endswith("_steps.png") else f.suffix
+                f.rename(d / f"result{suffix}")
+        hit = ctx.cache.folder("simulate", key)
+    else:
+        ctx.say(f"simulate {view}: found in the cache")
+    doc = json.loads((hit / "result.json").read_text())
+    if doc.get("error"):
+        raise ResultCheckError(f"simulate {view}: cached result is incomplete ({doc['error']})")
+    positions = read_result_positions(hit / "result.vtu", mesh.model)
+    angle = (doc.get("plate_frame") or {}).get("angle_deg")
+    _timed(ctx, f"simulate_{view}", t0)
+    return SimOutput(view, key, hit, doc["summary"], doc["steps"], positions, angle)
+
+
+# -- 2-D stages ---------------------------------------------------------------------------
+def virtual_stage(ctx, mesh: MeshOutput, sim: SimOutput, view: str):
+    """Virtual mammogram of the compressed model (projection on the lower plate)."""
+    from regtrack.virtual.project import default_frame, project_model
+
+    t0 = time.perf_counter()
+    ctx.say(f"virtual {view}: projecting the compressed model")
+    frame = default_frame(sim.positions, view, mesh.model.frame.side, angle_deg=sim.angle_deg)
+    vm = project_model(mesh.model, sim.positions, view=view, config=ctx.configs.get("virtual"),
+                       frame=frame, source_name=f"virtual:{ctx.case.id}:{view}")
+    _timed(ctx, f"virtual_{view}", t0)
+    return vm
+
+
+def real_stage(ctx, view: str):
+    """Read the real mammogram of ``view`` and extract contours and nipple."""
+    from regtrack.case.annotations import read_tumour_mask, read_tumour_polygons
+    from regtrack.imaging.mammogram import extract_view, read_mammogram
+
+    t0 = time.perf_counter()
+    vi = ctx.case.views[view]
+    ctx.say(f"real {view}: reading {vi.mammogram.name}")
+    img = read_mammogram(vi.mammogram, pixel_spacing_mm=vi.pixel_spacing_mm, view=view,
+                         laterality=ctx.case.mri.side)
+    polys = read_tumour_polygons(vi.tumour_polygon) if vi.tumour_polygon else None
+    mask = read_tumour_mask(vi.tumour_mask) if vi.tumour_mask else None
+    real = extract_view(img, tumour_polygon_px=polys, tumour_mask=mask, nipple_px=vi.nipple_px)
+    _timed(ctx, f"real_{view}", t0)
+    return real
+
+
+def align_stage(ctx, mesh: MeshOutput, sim: SimOutput, vm, real, view: str) -> ViewOutcome:
+    """Nipple superposition + golden-section rotation, then the paper's metrics."""
+    from regtrack.metrics import compute_metrics
+    from regtrack.registration import align
+
+    t0 = time.perf_counter()
+    ctx.say(f"register {view}: golden-section search of the in-plane rotation")
+    al = align(real, vm.view, config=ctx.configs.get("registration"))
+    D = sim.summary.get("D")
+    m = compute_metrics(al, real, vm.view, D=D)
+    md = m.to_dict()
+    row = {
+        "case_id": ctx.case.id, "view": view,
+        "BS_Av": m.bs_av, "TS_Av": m.ts_av,
+        "theta_p_b": m.theta_p_b, "theta_p_t": m.theta_p_t, "theta_p": m.theta_p,
+        "D": D, "d_T": m.d_T, "d_B": m.d_B,
+        "force_N": sim.summary.get("upper_force_N"),
+        "dice_breast": m.dice_breast, "dice_tumour": m.dice_tumour,
+        "breast_dist_mean_mm": md["breast_distance"]["mean"],
+        "breast_dist_p95_mm": md["breast_distance"]["p95"],
+        "breast_hausdorff_mm": md["breast_distance"]["hausdorff"],
+        "max_penetration_mm": sim.summary.get("max_penetration_mm"),
+        "newton_iterations": sim.summary.get("iterations"),
+    }
+    if m.tumour_distance is not None:
+        row.update({"tumour_dist_mean_mm": md["tumour_distance"]["mean"],
+                    "tumour_hausdorff_mm": md["tumour_distance"]["hausdorff"]})
+    _timed(ctx, f"register_{view}", t0)
+    return ViewOutcome(view, sim.key, row, real, vm, al, m, sim)
+
+
+# -- outputs ------------------------------------------------------------------------------
+def report_stage(ctx, mesh: MeshOutput, results: list[ViewOutcome], out: Path, prov: dict) -> Path:
+    """Per-view JSON and figures, then the PDF report."""
+    from regtrack.report import figures as F
+    from regtrack.report.pdf import CaseReport, ViewReport, write_pdf
+
+    t0 = time.perf_counter()
+    ctx.say("report: figures and PDF")
+    views = []
+    for r in results:
+        vdir = out / r.view.lower()
+        _io.write_json(vdir / "real.json", r.real.to_dict())
+        _io.write_json(vdir / "virtual.json", r.virtual.view.to_dict())
+        _io.write_json(vdir / "alignment.json", r.alignment.to_dict())
+        _io.write_json(vdir / "simulation.json", {"summary": r.sim.summary, "steps": r.sim.steps})
+        F.save_figure(F.overlay_figure(r.real, r.virtual.view, r.alignment), vdir / "overlay.png")
+        F.save_figure(F.images_figure(r.real, r.virtual.view), vdir / "images.png")
+        for p in r.sim.pictures:
+            _io.write_bytes(vdir / f"compression{p.suffix}", p.read_bytes())
+        steps = [{"step": s.get("name"), "D": s.get("D"), "force_N": (s.get("contact") or {})
+                  .get("upper", {}).get("normal_force_N"), "max_penetration_mm":
+                  s.get("max_penetration_mm"), "increments": (s.get("solver") or {}).get("increments"),
+                  "iterations": (s.get("solver") or {}).get("iterations"),
+                  "seconds": (s.get("solver") or {}).get("seconds")} for s in r.sim.steps]
+        views.append(ViewReport(r.view, r.row, r.real, r.virtual.view, r.alignment, steps,
+                                [vdir / "compression.png"]))
+    model = mesh.model
+    ms = {"nodes": model.n_nodes, "tetrahedra": model.n_tets,
+          "tumours": int(model.tumour_id.max(initial=0)), "skin triangles": len(model.skin),
+          "fixed (chest-wall) nodes": int(model.fixed.sum()), "side": model.frame.side}
+    for k in ("quality", "checks"):
+        if isinstance(model.meta.get(k), dict):
+            ms.update({f"{k}.{a}": b for a, b in list(model.meta[k].items())[:8]
+                       if not isinstance(b, (dict, list))})
+    pics = []
+    for p in mesh.pictures:
+        pics.append(_io.write_bytes(out / "model" / p.name, p.read_bytes()))
+    rep = CaseReport(ctx.case.id, ctx.case.title, views, ms, pics, prov["config"], prov)
+    path = write_pdf(rep, out / "report.pdf")
+    _timed(ctx, "report", t0)
+    return path
