@@ -263,7 +263,9 @@ def solve_step(problem: Problem, u0: np.ndarray, *, gravity: Gravity | None = No
     o = options or problem.config.solver
     stats = StepStats(name=step_name)
     tstart = time.perf_counter()
-    newton = _Newton(problem, contributions, o, stats, linear_solver or LinearSolver(o.linear_solver))
+    ls = linear_solver or _linear_solver(problem, o)
+    nfac0, nkry0 = ls.n_factorisations, ls.n_krylov_solves
+    newton = _Newton(problem, contributions, o, stats, ls)
     u = np.asarray(u0, float).reshape(-1).copy()
     for c in newton.contribs:
         c.begin_step(step)
@@ -303,9 +305,22 @@ def solve_step(problem: Problem, u0: np.ndarray, *, gravity: Gravity | None = No
         if progress is not None:
             progress(step_name, t)
     stats.t_total = time.perf_counter() - tstart
+    stats.factorisations = ls.n_factorisations - nfac0
+    stats.krylov_solves = ls.n_krylov_solves - nkry0
     log.debug("%s: %d increments, %d iterations, %d cut-backs, %.2f s", step_name, stats.increments,
               stats.iterations, stats.cutbacks, stats.t_total)
     return u.reshape(-1, 3), stats
+
+
+def _linear_solver(problem: Problem, o: SolverOptions) -> LinearSolver:
+    """The problem's cached solver (the analysis of its fixed pattern is re-used across steps)."""
+    key = (o.linear_solver, o.reuse_factorisation, o.krylov_rtol, o.krylov_max)
+    cached = getattr(problem, "_linear_solver", None)
+    if cached is None or cached[0] != key:
+        cached = (key, LinearSolver(o.linear_solver, reuse_factorisation=o.reuse_factorisation,
+                                    krylov_rtol=o.krylov_rtol, krylov_max=o.krylov_max))
+        problem._linear_solver = cached  # type: ignore[attr-defined]
+    return cached[1]
 
 
 def _increment(newton: _Newton, u: np.ndarray, t: float, gravity, dirichlet, hist) -> np.ndarray:

@@ -22,6 +22,8 @@ class StepStats:
     cutbacks: int = 0
     augmentations: int = 0
     line_search_trials: int = 0
+    factorisations: int = 0
+    krylov_solves: int = 0
     t_assembly: float = 0.0
     t_contrib: float = 0.0
     t_solve: float = 0.0
@@ -31,9 +33,9 @@ class StepStats:
     reports: list[dict] = field(default_factory=list)
 
     def to_dict(self) -> dict:
-        d = {k: getattr(self, k) for k in ("name", "increments", "iterations", "cutbacks", "augmentations",
-                                          "line_search_trials", "t_assembly", "t_contrib", "t_solve",
-                                          "t_line_search", "t_total")}
+        keys = ("name", "increments", "iterations", "cutbacks", "augmentations", "line_search_trials",
+                "factorisations", "krylov_solves", "t_assembly", "t_contrib", "t_solve", "t_line_search", "t_total")
+        d = {k: getattr(self, k) for k in keys}
         d["reports"] = self.reports[-1:] if self.reports else []
         return d
 
