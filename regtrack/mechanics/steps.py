@@ -191,3 +191,20 @@ def _held(held: dict[int, float], new):
         return np.concatenate([hd, dofs]), np.concatenate([hv, start + t * inc])
 
     return dirichlet
+
+
+def simulate(model, config: MechanicsConfig | None = None, steps: list[LoadStep] | None = None, *,
+             node_sets: dict[str, np.ndarray] | None = None,
+             progress: Callable[[str, float], None] | None = None) -> Deformation:
+    """Plain function API: ``model`` (BreastModel) + ``config`` + ``steps`` -> :class:`Deformation`.
+
+    Defaults: :class:`MechanicsConfig` () and one standing-gravity step (-y, 9.81 m/s^2).
+    """
+    from regtrack.config import to_table
+    from regtrack.mechanics.problem import build_problem
+
+    config = config or MechanicsConfig()
+    steps = steps or [LoadStep("gravity", "gravity", (0.0, -9.81, 0.0), 0.0, 1.0)]
+    deformation = run_steps(build_problem(model, config), steps, node_sets=node_sets, progress=progress)
+    deformation.config = {"mechanics": to_table(config), "steps": [s.__dict__ for s in steps]}
+    return deformation
