@@ -1,0 +1,24 @@
+"""Lesion tracking through the patient model (issue 9, ``regtrack track``).
+
+* MRI -> mammogram: :func:`track_mri_point`, :func:`track_tumour`,
+  :func:`track_points_region` (predicted position in each real view, px and mm, with an
+  uncertainty radius);
+* view -> view: :func:`track_view_point` (a point on the CC mammogram becomes a curve
+  segment on the MLO one, and back);
+* the chain model -> plate -> registration -> pixels: :class:`ViewMap`, :class:`InPlane`,
+  :class:`PixelFrame`; point location: :class:`TetLocator`;
+* cases: :func:`open_case` builds the view maps from the cached pipeline stages.
+"""
+
+from regtrack.tracking.cc_to_mlo import SegmentPrediction, track_view_point
+from regtrack.tracking.config import TrackingConfig
+from regtrack.tracking.locate import Location, TetLocator
+from regtrack.tracking.mri_to_view import (MriTrack, ViewPrediction, track_mri_point,
+                                           track_points_region, track_tumour)
+from regtrack.tracking.uncertainty import Residual, Uncertainty, point_uncertainty
+from regtrack.tracking.viewmap import InPlane, PixelFrame, ViewMap
+
+__all__ = ["InPlane", "Location", "MriTrack", "PixelFrame", "Residual", "SegmentPrediction",
+           "TetLocator", "TrackingConfig", "Uncertainty", "ViewMap", "ViewPrediction",
+           "point_uncertainty", "track_mri_point", "track_points_region", "track_tumour",
+           "track_view_point"]

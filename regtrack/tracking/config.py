@@ -1,0 +1,24 @@
+"""Settings of lesion tracking (``regtrack track``)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from regtrack.config import param
+
+
+@dataclass(frozen=True)
+class TrackingConfig:
+    """Sampling of the projection ray and the uncertainty model (:mod:`.uncertainty`)."""
+
+    ray_step_mm: float = param(0.25, "mm", "spacing of the samples along the projection ray "
+                               "through the compressed source view (CC -> MLO)", gt=0.0, le=5.0)
+    residual_scale_mm: float = param(25.0, "mm", "length scale L of the Gaussian weights "
+                                     "exp(-r^2 / 2 L^2) that localise the registration residual "
+                                     "around a predicted point", gt=0.0, le=500.0)
+    min_residual_mm: float = param(0.5, "mm", "floor of the registration-residual term (about "
+                                   "one contour resampling step: the residual is not resolved "
+                                   "below it)", ge=0.0, le=20.0)
+    max_outside_mm: float = param(2.0, "mm", "an MRI point up to this far outside the meshed "
+                                  "breast is snapped onto the mesh (recorded); farther is an "
+                                  "error", ge=0.0, le=50.0)
