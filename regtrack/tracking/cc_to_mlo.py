@@ -133,6 +133,23 @@ def _check_inside_real(src: ViewMap, xy: np.ndarray, label: str) -> None:
             "breast contour): mark a point inside the breast, as (row, col) of the DICOM pixel grid")
 
 
+def most_likely(seg: SegmentPrediction, lesion_reference_mm, *, truth_mm=None,
+                lesion: str | None = None) -> dict:
+    """Set ``seg.most_likely``: the ray sample whose reference (MRI) position is closest
+    to the known lesion ``lesion_reference_mm`` (model frame, mm)."""
+    d = np.linalg.norm(seg.reference_mm - np.asarray(lesion_reference_mm, float), axis=1)
+    k = int(np.argmin(d))
+    xy = seg.polyline_mm[k]
+    seg.most_likely = {
+        "index": k, "xy_mm": xy.tolist(),
+        "px_rc": None if seg.polyline_px is None else seg.polyline_px[k].tolist(),
+        "height_mm": float(seg.heights_mm[k]), "sigma_mm": float(seg.sigma_mm[k]),
+        "reference_distance_mm": float(d[k]), "lesion": lesion,
+        "truth_distance_mm": None if truth_mm is None else
+        float(np.linalg.norm(xy - np.asarray(truth_mm, float)))}
+    return seg.most_likely
+
+
 def track_view_point(model: BreastModel, src: ViewMap, dst: ViewMap, point, *,
                      pixels: bool = True, config: TrackingConfig | None = None,
                      lesion_reference_mm=None, truth_mm=None,
@@ -208,15 +225,7 @@ def track_view_point(model: BreastModel, src: ViewMap, dst: ViewMap, point, *,
     if len(parts) > 1:
         seg.notes.append(f"the ray leaves and re-enters the compressed breast ({len(parts)} parts)")
     if lesion_reference_mm is not None:
-        d = np.linalg.norm(ref - np.asarray(lesion_reference_mm, float), axis=1)
-        k = int(np.argmin(d))
-        seg.most_likely = {
-            "index": k, "xy_mm": xy_t[k].tolist(),
-            "px_rc": None if seg.polyline_px is None else seg.polyline_px[k].tolist(),
-            "height_mm": float(seg.heights_mm[k]), "sigma_mm": float(unc.sigma_mm[k]),
-            "reference_distance_mm": float(d[k]),
-            "truth_distance_mm": None if truth_mm is None else
-            float(np.linalg.norm(xy_t[k] - np.asarray(truth_mm, float)))}
+        most_likely(seg, lesion_reference_mm, truth_mm=truth_mm)
     if truth_mm is not None:
         seg.truth_distance_mm = seg.distance_to(truth_mm)
     log.info("%s -> %s: curve of %.1f mm (ray %.1f mm inside the breast)", src.view, dst.view,
