@@ -26,6 +26,7 @@ COMMANDS: dict[str, str] = {
     "project": "regtrack.cli.project",
     "mammogram": "regtrack.cli.mammogram",
     "simulate": "regtrack.cli.simulate",
+    "track": "regtrack.cli.track",
 }
 
 
