@@ -146,3 +146,40 @@ def test_hertz_locking_free_matches_closed_form():
                            rcond=None)[0]
     a_fit = np.sqrt(-coef[0] / coef[1])
     assert a_fit == pytest.approx(np.sqrt(50.0 * 1.0), rel=0.05)
+
+
+def _mammo(mu: float, increments: float | None):
+    """peers 'mammo': roller u_x = 0 on the chest wall x = 0, u_y = 0 on y = 0, lower plate
+    fixed at z = -49.5 (0.5 mm overlap), gravity -z (ramped), then the upper plate 50 -> 20."""
+    model = _load("mammo_tumor_lc5.msh")
+    X = model.points
+    prob = _problem(model, "p1")
+    dofs = np.concatenate([3 * np.flatnonzero(np.abs(X[:, 0]) < 1e-9),
+                           3 * np.flatnonzero(np.abs(X[:, 1]) < 1e-9) + 1])
+    tris = _off_planes(X, model.skin, (0,))
+    up = _plate_contact(model, tris, RigidPlate(name="upper", origin=(0, 0, 50), normal=(0, 0, -1),
+                                                e1=(1, 0, 0)), mu=mu, tol=0.01, eps=0.1)
+    lo = _plate_contact(model, tris, RigidPlate(name="lower", origin=(0, 0, -49.5), normal=(0, 0, 1),
+                                                e1=(1, 0, 0)), mu=mu, tol=0.01, eps=0.1)
+    bc = lambda t: (dofs, 0.0)  # noqa: E731
+    u, _ = solve_step(prob, np.zeros_like(X), gravity=lambda t: np.array([0, 0, -9.81 * t]),
+                      dirichlet=bc, contributions=[up, lo])
+    up.set_motion((0, 0, 50), (0, 0, 20))
+    opts = None if increments is None else SolverOptions(initial_increment=increments,
+                                                         max_increment=increments)
+    u, _ = solve_step(prob, u, gravity=lambda t: np.array([0, 0, -9.81]), dirichlet=bc,
+                      contributions=[up, lo], options=opts)
+    tumour = int(np.argmin(np.linalg.norm(X - [25.0, 0.0, 0.0], axis=1)))
+    return u, up.report(u)["normal_force_N"] * 1e3, tumour
+
+
+@pytest.mark.slow
+def test_mammo_frictionless_matches_three_codes():
+    """Measured: 2362.3 mN (ccx 2361.5, sf 2362.3, fb 2357.7); relRMS 4.8e-5 / 5.6e-5 /
+    2.4e-4; tumour-centre displacement within 1e-3 mm of CalculiX."""
+    u, force, tum = _mammo(0.0, None)
+    for name in ("mammo_ccx_mu0", "mammo_sf", "mammo_fb_mu0"):
+        ref = _ref(name)
+        assert force == pytest.approx(ref["hist_force_upper"][-1], rel=3e-3), name
+        assert rel_rms(u, ref["u"]) < 1e-3, name
+    np.testing.assert_allclose(u[tum], _ref("mammo_ccx_mu0")["u"][tum], atol=0.02)
