@@ -39,7 +39,8 @@ class MeshConfig:
     # chest wall
     chest_wall_percentile: float = param(10.0, "%", "the chest-wall plane lies at this percentile (towards anterior) of the muscle's anterior face under the breast", ge=0.0, le=100.0)
     chest_wall_offset_mm: float = param(0.0, "mm", "extra shift of the chest-wall plane towards anterior", ge=-50.0, le=100.0)
-    chest_wall_tilt_max_deg: float = param(30.0, "degrees", "largest accepted tilt of the fitted chest-wall normal from the patient anterior axis (beyond it the patient axis is used and a warning logged)", ge=0.0, le=90.0)
+    chest_wall_tilt_max_deg: float = param(45.0, "degrees", "largest accepted tilt of the fitted chest-wall normal from the patient anterior axis (beyond it the patient axis is used and a warning logged)", ge=0.0, le=90.0)
+    fold_fraction: float = param(0.4, "-", "the breast ends cranially/caudally (inframammary fold) where its protrusion anterior of the chest wall falls below this fraction of the apex protrusion", ge=0.0, lt=1.0)
     fix_extra: bool = param(False, "-", "also fix nodes near the cranial top and the medial (sagittal) cut, as in Lapuebla-Ferri et al.")
     fix_extra_band_mm: float = param(5.0, "mm", "width of the extra fixed bands (fix_extra)", gt=0.0, le=100.0)
     # nipple
@@ -50,7 +51,7 @@ class MeshConfig:
     # surfaces
     smoothing_mm: float = param(1.5, "mm", "Gaussian sigma applied to the breast mask before marching cubes", ge=0.0, le=10.0)
     tumour_smoothing_mm: float = param(0.8, "mm", "Gaussian sigma applied to each tumour mask before marching cubes", ge=0.0, le=10.0)
-    surface_step_vox: int = param(1, "voxels", "marching-cubes step (2 halves the triangle count of the input surface)", ge=1, le=8)
+    surface_step_vox: int = param(0, "voxels", "marching-cubes step of the outer surface (0: from the element size, round(h / 1.3 voxel))", ge=0, le=8)
     feature_angle_deg: float = param(40.0, "degrees", "angle between triangles above which an edge is a sharp feature (gmsh classifySurfaces)", gt=5.0, lt=180.0)
     # gmsh
     algorithm: str = param("delaunay", "-", "first 3-D algorithm to try", choices=("delaunay", "hxt", "netgen"))

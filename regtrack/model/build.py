@@ -1,0 +1,271 @@
+"""``build_model``: label map -> quality tetrahedral :class:`BreastModel` (issue 3).
+
+Pipeline: :func:`~regtrack.model.prepare.prepare_breast` (side, chest wall, crop, tumours)
+-> :func:`~regtrack.model.geometry.make_surfaces` (smoothed marching-cubes surfaces) ->
+gmsh (:mod:`regtrack.model.mesher`, in a child process with a timeout) -> checks
+(:mod:`regtrack.model.checks`), retried with other settings when a check fails ->
+anatomical frame, nipple node, chest-wall nodes, skin triangles.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+
+import numpy as np
+
+from regtrack.config import to_table
+from regtrack.errors import MeshQualityError
+from regtrack.imaging.volume import LabelVolume
+from regtrack.model import checks
+from regtrack.model.config import MeshConfig
+from regtrack.model.geometry import (detect_nipple, make_frame, make_surfaces, skin_vertices,
+                                     surface_step, target_size, tumour_sizes)
+from regtrack.model.labels import LabelScheme
+from regtrack.model.mesher import MeshRequest, MeshResult, run_gmsh
+from regtrack.model.prepare import PreparedBreast, prepare_breast
+from regtrack.model.types import TISSUE, TUMOUR, BreastModel
+
+log = logging.getLogger(__name__)
+
+
+def attempt_plan(config: MeshConfig) -> list[dict]:
+    """Settings of the successive meshing attempts (first = the configured ones)."""
+    other = "hxt" if config.algorithm != "hxt" else "delaunay"
+    plan = [
+        {"algorithm": config.algorithm, "smoothing_mm": config.smoothing_mm, "size_factor": 1.0, "feature_angle_deg": config.feature_angle_deg},
+        {"algorithm": other, "smoothing_mm": config.smoothing_mm, "size_factor": 1.0, "feature_angle_deg": config.feature_angle_deg},
+        {"algorithm": config.algorithm, "smoothing_mm": config.smoothing_mm * 1.5 + 0.5, "size_factor": 1.0, "feature_angle_deg": config.feature_angle_deg + 15},
+        {"algorithm": "delaunay", "smoothing_mm": config.smoothing_mm * 1.5 + 0.5, "size_factor": 0.8, "feature_angle_deg": config.feature_angle_deg + 15},
+    ]
+    while len(plan) < config.max_attempts:
+        p = dict(plan[-1])
+        p["size_factor"] *= 0.85
+        plan.append(p)
+    return plan[: config.max_attempts]
+
+
+def evaluate(res: MeshResult, prep: PreparedBreast, sdf_outer: checks.SignedDistance,
+             sdf_tumours: list[checks.SignedDistance], config: MeshConfig) -> tuple[dict, list[str]]:
+    """Quality figures of a mesh and the list of failed checks."""
+    fig = checks.quality_figures(res.points, res.tets, res.gamma)
+    fig["gmsh_min_sj_min"] = float(res.min_sj.min())
+    vv = prep.volume.voxel_volume
+    vol = checks.tet_volumes(res.points, res.tets)
+    ref = float(prep.breast.sum() * vv)
+    fig["volume_mm3"] = float(vol.sum())
+    fig["voxel_volume_mm3"] = ref
+    fig["volume_error"] = float(vol.sum() / ref - 1.0)
+    tum = []
+    for k, t in enumerate(prep.tumours.kept, start=1):
+        v = float(vol[res.tumour_id == k].sum())
+        tum.append({"id": k, "volume_mm3": v, "voxel_volume_mm3": t.volume_mm3,
+                    "volume_error": v / t.volume_mm3 - 1.0})
+    fig["tumours"] = tum
+    bf, _ = checks.boundary_faces(res.tets)
+    bn = np.unique(bf)
+    on_plane = np.zeros(len(res.points), bool)
+    for p in prep.planes:
+        on_plane |= np.abs(p.distance(res.points)) < 0.05 * float(prep.volume.spacing.min()) + 1e-6
+    skin_nodes = bn[~on_plane[bn]]
+    d = np.abs(sdf_outer(res.points[skin_nodes])) if len(skin_nodes) else np.zeros(1)
+    sp = float(np.mean(prep.volume.spacing))
+    fig["surface_distance_mean_mm"] = float(d.mean())
+    fig["surface_distance_max_mm"] = float(d.max())
+    tdist = []
+    if len(prep.tumours.kept):
+        itf = checks.interface_faces(res.tets, res.tumour_id)
+        for k, sdf in enumerate(sdf_tumours, start=1):
+            nodes = np.intersect1d(np.unique(itf), np.unique(res.tets[res.tumour_id == k]))
+            if len(nodes):
+                tdist.append(float(np.abs(sdf(res.points[nodes])).mean()))
+    fig["tumour_surface_distance_mean_mm"] = tdist
+    fail = []
+    if fig["n_inverted"]:
+        fail.append(f"{fig['n_inverted']} inverted/zero-volume tets")
+    if fig["min_dihedral_deg"] < config.min_dihedral_deg:
+        fail.append(f"min dihedral {fig['min_dihedral_deg']:.2f} deg < {config.min_dihedral_deg}")
+    if fig["gamma_p5"] < config.min_gamma_p5:
+        fail.append(f"gamma 5th percentile {fig['gamma_p5']:.3f} < {config.min_gamma_p5}")
+    if abs(fig["volume_error"]) > config.max_volume_error:
+        fail.append(f"volume error {100 * fig['volume_error']:.2f}% > {100 * config.max_volume_error:g}%")
+    for t in tum:
+        if t["voxel_volume_mm3"] >= 1000.0 * config.check_tumour_min_ml and abs(t["volume_error"]) > config.max_tumour_volume_error:
+            fail.append(f"tumour {t['id']} volume error {100 * t['volume_error']:.1f}% > {100 * config.max_tumour_volume_error:g}%")
+    if fig["surface_distance_mean_mm"] > config.max_mean_surface_distance_vox * sp:
+        fail.append(f"mean surface distance {fig['surface_distance_mean_mm']:.2f} mm > {config.max_mean_surface_distance_vox} voxel")
+    return fig, fail
+
+
+def _orient(res: MeshResult) -> MeshResult:
+    v = checks.tet_volumes(res.points, res.tets)
+    neg = v < 0
+    if neg.mean() > 0.5:  # another vertex-ordering convention: flip all
+        res.tets = res.tets[:, [0, 1, 3, 2]]
+    return res
+
+
+def _progress(progress, msg: str) -> None:
+    if progress is not None:
+        progress(msg)
+    log.info("%s", msg)
+
+
+def build_model(labels: LabelVolume, *, scheme: LabelScheme, config: MeshConfig,
+                side: str | None = None, nipple_lps: np.ndarray | None = None,
+                progress=None) -> BreastModel:
+    """Patient model of one breast from a segmented MRI label map.
+
+    Parameters
+    ----------
+    labels : LabelVolume
+        Label map with its voxel -> LPS (mm) affine; bilateral or one breast.
+    scheme : LabelScheme
+        Which label values are tissue, tumour, skin, muscle, background.
+    config : MeshConfig
+        Meshing settings (``[model]`` of case.toml).
+    side : {"L", "R"}, optional
+        Breast to model; default: the one holding the tumour (reason logged and recorded).
+    nipple_lps : (3,) array, optional
+        Explicit nipple (LPS, mm); wins over detection (the nearest skin node is used).
+    progress : callable, optional
+        Called with a short message at each stage.
+
+    Returns
+    -------
+    BreastModel
+        Points in the model frame (origin nipple, x anterior, y superior, z right), mm.
+
+    Raises
+    ------
+    InputFileError
+        No breast label, impossible side.
+    MeshQualityError
+        Every meshing attempt failed its checks (``figures`` holds the last measures).
+    """
+    t0 = time.perf_counter()
+    _progress(progress, "selecting the breast")
+    prep = prepare_breast(labels, scheme=scheme, config=config, side=side)
+    sdf_outer = checks.SignedDistance.of_mask(prep.breast, prep.volume.affine)
+    sdf_t = [checks.SignedDistance.of_mask(prep.tumours.labelled == t.component, prep.volume.affine)
+             for t in prep.tumours.kept]
+    attempts, best = [], None
+    size_scale = 1.0
+    surf_cache: dict = {}
+    plan = attempt_plan(config)
+    i = 0
+    while i < len(plan):
+        a = plan[i]
+        h = target_size(prep.info["breast_voxel_volume_mm3"], config) * a["size_factor"] * size_scale
+        sp = prep.volume.spacing
+        step = surface_step(h, sp, config.surface_step_vox)
+        hts = tumour_sizes([t.volume_mm3 for t in prep.tumours.kept], h, config)
+        tsteps = [surface_step(x, sp, 0) for x in hts]
+        key = (a["smoothing_mm"], step, tuple(tsteps))
+        if key not in surf_cache:
+            _progress(progress, f"surfaces (smoothing {a['smoothing_mm']:.2f} mm, step {step})")
+            surf_cache[key] = make_surfaces(prep, smoothing_mm=a["smoothing_mm"], tumour_smoothing_mm=config.tumour_smoothing_mm,
+                                            step=step, clearance_mm=config.tumour_clearance_mm, tumour_steps=tsteps)
+        surfs = surf_cache[key]
+        req = MeshRequest(surfs.outer.verts, surfs.outer.faces, [s.verts for s in surfs.tumours],
+                          [s.faces for s in surfs.tumours], size_mm=h,
+                          tumour_sizes_mm=tumour_sizes(surfs.tumour_voxel_mm3, h, config),
+                          refine_distance_mm=config.refine_distance_mm, algorithm=a["algorithm"],
+                          threads=config.threads, optimize_netgen=config.optimize_netgen,
+                          feature_angle_deg=a["feature_angle_deg"])
+        _progress(progress, f"meshing attempt {i + 1}/{len(plan)}: {a['algorithm']}, h = {h:.2f} mm")
+        rec = {"attempt": i + 1, **a, "size_mm": h, "tumour_sizes_mm": req.tumour_sizes_mm}
+        try:
+            res = _orient(run_gmsh(req, timeout_s=config.timeout_s))
+        except (TimeoutError, RuntimeError) as exc:
+            rec["error"] = str(exc)
+            log.warning("meshing attempt %d failed: %s", i + 1, exc)
+            attempts.append(rec)
+            i += 1
+            continue
+        fig, fail = evaluate(res, prep, sdf_outer, sdf_t, config)
+        rec.update({"gmsh_seconds": res.seconds, "failed_checks": fail, "figures": fig})
+        attempts.append(rec)
+        miss = fig["n_nodes"] / config.target_nodes - 1.0
+        if (config.element_size_mm is None and abs(miss) > config.node_tolerance and size_scale == 1.0):
+            size_scale = (fig["n_nodes"] / config.target_nodes) ** (1.0 / 3.0)
+            log.info("%d nodes vs target %d: re-sizing by %.3f", fig["n_nodes"], config.target_nodes, size_scale)
+            best = (res, fig) if not fail else best
+            continue  # same attempt settings, new size
+        if not fail:
+            best = (res, fig)
+            break
+        log.warning("meshing attempt %d failed its checks: %s", i + 1, "; ".join(fail))
+        i += 1
+    if best is None:
+        last = attempts[-1] if attempts else {}
+        raise MeshQualityError(
+            f"meshing failed after {len(attempts)} attempt(s); last: "
+            + ("; ".join(last.get("failed_checks", [])) or last.get("error", "?"))
+            + "; try [model] element_size_mm, smoothing_mm or algorithm", figures={"attempts": attempts})
+    res, fig = best
+    model = _assemble(res, prep, surf_cache, nipple_lps, config)
+    model.meta.update({
+        "settings": to_table(config), "scheme": scheme.to_dict(), "preparation": prep.info,
+        "quality": fig, "attempts": attempts, "seconds_total": time.perf_counter() - t0,
+        "source": str(labels.source) if labels.source is not None else None,
+    })
+    _progress(progress, f"model: {model.n_nodes} nodes, {model.n_tets} tets, {len(prep.tumours.kept)} tumour(s)")
+    return model
+
+
+def _assemble(res: MeshResult, prep: PreparedBreast, surf_cache: dict, nipple_lps,
+              config: MeshConfig) -> BreastModel:
+    pts = res.points
+    cw = prep.chest_wall.plane
+    tol = 0.05 * float(prep.volume.spacing.min()) + 1e-6
+    bf, _ = checks.boundary_faces(res.tets)
+    kinds = {}
+    face_cut = np.zeros(len(bf), bool)
+    for p in prep.planes:
+        on = np.abs(p.distance(pts)) < tol
+        fc = on[bf].all(axis=1)
+        kinds[p.kind] = kinds.get(p.kind, 0) + int(fc.sum())
+        face_cut |= fc
+    skin = bf[~face_cut]
+    fixed = np.abs(cw.distance(pts)) < tol
+    anterior = cw.normal
+    skin_nodes = np.unique(skin)
+    if nipple_lps is not None:
+        target = np.asarray(nipple_lps, float)
+        nip_src = "explicit"
+    else:
+        outer = list(surf_cache.values())[-1].outer
+        sv = skin_vertices(outer, prep.planes)
+        target = detect_nipple(outer.verts[sv], anterior, depth_mm=config.nipple_depth_mm)
+        nip_src = "detected"
+    dn = np.linalg.norm(pts[skin_nodes] - target, axis=1)
+    nipple = int(skin_nodes[np.argmin(dn)])
+    if nip_src == "explicit" and dn.min() > 5.0:
+        log.warning("explicit nipple lies %.1f mm from the skin; using the nearest skin node", dn.min())
+    frame = make_frame(anterior, prep.side, pts[nipple])
+    xm = frame.to_model(pts)
+    if config.fix_extra:
+        bn = np.unique(bf)
+        top = bn[xm[bn, 1] >= xm[bn, 1].max() - config.fix_extra_band_mm]
+        mids = [p for p in prep.planes if p.kind == "midline"]
+        if mids:
+            med = bn[np.abs(mids[0].distance(pts[bn])) < config.fix_extra_band_mm]
+        else:
+            zl = frame.lateral_sign * xm[bn, 2]
+            med = bn[zl <= zl.min() + config.fix_extra_band_mm]
+        fixed[top] = True
+        fixed[med] = True
+    region = np.where(res.tumour_id > 0, TUMOUR, TISSUE)
+    cen = pts[res.tets].mean(axis=1)
+    ijk = np.rint(prep.volume.world_to_index(cen)).astype(int)
+    ijk = np.clip(ijk, 0, np.array(prep.volume.shape) - 1)
+    tl = np.rint(prep.volume.data[ijk[:, 0], ijk[:, 1], ijk[:, 2]]).astype(np.int64)
+    meta = {"nipple": {"source": nip_src, "lps_mm": pts[nipple].tolist(), "target_lps_mm": np.asarray(target).tolist(),
+                       "distance_to_target_mm": float(dn.min())},
+            "boundary_faces": {"skin": int(len(skin)), **kinds}, "n_fixed": int(fixed.sum())}
+    return BreastModel(points=xm, tets=res.tets, region=region, tumour_id=res.tumour_id, skin=skin,
+                       fixed=fixed, nipple=nipple, frame=frame, tissue_label=tl, meta=meta)
+
+
+__all__ = ["build_model", "attempt_plan", "evaluate"]
