@@ -232,3 +232,51 @@ def test_point_just_outside_is_snapped_and_recorded(model, views):
     res = track_mri_point(model, views, model.frame.to_patient(q))
     assert any("snapped" in n for n in res.notes)
     assert np.linalg.norm(res.views["CC"].deformed_mm - (A_CC @ [0.0, 0.0, 0.0] + B_CC)) < 1.0
+
+
+def test_voxel_region_centroid_is_mapped_exactly(model, views):
+    """Mean of mapped voxel centres = affine image of their mean (equal masses)."""
+    from regtrack.tracking import track_points_region
+
+    g = np.stack(np.meshgrid(*[np.arange(-5.0, 5.1, 1.0)] * 3, indexing="ij"), -1).reshape(-1, 3)
+    pts_model = g + np.array([-30.0, 0.0, 5.0])
+    res = track_points_region(model, views, model.frame.to_patient(pts_model), description="cube")
+    c = pts_model.mean(0)
+    assert res.n_points == len(g) and np.allclose(res.reference_mm, c, atol=1e-9)
+    for view, (A, b) in (("CC", (A_CC, B_CC)), ("MLO", (A_MLO, B_MLO))):
+        assert np.allclose(res.views[view].deformed_mm, A @ c + b, atol=1e-9)
+
+
+def test_residual_term_is_local():
+    """sigma_res is the RMS residual of the contour samples near the point."""
+    from regtrack.tracking.uncertainty import Residual, point_uncertainty
+
+    pts = np.vstack([np.zeros((20, 2)), np.full((20, 2), 200.0)])
+    d = np.r_[np.full(20, 1.0), np.full(20, 3.0)]
+    u = point_uncertainty([[0.0, 0.0], [200.0, 200.0], [100.0, 100.0]], residual=Residual(pts, d),
+                          nipple=[0.0, 0.0], theta_b_deg=1.0, theta_t_deg=1.0, scale_mm=25.0,
+                          floor_mm=0.5)
+    assert u.residual_mm[0] == pytest.approx(1.0, abs=1e-6)
+    assert u.residual_mm[1] == pytest.approx(3.0, abs=1e-6)
+    assert u.residual_mm[2] == pytest.approx(np.sqrt(5.0), abs=1e-6)   # equidistant: RMS of 1 and 3
+    assert np.allclose(u.rotation_mm, 0.0)
+
+
+def test_pixel_frame_matches_the_mammogram_reader():
+    """PixelFrame.from_view uses the reader's frames: a stored right-CC pixel (nipple) maps
+    to the view's nipple mm, and back."""
+    from regtrack.imaging.mammogram import extract_view, mammogram_from_array
+    from regtrack.imaging.mammogram.synthetic import synthetic_breast
+
+    sb = synthetic_breast(label=False, spacing=(0.25, 0.2), shape=(600, 500))
+    stored = sb.image[:, ::-1]                      # right breast stored nipple-left (IHE P\L)
+    nip_canon = np.array([sb.yc_mm / 0.25, sb.a_mm / 0.2 - 3])   # just inside the skin
+    nip_stored = np.array([nip_canon[0], stored.shape[1] - 1 - nip_canon[1]])
+    img = mammogram_from_array(stored, pixel_spacing_mm=(0.25, 0.2), view="CC", laterality="R",
+                               patient_orientation=["P", "L"])
+    view = extract_view(img, nipple_px=nip_stored)
+    pf = PixelFrame.from_view(view)
+    assert pf.shape == stored.shape
+    assert np.allclose(pf.px_to_mm(nip_stored), view.nipple, atol=1e-9)
+    assert np.allclose(pf.mm_to_px(view.nipple), nip_stored, atol=1e-9)
+    assert np.allclose(view.nipple, [nip_canon[1] * 0.2, nip_canon[0] * 0.25], atol=1e-9)
