@@ -6,8 +6,10 @@ Usage::
         [--out sample_cases] [--shared-data ../shared/data]
 
 * ``phantom01``: the default :class:`regtrack.phantom.PhantomParams` (seed 1): a DICOM MR
-  series (one file per slice, JPEG 2000 lossless), the label map (int8 NIfTI) and the
-  ground truth in ``truth/`` (never read by the pipeline).
+  series (one file per slice, JPEG 2000 lossless), the label map (int8 NIfTI), simulated
+  CC and MLO DICOM MG mammograms with tumour polygons and nipple pixels
+  (:mod:`regtrack.phantom.case_mammo`, minutes: a mesh and two protocol simulations), and
+  the ground truth in ``truth/`` (never read by the pipeline).
 * ``pelicano_exam03``: the right breast of Pelicano exam 03 (simple labels), cropped with
   its real-world geometry intact, int8 NIfTI, with the citation.  Needs ../shared/data.
 
@@ -43,10 +45,10 @@ PELICANO_CITATION = """\
 # ----------------------------------------------------------------------------- phantom01
 
 
-def phantom_case_toml(case_id: str, truth: dict) -> str:
+def phantom_case_toml(case_id: str, truth: dict, views: dict | None = None) -> str:
     nip = ", ".join(f"{v:.2f}" for v in truth["nipple_lps_mm"])
-    return f'''# Synthetic prone breast phantom made by pipelines/make_sample_cases.py
-# (regtrack.phantom, seed {truth["params"]["seed"]}).  Ground truth: truth/phantom_truth.json.
+    head = f'''# Synthetic prone breast phantom made by pipelines/make_sample_cases.py
+# (regtrack.phantom, seed {truth["params"]["seed"]}).  Ground truth: truth/ (never read by the pipeline).
 [case]
 id = "{case_id}"
 title = "Synthetic prone breast phantom (right breast, 25x22x25 mm tumour)"
@@ -58,19 +60,28 @@ scheme = "pelicano-detailed"
 side = "R"
 # the generator's exact nipple (LPS, mm) is in truth/; uncomment to override detection:
 # nipple_lps_mm = [{nip}]
-
-# Mammograms for this case come in a later issue:
-# [views.CC]
-# mammogram = "mammo/cc.dcm"
-# tumour_polygon = "mammo/cc_tumour.json"
-# [views.MLO]
-# mammogram = "mammo/mlo.dcm"
-# tumour_polygon = "mammo/mlo_tumour.json"
 '''
+    if not views:
+        return head + '''
+# Mammograms: run pipelines/make_sample_cases.py without --no-mammograms.
+'''
+    out = [head]
+    for v, e in views.items():
+        out.append(f'''
+[views.{v}]  # simulated DICOM MG; tumour outline and nipple are the true projections
+mammogram = "{e["mammogram"]}"
+tumour_polygon = "{e["tumour_polygon"]}"
+nipple_px = [{e["nipple_px"][0]:.2f}, {e["nipple_px"][1]:.2f}]  # [row, col], DICOM grid
+''')
+    return "".join(out)
 
 
-def make_phantom01(out: Path, *, case_id: str = "phantom01") -> Path:
-    """Write the phantom case folder; returns it."""
+def make_phantom01(out: Path, *, case_id: str = "phantom01", mammograms: bool = True) -> Path:
+    """Write the phantom case folder; returns it.
+
+    The MRI part (labels, DICOM series, phantom truth) does not depend on the mammograms,
+    so it is byte-identical with or without them.
+    """
     case = out / case_id
     params = PhantomParams()
     mri, labels, truth = make_phantom(params)
@@ -79,9 +90,90 @@ def make_phantom01(out: Path, *, case_id: str = "phantom01") -> Path:
                        series_description="synthetic T1 prone breast (regtrack.phantom)",
                        uid_seed=f"regtrack-{case_id}", progress=True)
     _io.write_json(case / "truth" / "phantom_truth.json", truth)
-    _io.write_text(case / "case.toml", phantom_case_toml(case_id, truth))
-    _io.write_text(case / "README.md", PHANTOM_README.format(case_id=case_id, **_fmt_truth(truth)))
+    views, mammo_truth = None, None
+    if mammograms:
+        from regtrack.phantom.case_mammo import make_case_mammograms
+        from regtrack.phantom.mammo_params import MammoTruthParams
+
+        with _solver_progress() as progress:
+            made = make_case_mammograms(case, labels, truth, params=MammoTruthParams(),
+                                        case_id=case_id, progress=progress)
+        views, mammo_truth = made["views"], made["truth"]
+    _io.write_text(case / "case.toml", phantom_case_toml(case_id, truth, views))
+    readme = PHANTOM_README.format(case_id=case_id, **_fmt_truth(truth))
+    if mammo_truth is not None:
+        readme += mammo_readme(mammo_truth)
+    _io.write_text(case / "README.md", readme)
     return case
+
+
+class _solver_progress:
+    """A rich progress bar fed by the solver's ``progress(step_name, t)`` callback."""
+
+    def __enter__(self):
+        from rich.progress import Progress
+
+        self._bar = Progress(transient=True)
+        self._bar.start()
+        self._task = self._bar.add_task("truth simulation", total=1.0)
+        return self
+
+    def __call__(self, step_name: str, t: float) -> None:
+        self._bar.update(self._task, completed=float(t), description=f"truth: {step_name}")
+
+    def __exit__(self, *exc):
+        self._bar.stop()
+        return False
+
+
+def mammo_readme(t: dict) -> str:
+    """README section describing the mammograms and the mismatch built into the case."""
+    mm = t["mismatch_vs_pipeline_defaults"]
+    rows = []
+    for v, d in t["views"].items():
+        sim = d["simulation"]
+        rows.append(f"| {v} | {d['rotation_deg']:+.1f} | ({d['shift_mm'][0]:+.1f}, {d['shift_mm'][1]:+.1f}) "
+                    f"| {sim['D']:.3f} | {sim['upper_force_N']:.1f} | {d['image_shape'][0]}x{d['image_shape'][1]} "
+                    f"| {d['dicom_bytes'] / 1e3:.0f} kB ({d['compression_ratio_measured']:.1f}:1) |")
+    p = t["params"]
+    return f"""
+## Mammograms (`mammo/`) and their hidden truth (`truth/mammo_truth.json`)
+
+`mammo/cc.dcm` and `mammo/mlo.dcm` are simulated DICOM MG "for presentation" images of
+the right breast (ImageLaterality R, ViewPosition CC / MLO, PatientOrientation `P\\L` /
+`P\\FL` as the IHE hanging stores a right breast, ImagerPixelSpacing = PixelSpacing =
+{p['pixel_mm']} mm, {p['bits_stored']}-bit MONOCHROME2, JPEG 2000).  `mammo/*_tumour.json` hold
+the true projected tumour outline and case.toml the true projected nipple (`nipple_px`),
+both in the DICOM's own pixel grid.
+
+How they were made (`regtrack.phantom.case_mammo`, seed {p['seed']}): the phantom was meshed
+({t['model']['n_nodes']} nodes) and compressed with the project's own protocol engine (gravity
+unloading, lower plate, standing gravity, upper plate to the target D), projected
+orthogonally on the plate, moved in the image plane by a known rotation about the nipple
+and a shift, and rendered by Beer-Lambert line integrals through fat, gland and tumour
+(Johns & Yaffe attenuation at 20 keV) with a skin line and Poisson quantum noise.
+
+| view | rotation (deg) | shift (mm) | true D | plate force (N) | pixels | DICOM |
+|---|---|---|---|---|---|---|
+{chr(10).join(rows)}
+
+**Model mismatch built into the case** (the pipeline runs with its defaults):
+
+* tissue: {mm['tissue']};
+* Poisson ratio: {mm['nu']};
+* friction: {mm['friction']};
+* mesh: {mm['mesh']};
+* patient positioning: in-plane rotation CC {p['rotation_cc_deg']:+g} deg, MLO {p['rotation_mlo_deg']:+g} deg about
+  the nipple (sense of `regtrack.registration`: R = [[c, -s], [s, c]] with y down), shifts as in the table;
+* detector: {mm['detector']};
+* the same as the pipeline: {mm['same_as_pipeline']}.
+
+`truth/mammo_truth.json` gives, per view, the rotation and shift, the nipple and the tumour
+centroid in the DICOM grid (`dicom_rc`) and in the canonical mm frame of the image as read
+(`canonical_mm`, chest wall on the left), the projected 3-D tumour centroid, the full
+plate-to-image map, D, T0, the plate forces and the solver figures.  Tests use it; the
+pipeline must not.
+"""
 
 
 def _fmt_truth(t: dict) -> dict:
@@ -106,7 +198,7 @@ Made by `pipelines/make_sample_cases.py` with `regtrack.phantom.make_phantom(Pha
 * `truth/phantom_truth.json`: ground truth (the pipeline never reads it): nipple {nipple} mm,
   tumour centroid {tumour} mm and extent {extent} mm (LPS), tumour volume {tvol} mm^3,
   breast mound volume {bvol} cm^3, and every generator parameter.
-* `case.toml`: the case description (mammograms come in a later issue).
+* `case.toml`: the case description.
 """
 
 
@@ -279,11 +371,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", type=Path, default=REPO / "sample_cases")
     ap.add_argument("--shared-data", type=Path, default=REPO.parent / "shared" / "data")
     ap.add_argument("--only", choices=("phantom01", "pelicano_exam03"))
+    ap.add_argument("--no-mammograms", action="store_true",
+                    help="phantom01 without the simulated mammograms (MRI part only, fast)")
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
     made = []
     if args.only in (None, "phantom01"):
-        made.append(make_phantom01(args.out))
+        made.append(make_phantom01(args.out, mammograms=not args.no_mammograms))
     if args.only in (None, "pelicano_exam03"):
         made.append(make_pelicano_case(args.out, args.shared_data, exam="03"))
     for case in made:
