@@ -120,8 +120,9 @@ def _fold_cuts(cand: np.ndarray, dist: np.ndarray, sub: LabelVolume,
 
     ``P(k)`` is the largest protrusion (mm) anterior of the chest-wall plane in axial slice
     ``k``.  From the apex slice, walking caudally (and cranially), the first slice with
-    ``P < fraction * P_max`` ends the breast: the body beyond it (upper abdomen, chest
-    layer) is cut by an axial plane half a voxel from that slice.
+    ``P < fraction * P_max`` ends the breast: when the body continues beyond it for more
+    than 15 mm (upper abdomen, chest layer; a shorter taper is the breast's own end), it
+    is cut by an axial plane half a voxel from that slice.
     """
     prof = np.where(cand, dist, -np.inf).max(axis=(0, 1))
     kpk = int(np.argmax(prof))
@@ -130,12 +131,13 @@ def _fold_cuts(cand: np.ndarray, dist: np.ndarray, sub: LabelVolume,
     above = np.nonzero(prof[kpk:] < thr)[0]
     planes = []
     up = sub.direction[:, 2]
-    if len(below):
+    tail_vox = max(1, int(round(15.0 / float(sub.spacing[2]))))  # a taper shorter than 15 mm is the breast's own end
+    if len(below) and np.count_nonzero(np.isfinite(prof[: int(below[-1]) + 1]) & (prof[: int(below[-1]) + 1] > 0)) > tail_vox:
         k0 = int(below[-1])
         cand = cand.copy()
         cand[:, :, : k0 + 1] = False
         planes.append(Plane(up.copy(), float(up @ sub.index_to_world([0, 0, k0 + 0.5])), "caudal"))
-    if len(above):
+    if len(above) and np.count_nonzero(np.isfinite(prof[kpk + int(above[0]):]) & (prof[kpk + int(above[0]):] > 0)) > tail_vox:
         k1 = kpk + int(above[0])
         cand = cand.copy()
         cand[:, :, k1:] = False
