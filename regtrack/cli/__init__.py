@@ -20,6 +20,7 @@ import sys
 # verb -> module.  Stages that do not exist yet are simply not listed.
 COMMANDS: dict[str, str] = {
     "run": "regtrack.cli.run",
+    "mesh": "regtrack.cli.mesh",
     "validate": "regtrack.cli.validate",
     "study": "regtrack.cli.study",
     "calibrate": "regtrack.cli.calibrate",

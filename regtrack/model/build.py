@@ -28,6 +28,10 @@ from regtrack.model.types import TISSUE, TUMOUR, BreastModel
 
 log = logging.getLogger(__name__)
 
+# nodes closer than this (voxels) to a cut plane lie on the cut (marching cubes puts the cut
+# face within a fraction of a voxel of the plane)
+CUT_TOL_VOX = 0.5
+
 
 def attempt_plan(config: MeshConfig) -> list[dict]:
     """Settings of the successive meshing attempts (first = the configured ones)."""
@@ -66,7 +70,7 @@ def evaluate(res: MeshResult, prep: PreparedBreast, sdf_outer: checks.SignedDist
     bn = np.unique(bf)
     on_plane = np.zeros(len(res.points), bool)
     for p in prep.planes:
-        on_plane |= np.abs(p.distance(res.points)) < 0.05 * float(prep.volume.spacing.min()) + 1e-6
+        on_plane |= np.abs(p.distance(res.points)) < CUT_TOL_VOX * float(np.mean(prep.volume.spacing))
     skin_nodes = bn[~on_plane[bn]]
     d = np.abs(sdf_outer(res.points[skin_nodes])) if len(skin_nodes) else np.zeros(1)
     sp = float(np.mean(prep.volume.spacing))
@@ -218,13 +222,15 @@ def _assemble(res: MeshResult, prep: PreparedBreast, surf_cache: dict, nipple_lp
               config: MeshConfig) -> BreastModel:
     pts = res.points
     cw = prep.chest_wall.plane
-    tol = 0.05 * float(prep.volume.spacing.min()) + 1e-6
+    tol = CUT_TOL_VOX * float(np.mean(prep.volume.spacing))
     bf, _ = checks.boundary_faces(res.tets)
+    fn = np.cross(pts[bf[:, 1]] - pts[bf[:, 0]], pts[bf[:, 2]] - pts[bf[:, 0]])
+    fn /= np.maximum(np.linalg.norm(fn, axis=1, keepdims=True), 1e-300)
     kinds = {}
     face_cut = np.zeros(len(bf), bool)
     for p in prep.planes:
         on = np.abs(p.distance(pts)) < tol
-        fc = on[bf].all(axis=1)
+        fc = on[bf].all(axis=1) & (fn @ p.normal < -0.9)  # outward normal = -plane normal
         kinds[p.kind] = kinds.get(p.kind, 0) + int(fc.sum())
         face_cut |= fc
     skin = bf[~face_cut]
