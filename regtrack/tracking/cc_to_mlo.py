@@ -77,7 +77,8 @@ class SegmentPrediction:
 
     @property
     def thickness_mm(self) -> float:
-        """Length of the ray inside the compressed source breast (mm)."""
+        """Extent of the ray inside the compressed source breast along the plate normal (mm;
+        the local compressed thickness for the orthogonal projection)."""
         step = np.diff(self.heights_mm).mean() if len(self.heights_mm) > 1 else 0.0
         return float(sum((b - a - 1) * step for a, b in self.parts))
 
