@@ -66,6 +66,19 @@ class TrackingSession:
         return self.views[key]
 
 
+def viewmap_from_outcome(outcome) -> ViewMap:
+    """The :class:`ViewMap` of a pipeline :class:`~regtrack.pipeline.stages.ViewOutcome`
+    (simulated positions, virtual plate frame and source, alignment, real view).
+
+    For the case report: ``track_tumour(model, {o.view: viewmap_from_outcome(o) for o in
+    results})`` gives the tumour's predicted position in every real view.
+    """
+    al = outcome.alignment
+    return ViewMap(outcome.view, outcome.sim.positions, outcome.virtual.frame,
+                   InPlane.from_alignment(al), PixelFrame.from_view(outcome.real),
+                   outcome.virtual.source, Residual.from_alignment(al), outcome.real)
+
+
 def _simulate_key(ctx, mesh_key: str, view: str) -> str:
     """Key of the simulate stage, computed as :func:`regtrack.pipeline.stages.simulate_stage`
     does (checked against it by the end-to-end test)."""
@@ -154,10 +167,7 @@ def open_case(case_dir: str | Path, *, views: tuple[str, ...] | list[str] | None
         vm = stages.virtual_stage(ctx, mesh, sim, v)
         real = stages.real_stage(ctx, v)
         out = stages.align_stage(ctx, mesh, sim, vm, real, v)
-        al = out.alignment
-        session.views[v] = ViewMap(v, sim.positions, vm.frame, InPlane.from_alignment(al),
-                                   PixelFrame.from_view(real), vm.source,
-                                   Residual.from_alignment(al), real)
+        session.views[v] = viewmap_from_outcome(out)
         session.outcomes[v] = out
         session.stage_keys[f"simulate_{v}"] = sim.key
     return session
