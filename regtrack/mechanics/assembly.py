@@ -114,8 +114,10 @@ def build_pattern(adj: sp.csr_matrix) -> Pattern:
         pos = 9 * nptr[seg_node] + i * 3 * deg[seg_node] + local
         indices[pos] = cols_node
     keys = row_of * n + nidx
-    idx_dtype = np.int32 if indices.max(initial=0) < 2**31 - 1 else np.int64
-    return Pattern(n, nptr, nidx, indptr, indices.astype(idx_dtype), 3 * deg, keys)
+    # one index dtype for indptr and indices, so scipy never copies them (the solver relies
+    # on the matrix sharing the pattern arrays)
+    idx_dtype = np.int32 if len(indices) < 2**31 - 1 else np.int64
+    return Pattern(n, nptr, nidx, indptr.astype(idx_dtype), indices.astype(idx_dtype), 3 * deg, keys)
 
 
 def element_bases(pattern: Pattern, cells: np.ndarray) -> np.ndarray:
@@ -231,5 +233,6 @@ def system_layout(pattern: Pattern, tets: np.ndarray, groups: AnpGroups | None) 
     bt_pos = _positions(A.indptr, A.indices, b_cols, n3 + b_rows)
     d = n3 + np.arange(ng)
     d_pos = _positions(A.indptr, A.indices, d, d)
-    return SystemLayout(n3 + ng, A.indptr.astype(np.int64), A.indices.astype(np.int32), k_pos, b_rows,
+    idx_dtype = np.int32 if A.nnz < 2**31 - 1 else np.int64
+    return SystemLayout(n3 + ng, A.indptr.astype(idx_dtype), A.indices.astype(idx_dtype), k_pos, b_rows,
                         b_cols, b_pos, bt_pos, d_pos)

@@ -142,7 +142,7 @@ class _Newton:
         for kc in extra:  # outside the pattern: generic sum (new analysis)
             log.debug("contribution tangent outside the pattern: generic assembly")
             K = (K + kc).tocsr()
-        return K
+        return K, not extra
 
     def solve_increment(self, u_start: np.ndarray, fext: np.ndarray, dofs: np.ndarray, vals: np.ndarray,
                         hist: list[float]) -> np.ndarray:
@@ -176,14 +176,14 @@ class _Newton:
             if it > 2 and rn > 1e8 * max(hist[0], o.force_floor_n):
                 raise _Failed("residual diverged")
             self.stats.iterations += 1
-            K = self.matrix(ev, ktan)
+            K, fixed_layout = self.matrix(ev, ktan)
             n3, n = len(u), K.shape[0]
             rhs = np.zeros(n)
             rhs[:n3] = -R
             if np.any(ducon):
                 rhs -= K @ np.concatenate([ducon, np.zeros(n - n3)])
             rhs[:n3][cons.mask] = ducon[cons.mask]
-            if K.indices is self.p.layout.indices:
+            if fixed_layout:
                 K.data[cons.zero] = 0.0
                 K.data[cons.diag] = 1.0
             else:
