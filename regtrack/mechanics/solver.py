@@ -264,7 +264,7 @@ def solve_step(problem: Problem, u0: np.ndarray, *, gravity: Gravity | None = No
     stats = StepStats(name=step_name)
     tstart = time.perf_counter()
     ls = linear_solver or _linear_solver(problem, o)
-    nfac0, nkry0 = ls.n_factorisations, ls.n_krylov_solves
+    nfac0, nkry0, nan0 = ls.n_factorisations, ls.n_krylov_solves, ls.n_analyses
     newton = _Newton(problem, contributions, o, stats, ls)
     u = np.asarray(u0, float).reshape(-1).copy()
     for c in newton.contribs:
@@ -307,6 +307,7 @@ def solve_step(problem: Problem, u0: np.ndarray, *, gravity: Gravity | None = No
     stats.t_total = time.perf_counter() - tstart
     stats.factorisations = ls.n_factorisations - nfac0
     stats.krylov_solves = ls.n_krylov_solves - nkry0
+    stats.analyses = ls.n_analyses - nan0
     log.debug("%s: %d increments, %d iterations, %d cut-backs, %.2f s", step_name, stats.increments,
               stats.iterations, stats.cutbacks, stats.t_total)
     return u.reshape(-1, 3), stats

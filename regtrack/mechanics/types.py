@@ -23,6 +23,7 @@ class StepStats:
     augmentations: int = 0
     line_search_trials: int = 0
     factorisations: int = 0
+    analyses: int = 0
     krylov_solves: int = 0
     t_assembly: float = 0.0
     t_contrib: float = 0.0
@@ -34,7 +35,7 @@ class StepStats:
 
     def to_dict(self) -> dict:
         keys = ("name", "increments", "iterations", "cutbacks", "augmentations", "line_search_trials",
-                "factorisations", "krylov_solves", "t_assembly", "t_contrib", "t_solve", "t_line_search", "t_total")
+                "factorisations", "analyses", "krylov_solves", "t_assembly", "t_contrib", "t_solve", "t_line_search", "t_total")
         d = {k: getattr(self, k) for k in keys}
         d["reports"] = self.reports[-1:] if self.reports else []
         return d
