@@ -39,7 +39,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--no-simulate", action="store_true",
                    help="fail instead of running a mesh/simulation missing from the cache")
     p.add_argument("--ray-step", type=float, default=None, metavar="MM",
-                   help="sampling of the projection ray for --cc-point/--mlo-point (mm, default 0.25)")
+                   help="sampling of the projection ray for --cc-point/--mlo-point "
+                        "(mm, default 0.25)")
     p.add_argument("--no-pdf", action="store_true", help="JSON and PNG overlays only")
 
 
@@ -95,5 +96,6 @@ def run(args: argparse.Namespace) -> int:
     paths = write_outputs(result, out, reals=reals, pdf=not args.no_pdf)
     for line in summary_lines(result):
         console.print(line, highlight=False)
-    console.print(f"tracking written to {out} ({len(paths)} files, {time.perf_counter() - t0:.1f} s)")
+    dt = time.perf_counter() - t0
+    console.print(f"tracking written to {out} ({len(paths)} files, {dt:.1f} s)")
     return 0

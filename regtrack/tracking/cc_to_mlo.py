@@ -87,8 +87,8 @@ class SegmentPrediction:
         from shapely.geometry import LineString, MultiLineString, Point
 
         lines = [self.polyline_mm[a:b] for a, b in self.parts]
-        geom = MultiLineString([ln if len(ln) > 1 else np.vstack([ln, ln]) for ln in lines]) \
-            if len(lines) > 1 else LineString(lines[0] if len(lines[0]) > 1 else np.vstack([lines[0]] * 2))
+        lines = [ln if len(ln) > 1 else np.vstack([ln, ln]) for ln in lines]
+        geom = MultiLineString(lines) if len(lines) > 1 else LineString(lines[0])
         return float(geom.distance(Point(np.asarray(xy_mm, float))))
 
     def to_dict(self, *, max_vertices: int = 400) -> dict:
@@ -131,7 +131,8 @@ def _check_inside_real(src: ViewMap, xy: np.ndarray, label: str) -> None:
         raise TrackingError(
             f"{label} lies outside the breast on the real {src.view} mammogram "
             f"({real.source or 'image'}; {poly.exterior.distance(Point(*xy)):.1f} mm from the "
-            "breast contour): mark a point inside the breast, as (row, col) of the DICOM pixel grid")
+            "breast contour): mark a point inside the breast, as (row, col) of the DICOM "
+            "pixel grid")
 
 
 def most_likely(seg: SegmentPrediction, lesion_reference_mm, *, truth_mm=None,

@@ -81,9 +81,9 @@ def draw_view(ax, view: str, result: TrackResult, real=None, *, truth=None) -> N
         if seg.target_view == view:
             for g in _band(seg):
                 ax.fill(*np.asarray(g.exterior.coords).T, color=CURVE, alpha=0.25, lw=0)
-            for a, b in seg.parts:
-                ax.plot(*seg.polyline_mm[a:b].T, color=CURVE, lw=2.0,
-                        label=f"from {seg.source_view} ({seg.length_mm:.0f} mm)" if a == seg.parts[0][0] else None)
+            for k, (a, b) in enumerate(seg.parts):
+                lab = f"from {seg.source_view} ({seg.length_mm:.0f} mm)" if k == 0 else None
+                ax.plot(*seg.polyline_mm[a:b].T, color=CURVE, lw=2.0, label=lab)
             pts.append(seg.polyline_mm)
             if seg.most_likely is not None:
                 ax.plot(*seg.most_likely["xy_mm"], "*", color=CURVE, mec="k", ms=12,
@@ -117,21 +117,27 @@ def summary_lines(result: TrackResult) -> list[str]:
     """Plain-text summary (report section body)."""
     lines = []
     if result.mri is not None:
-        lines.append(f"{result.mri.description}: LPS ({', '.join(f'{v:.1f}' for v in result.mri.lps_mm)}) mm")
+        lps = ", ".join(f"{v:.1f}" for v in result.mri.lps_mm)
+        lines.append(f"{result.mri.description}: LPS ({lps}) mm")
         for v, p in result.mri.views.items():
             px = "" if p.px is None else f", px (row {p.px[0]:.1f}, col {p.px[1]:.1f})"
-            t = "" if p.truth_distance_mm is None else f"; {p.truth_distance_mm:.2f} mm from the truth"
-            lines.append(f"  {v}: ({p.xy_mm[0]:.1f}, {p.xy_mm[1]:.1f}) mm{px} ± {p.sigma_mm:.1f} mm "
+            t = ("" if p.truth_distance_mm is None
+                 else f"; {p.truth_distance_mm:.2f} mm from the truth")
+            lines.append(f"  {v}: ({p.xy_mm[0]:.1f}, {p.xy_mm[1]:.1f}) mm{px} "
+                         f"± {p.sigma_mm:.1f} mm "
                          f"(residual {p.residual_mm:.1f}, rotation {p.rotation_mm:.1f}){t}")
         lines += [f"  note: {n}" for n in result.mri.notes]
     for s in result.segments:
-        src = "" if s.source_px is None else f" px (row {s.source_px[0]:.0f}, col {s.source_px[1]:.0f})"
+        src = ("" if s.source_px is None
+               else f" px (row {s.source_px[0]:.0f}, col {s.source_px[1]:.0f})")
         lines.append(f"{s.source_view}{src} -> {s.target_view}: curve of {s.length_mm:.1f} mm "
                      f"(ray {s.thickness_mm:.1f} mm through the compressed breast)")
         if s.most_likely is not None:
             m = s.most_likely
-            t = "" if m.get("truth_distance_mm") is None else f"; {m['truth_distance_mm']:.2f} mm from the truth"
-            lines.append(f"  most likely ({m.get('lesion')}): ({m['xy_mm'][0]:.1f}, {m['xy_mm'][1]:.1f}) mm,"
+            t = ("" if m.get("truth_distance_mm") is None
+                 else f"; {m['truth_distance_mm']:.2f} mm from the truth")
+            lines.append(f"  most likely ({m.get('lesion')}): "
+                         f"({m['xy_mm'][0]:.1f}, {m['xy_mm'][1]:.1f}) mm,"
                          f" ray passes {m['reference_distance_mm']:.1f} mm from it in the MRI{t}")
         if s.truth_distance_mm is not None:
             lines.append(f"  the curve passes {s.truth_distance_mm:.2f} mm from the true lesion")

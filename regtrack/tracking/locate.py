@@ -105,7 +105,8 @@ class TetLocator:
         self.tree = cKDTree(self.centroids)
         #: largest centroid-to-node distance (mm): a tet containing q has its centroid
         #: within this radius of q
-        self.r_max = float(np.max(np.linalg.norm(x - self.centroids[:, None], axis=-1))) * (1 + 1e-9)
+        r = np.linalg.norm(x - self.centroids[:, None], axis=-1)
+        self.r_max = float(r.max()) * (1 + 1e-9)
         self.node_tree: cKDTree | None = None
 
     @property

@@ -95,7 +95,8 @@ class MriTrack:
 
 
 def locate_points(model: BreastModel, points_model, *, locator: TetLocator | None = None,
-                  max_outside_mm: float = 2.0, what: str = "MRI point") -> tuple[Location, list[str]]:
+                  max_outside_mm: float = 2.0,
+                  what: str = "MRI point") -> tuple[Location, list[str]]:
     """Locate model-frame points in the reference mesh; snap those just outside.
 
     Raises

@@ -129,7 +129,8 @@ def track_case(session, *, mri_point=None, label: str | None = None,
     res = TrackResult(session.case.id)
     for v, vm in session.views.items():
         res.views[v] = {"registration": vm.inplane.to_dict(),
-                        "pixel_spacing_mm": None if vm.pixels is None else vm.pixels.spacing.tolist(),
+                        "pixel_spacing_mm": (None if vm.pixels is None
+                                             else vm.pixels.spacing.tolist()),
                         "dicom_shape": None if vm.pixels is None else vm.pixels.shape,
                         "mammogram": None if vm.pixels is None else vm.pixels.source,
                         "plate_angle_deg": vm.frame.angle_deg,
@@ -157,7 +158,9 @@ def track_case(session, *, mri_point=None, label: str | None = None,
                         lesion=res.mri.description)
         elif lesions:
             # the known MRI tumour nearest to the ray (in the reference configuration)
-            k = min(lesions, key=lambda t: np.min(np.linalg.norm(seg.reference_mm - lesions[t], axis=1)))
+            def gap(t: int) -> float:
+                return float(np.min(np.linalg.norm(seg.reference_mm - lesions[t], axis=1)))
+            k = min(lesions, key=gap)
             most_likely(seg, lesions[k], truth_mm=(truth or {}).get(dst.view),
                         lesion=f"MRI tumour {k} (mass centroid)")
         res.segments.append(seg)

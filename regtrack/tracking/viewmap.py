@@ -51,16 +51,19 @@ class InPlane:
 
     def to_real(self, xy) -> np.ndarray:
         """(..., 2) virtual mm -> real canonical mm."""
-        return (np.asarray(xy, float) - self.virtual_nipple) @ rotation(self.theta_deg).T + self.nipple
+        R = rotation(self.theta_deg)
+        return (np.asarray(xy, float) - self.virtual_nipple) @ R.T + self.nipple
 
     def to_virtual(self, xy) -> np.ndarray:
         """(..., 2) real canonical mm -> virtual mm (inverse of :meth:`to_real`)."""
-        return (np.asarray(xy, float) - self.nipple) @ rotation(self.theta_deg) + self.virtual_nipple
+        R = rotation(self.theta_deg)
+        return (np.asarray(xy, float) - self.nipple) @ R + self.virtual_nipple
 
     def to_dict(self) -> dict:
         def f(v):
             return None if not np.isfinite(v) else float(v)
-        return {"nipple_real_mm": self.nipple.tolist(), "nipple_virtual_mm": self.virtual_nipple.tolist(),
+        return {"nipple_real_mm": self.nipple.tolist(),
+                "nipple_virtual_mm": self.virtual_nipple.tolist(),
                 "theta_p_deg": self.theta_deg, "theta_p_b_deg": f(self.theta_b_deg),
                 "theta_p_t_deg": f(self.theta_t_deg)}
 
@@ -88,8 +91,10 @@ class PixelFrame:
         if sp is None:
             return None
         o = im.get("orientation")
-        orient = None if not o else Orientation(tuple(o["source_shape"]), bool(o["transpose"]),
-                                                bool(o["flip_lr"]), bool(o["flip_ud"]), o.get("rule", ""))
+        orient = None
+        if o:
+            orient = Orientation(tuple(o["source_shape"]), bool(o["transpose"]),
+                                 bool(o["flip_lr"]), bool(o["flip_ud"]), o.get("rule", ""))
         return cls(np.asarray(sp, float), orient, real.source)
 
     def mm_to_canonical(self, xy) -> np.ndarray:
