@@ -16,6 +16,7 @@ from regtrack.mechanics import solver as S
 from regtrack.mechanics.config import MechanicsConfig, SolverOptions
 from regtrack.mechanics.materials import bulk_modulus, young_modulus
 from regtrack.mechanics.meshes import box_model
+from regtrack.mechanics.p2 import model_to_p2
 from tests.conftest import shared_data
 
 L = 10.0
@@ -56,14 +57,15 @@ def closed_form_uniaxial(c1, nu, lam):
     return dW(lam, l2), l2
 
 
-@pytest.mark.parametrize("formulation", ["p1-anp", "p1"])
+@pytest.mark.parametrize("formulation", ["p1-anp", "p1", "p2"])
 @pytest.mark.parametrize("nu", [0.45, 0.499])
 def test_cube_uniaxial_compression_matches_closed_form(formulation, nu):
     # 30 % compression; the state is homogeneous, so any consistent formulation must be
     # exact up to the Newton tolerance: 1 % (the acceptance bound) is very loose here.
     c1 = 1e-3
     cfg = MechanicsConfig(formulation=formulation, tissue_c1_kpa=1.0, nu=nu, skin_enabled=False)
-    pr = S.build_problem(box_model((L, L, L), (3, 3, 3)), cfg)
+    model = box_model((L, L, L), (3, 3, 3) if formulation != "p2" else (2, 2, 2))
+    pr = S.build_problem(model_to_p2(model) if formulation == "p2" else model, cfg)
     dirichlet, top = roller_dirichlet(pr.X, -0.3 * L)
     u, st = S.solve_step(pr, np.zeros_like(pr.X), dirichlet=dirichlet, step_name="cube")
     force = -S.reaction_forces(pr, u)[top, 2].sum()
@@ -129,14 +131,15 @@ def test_patch_test_affine_deformation(formulation):
     assert np.abs(R[inner]).max() < 1e-10
 
 
-@pytest.mark.parametrize("formulation, nu", [("p1-anp", 0.3), ("p1", 0.3), ("p1-anp", 0.49)])
+@pytest.mark.parametrize("formulation, nu", [("p1-anp", 0.3), ("p1", 0.3), ("p1-anp", 0.49), ("p2", 0.49)])
 def test_gravity_column_small_strain(formulation, nu):
     """Column of height H on rollers under its own weight: top settlement
     rho g H^2 / (2 E) in the small-strain limit (2 %: discretisation + nonlinearity at
     strain ~1e-4)."""
     H, a = 40.0, 4.0
     cfg = MechanicsConfig(formulation=formulation, nu=nu, skin_enabled=False)
-    pr = S.build_problem(box_model((a, a, H), (2, 2, 10)), cfg)
+    model = box_model((a, a, H), (2, 2, 10) if formulation != "p2" else (1, 1, 5))
+    pr = S.build_problem(model_to_p2(model) if formulation == "p2" else model, cfg)
     X = pr.X
     dofs = np.concatenate([3 * np.flatnonzero(np.abs(X[:, ax]) < 1e-9) + ax for ax in range(3)])
     g = 0.01 * 9.81

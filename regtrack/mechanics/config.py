@@ -13,7 +13,7 @@ from dataclasses import dataclass, field
 
 from regtrack.config import param
 
-FORMULATIONS = ("p1-anp", "p1")
+FORMULATIONS = ("p1-anp", "p1", "p2")
 
 
 @dataclass(frozen=True)
@@ -73,7 +73,8 @@ class MechanicsConfig:
     tumour_nu: float | None = param(None, "-", "Poisson's ratio of the tumour (default: nu)", ge=0.0, lt=0.5)
     density_kg_m3: float = param(1000.0, "kg/m^3", "tissue density", gt=0, le=1e4)
     formulation: str = param("p1-anp", "", "tet formulation: 'p1-anp' (average nodal pressure, "
-                             "locking-free) or 'p1' (plain displacement)", choices=FORMULATIONS)
+                             "locking-free), 'p1' (plain displacement) or 'p2' (10-node tets, "
+                             "plain displacement, no skin)", choices=FORMULATIONS)
     skin_enabled: bool = param(True, "", "add the skin membrane on the outer surface")
     skin_thickness_mm: float = param(1.0, "mm", "skin membrane thickness", gt=0, le=10)
     skin_c10_pa: float = param(31.0, "Pa", "skin c10", ge=0)
@@ -94,6 +95,8 @@ class MechanicsConfig:
         if s.initial_increment > s.max_increment:
             out.append(f"solver.initial_increment = {s.initial_increment} exceeds max_increment = "
                        f"{s.max_increment}: raise max_increment")
+        if self.formulation == "p2" and self.skin_enabled:
+            out.append("formulation = 'p2' has no skin membrane: set skin_enabled = false")
         if self.skin_enabled and self.skin_c10_pa + self.skin_c01_pa <= 0:
             out.append("skin_c10_pa + skin_c01_pa must be > 0 (zero initial skin stiffness): "
                        "set skin_enabled = false instead")

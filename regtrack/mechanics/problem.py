@@ -33,7 +33,7 @@ import scipy.sparse as sp
 from numba import njit
 
 from regtrack.errors import ConfigError, InputFileError
-from regtrack.mechanics import assembly, membrane, tissue
+from regtrack.mechanics import assembly, membrane, p2, tissue
 from regtrack.mechanics.config import MechanicsConfig
 from regtrack.mechanics.materials import (G_SCALE, ElementMaterials, SkinMaterial, element_materials,
                                           skin_material)
@@ -50,8 +50,8 @@ class Problem:
     config: MechanicsConfig
     X: np.ndarray
     tets: np.ndarray
-    G: np.ndarray
-    V: np.ndarray
+    G: np.ndarray  # (E, 4, 3) for P1; (E, Q, 10, 3) for P2
+    V: np.ndarray  # (E,) volumes for P1; (E, Q) quadrature weights (mm^3) for P2
     mats: ElementMaterials
     skin: np.ndarray
     skin_G: np.ndarray
@@ -94,11 +94,24 @@ def build_problem(model: BreastModel, config: MechanicsConfig | None = None) -> 
     """
     t0 = time.perf_counter()
     config = config or MechanicsConfig()
-    if config.formulation not in ("p1", "p1-anp"):
-        raise ConfigError(f"[mechanics] formulation = {config.formulation!r}: use 'p1-anp' or 'p1'")
     X = np.ascontiguousarray(model.points, float)
     tets = np.ascontiguousarray(model.tets, np.int64)
-    G, V = tissue.reference_geometry(X, tets)
+    quadratic = config.formulation == "p2"
+    if quadratic != (tets.shape[1] == 10) or tets.shape[1] not in (4, 10):
+        raise ConfigError(
+            f"[mechanics] formulation = {config.formulation!r} does not fit a mesh of {tets.shape[1]}-node "
+            "tetrahedra: use 'p2' with tet10 meshes (regtrack.mechanics.p2.model_to_p2 converts a tet4 "
+            "model) and 'p1-anp'/'p1' with tet4 meshes")
+    if quadratic and config.skin_enabled:
+        raise ConfigError("[mechanics] formulation = 'p2' has no skin membrane: set skin_enabled = false")
+    if quadratic:
+        G, W, Nq = p2.reference_geometry(X, tets)
+        V = W.sum(axis=1)
+        bad_q = np.any(W <= 0, axis=1)
+        V = np.where(bad_q, -np.abs(V), V)
+    else:
+        G, V = tissue.reference_geometry(X, tets)
+        W = Nq = None
     if np.any(V <= 0):
         bad = int(np.argmin(V))
         raise InputFileError(f"model: {int(np.sum(V <= 0))} tetrahedra with non-positive volume "
@@ -114,10 +127,14 @@ def build_problem(model: BreastModel, config: MechanicsConfig | None = None) -> 
         groups = assembly.anp_groups(tets, V, mats.kappa, mats.group, len(X))
     tet_base = assembly.element_bases(pattern, tets)
     skin_pos = _skin_positions(pattern, skin)
-    w = np.bincount(tets.reshape(-1), weights=np.repeat(mats.rho * V / 4.0, 4), minlength=len(X)) * G_SCALE
+    if quadratic:  # consistent body force: sum_q W_q N_a(q) rho (corner shares are negative)
+        wa = np.einsum("eq,qa->ea", W, Nq) * mats.rho[:, None]
+        w = np.bincount(tets.reshape(-1), weights=wa.reshape(-1), minlength=len(X)) * G_SCALE
+    else:
+        w = np.bincount(tets.reshape(-1), weights=np.repeat(mats.rho * V / 4.0, 4), minlength=len(X)) * G_SCALE
     fixed_dofs = (3 * np.flatnonzero(model.fixed)[:, None] + np.arange(3)).reshape(-1)
     layout = assembly.system_layout(pattern, tets, groups)
-    prob = Problem(model, config, X, tets, G, V, mats, skin, sG, sA,
+    prob = Problem(model, config, X, tets, G, V if W is None else W, mats, skin, sG, sA,
                    skin_material(config) if use_skin else None, pattern, tet_base, skin_pos, groups, w,
                    fixed_dofs, layout)
     prob.t_setup = time.perf_counter() - t0
@@ -159,6 +176,8 @@ def evaluate(problem: Problem, u: np.ndarray, *, want_k: bool = True) -> Evaluat
     """Tissue + skin internal force and (optionally) consistent tangent at displacement ``u``."""
     x = problem.X + np.asarray(u, float).reshape(-1, 3)
     m = problem.mats
+    if problem.formulation == "p2":
+        return _evaluate_p2(problem, x, want_k)
     Je = tissue.jacobians(x, problem.tets, problem.G)
     if np.any(Je <= 0) or not np.all(np.isfinite(Je)):
         return Evaluation(np.full(problem.n_dofs, np.nan), None, np.inf, int(np.sum(~(Je > 0))))
@@ -195,6 +214,16 @@ def evaluate(problem: Problem, u: np.ndarray, *, want_k: bool = True) -> Evaluat
             scatter_add(data, problem.skin_pos, Ke.reshape(-1))
         energy += e_skin
     return Evaluation(f.reshape(-1), data if want_k else None, energy, int(bad), bvals)
+
+
+def _evaluate_p2(problem: Problem, x: np.ndarray, want_k: bool) -> Evaluation:
+    f = np.zeros((problem.n_nodes, 3))
+    data = np.zeros(problem.pattern.nnz) if want_k else np.zeros(1)
+    energy, bad = p2.tet10_kernel(x, problem.tets, problem.G, problem.V, problem.mats.c1, problem.mats.kappa,
+                                  want_k, f, data, problem.tet_base, problem.pattern.rowstride)
+    if bad:
+        return Evaluation(np.full(problem.n_dofs, np.nan), None, np.inf, int(bad))
+    return Evaluation(f.reshape(-1), data if want_k else None, float(energy), 0)
 
 
 def internal_force(problem: Problem, u: np.ndarray) -> np.ndarray:
