@@ -15,6 +15,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--cache", default=".regtrack-cache",
                    help="stage cache folder; finished stages are re-used (default: .regtrack-cache)")
     p.add_argument("--no-report", action="store_true", help="metrics only, no figures or PDF")
+    p.add_argument("--keep-identifiers", action="store_true",
+                   help="copy the DICOM patient identifiers into provenance.json (default: none "
+                        "reaches any output, log or figure; the case id is checked too)")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -29,7 +32,13 @@ def run(args: argparse.Namespace) -> int:
 
     console = Console(stderr=True)
     case = load_case(args.case, deep=False)
-    out = Path(args.out) if args.out else Path("reports") / case.id
+    if args.keep_identifiers:
+        case_id = case.id
+    else:
+        from regtrack.privacy import collect_identifiers, pseudonymous_id
+
+        case_id = pseudonymous_id(case.id, collect_identifiers(case))
+    out = Path(args.out) if args.out else Path("reports") / case_id
     views = tuple(v.strip().upper() for v in args.views.split(",")) if args.views else None
     t0 = time.perf_counter()
 
@@ -40,7 +49,7 @@ def run(args: argparse.Namespace) -> int:
     if not logging.getLogger().isEnabledFor(logging.DEBUG):
         logging.getLogger("regtrack").setLevel(logging.WARNING)
     rows = run_case(args.case, views=views, cache_dir=args.cache, out_dir=out, progress=progress,
-                    report=not args.no_report)
+                    report=not args.no_report, keep_identifiers=args.keep_identifiers)
     for r in rows:
         def f(k, fmt):
             v = r.get(k)

@@ -71,9 +71,28 @@ def _read_itk(path: Path) -> tuple[np.ndarray, np.ndarray]:
             "a scalar volume is required"
         )
     data = sitk.GetArrayFromImage(img).transpose(2, 1, 0)
+    if _suffix(path) in (".nii", ".nii.gz") and np.issubdtype(data.dtype, np.floating):
+        data = _restore_nifti_nan(path, data)
     direction = np.asarray(img.GetDirection(), float).reshape(3, 3)
     affine = make_affine(img.GetOrigin(), img.GetSpacing(), direction)
     return data, affine
+
+
+def _restore_nifti_nan(path: Path, data: np.ndarray) -> np.ndarray:
+    """ITK's NIfTI reader silently turns NaN voxels into 0 (measured with SimpleITK 2.x);
+    put them back from the raw voxels (nibabel) so the label checks can refuse them."""
+    try:
+        import nibabel
+    except ImportError:  # pragma: no cover - nibabel ships with the test environment
+        log.warning("%s: nibabel not installed; NaN voxels of a float NIfTI read as 0", path.name)
+        return data
+    raw = np.asanyarray(nibabel.load(str(path)).dataobj)
+    bad = ~np.isfinite(raw)
+    if raw.shape[:3] != data.shape[:3] or not bad.any():
+        return data
+    out = data.astype(np.float64)
+    out[bad.reshape(out.shape)] = np.nan
+    return out
 
 
 def _read_zip(path: Path) -> tuple[np.ndarray, np.ndarray]:

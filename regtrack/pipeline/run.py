@@ -12,6 +12,7 @@ Nothing is written into the case folder.  Every output file is written atomicall
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import platform
 import time
@@ -27,6 +28,8 @@ from regtrack.config import parse_section, to_table
 from regtrack.errors import CaseError, RegtrackError
 from regtrack.pipeline import stages
 from regtrack.pipeline.cache import StageCache, file_digest, fingerprint
+from regtrack.privacy import (IDENTIFYING_KEYWORDS, Identifiers, collect_identifiers,
+                              pseudonymous_id, scrub_logs)
 
 log = logging.getLogger(__name__)
 
@@ -43,11 +46,18 @@ class RunContext:
     cache: StageCache
     timings: dict[str, float] = field(default_factory=dict)
     progress: Progress | None = None
+    #: identifiers to keep out of outputs (empty with --keep-identifiers)
+    ids: Identifiers = field(default_factory=Identifiers)
 
     def say(self, msg: str) -> None:
+        msg = self.ids.scrub(msg)
         log.info(msg)
         if self.progress is not None:
             self.progress(msg)
+
+    def clean(self, obj: Any) -> Any:
+        """``obj`` with patient identifiers and the case folder's path scrubbed."""
+        return self.ids.scrub_obj(obj) if self.ids else obj
 
 
 def effective_configs(case: Any, overrides: dict | None) -> tuple[dict[str, Any], dict[str, dict]]:
@@ -89,7 +99,7 @@ def _virtual_config_class():
 def run_case(case_dir: str | Path, *, overrides: dict | None = None,
              views: tuple[str, ...] | list[str] | None = None, cache_dir: str | Path | None = None,
              out_dir: str | Path | None = None, progress: Progress | None = None,
-             report: bool = True) -> list[dict]:
+             report: bool = True, keep_identifiers: bool = False) -> list[dict]:
     """Run the whole pipeline on a case; return one flat metrics row per view.
 
     Parameters
@@ -108,6 +118,11 @@ def run_case(case_dir: str | Path, *, overrides: dict | None = None,
         Called with one line per stage.
     report : bool
         Write figures and the PDF (``out_dir`` required).
+    keep_identifiers : bool
+        Copy the DICOM patient identifiers into ``provenance.json`` and scrub nothing.
+        By default (False) no identifier of the inputs (:mod:`regtrack.privacy`) reaches
+        an output, a progress line or a log record, and a case id that contains one is
+        replaced by a pseudonym.
     """
     from regtrack.case import load_case
 
@@ -125,25 +140,37 @@ def run_case(case_dir: str | Path, *, overrides: dict | None = None,
                         "mammogram to run the pipeline")
     configs, protocol_tables = effective_configs(case, overrides)
     cache = StageCache(Path(cache_dir) if cache_dir else Path(".regtrack-cache"))
-    ctx = RunContext(case, configs, protocol_tables, cache, progress=progress)
-
-    mesh_out = stages.mesh_stage(ctx)
-    results = []
-    for view in views:
-        sim = stages.simulate_stage(ctx, mesh_out, view)
-        virtual = stages.virtual_stage(ctx, mesh_out, sim, view)
-        real = stages.real_stage(ctx, view)
-        results.append(stages.align_stage(ctx, mesh_out, sim, virtual, real, view))
+    found = collect_identifiers(case)
+    ids = Identifiers() if keep_identifiers else found
+    if not keep_identifiers:
+        case = dataclasses.replace(case, id=pseudonymous_id(case.id, found),
+                                   title=found.scrub(case.title))
+    ctx = RunContext(case, configs, protocol_tables, cache, progress=progress, ids=ids)
+    with scrub_logs(ids):
+        # the real mammograms first: a bad DICOM fails in seconds, before any stage is
+        # computed or cached
+        reals = {view: stages.real_stage(ctx, view) for view in views}
+        mesh_out = stages.mesh_stage(ctx)
+        results = []
+        for view in views:
+            sim = stages.simulate_stage(ctx, mesh_out, view)
+            virtual = stages.virtual_stage(ctx, mesh_out, sim, view)
+            results.append(stages.align_stage(ctx, mesh_out, sim, virtual, reals[view], view))
     rows = [r.row for r in results]
     ctx.timings["total"] = time.perf_counter() - t_start
     if out_dir is not None:
         out = Path(out_dir)
-        prov = provenance(ctx, mesh_out, results)
+        prov = ctx.clean(provenance(ctx, mesh_out, results))
+        prov["privacy"] = ({"identifiers": "kept (--keep-identifiers)",
+                            "patient": found.by_keyword} if keep_identifiers else
+                           {"identifiers": "removed", "attributes_checked": len(IDENTIFYING_KEYWORDS)})
+        rows = ctx.clean(rows)
         _io.write_json(out / "metrics.json", {"case_id": case.id, "views": rows})
         _io.write_text(out / "metrics.csv", _csv(rows))
         _io.write_json(out / "provenance.json", prov)
         if report:
-            stages.report_stage(ctx, mesh_out, results, out, prov)
+            with scrub_logs(ids):
+                stages.report_stage(ctx, mesh_out, results, out, prov)
     log.info("case %s done in %.1f s (cache: %d hits, %d misses)", case.id,
              ctx.timings["total"], cache.hits, cache.misses)
     return rows

@@ -17,7 +17,6 @@ import numpy as np
 
 from regtrack import _io
 from regtrack.config import to_table
-from regtrack.errors import ResultCheckError
 from regtrack.pipeline.cache import file_digest, fingerprint
 
 
@@ -122,8 +121,6 @@ def _protocol(ctx, view: str):
 
 def simulate_stage(ctx, mesh: MeshOutput, view: str) -> SimOutput:
     """Simulate the mammography of ``view`` on the model (or find it in the cache)."""
-    from regtrack.virtual.io import read_result_positions
-
     protocol = _protocol(ctx, view)
     mech, contact = ctx.configs["mechanics"], ctx.configs["contact"]
     key = fingerprint("simulate", mesh.key, view, to_table(mech), to_table(contact), protocol.to_dict())
@@ -139,16 +136,26 @@ def simulate_stage(ctx, mesh: MeshOutput, view: str) -> SimOutput:
             for f in d.iterdir():  # fixed names inside the cache folder
                 suffix = "_steps.png" if f.name.endswith("_steps.png") else f.suffix
                 f.rename(d / f"result{suffix}")
+            _checked_result(ctx, d, mesh, view)  # a failed check never enters the cache
         hit = ctx.cache.folder("simulate", key)
     else:
         ctx.say(f"simulate {view}: found in the cache")
-    doc = json.loads((hit / "result.json").read_text())
-    if doc.get("error"):
-        raise ResultCheckError(f"simulate {view}: cached result is incomplete ({doc['error']})")
-    positions = read_result_positions(hit / "result.vtu", mesh.model)
+    doc, positions = _checked_result(ctx, hit, mesh, view)
     angle = (doc.get("plate_frame") or {}).get("angle_deg")
     _timed(ctx, f"simulate_{view}", t0)
     return SimOutput(view, key, hit, doc["summary"], doc["steps"], positions, angle)
+
+
+def _checked_result(ctx, folder: Path, mesh: MeshOutput, view: str) -> tuple[dict, np.ndarray]:
+    """Result JSON and deformed positions of a simulate folder, after the guard rails."""
+    from regtrack.pipeline.guards import check_simulation
+    from regtrack.virtual.io import read_result_positions
+
+    doc = json.loads((folder / "result.json").read_text())
+    positions = read_result_positions(folder / "result.vtu", mesh.model)
+    check_simulation(f"simulate {view}", doc, positions, mesh.model,
+                     max_penetration_mm=ctx.configs["contact"].max_penetration_mm)
+    return doc, positions
 
 
 # -- 2-D stages ---------------------------------------------------------------------------
@@ -178,6 +185,8 @@ def real_stage(ctx, view: str):
     polys = read_tumour_polygons(vi.tumour_polygon) if vi.tumour_polygon else None
     mask = read_tumour_mask(vi.tumour_mask) if vi.tumour_mask else None
     real = extract_view(img, tumour_polygon_px=polys, tumour_mask=mask, nipple_px=vi.nipple_px)
+    if ctx.ids:  # file paths and notes may carry identifiers: never into an output
+        real.source, real.meta = ctx.ids.scrub(real.source), ctx.ids.scrub_obj(real.meta)
     _timed(ctx, f"real_{view}", t0)
     return real
 
@@ -209,6 +218,9 @@ def align_stage(ctx, mesh: MeshOutput, sim: SimOutput, vm, real, view: str) -> V
     if m.tumour_distance is not None:
         row.update({"tumour_dist_mean_mm": md["tumour_distance"]["mean"],
                     "tumour_hausdorff_mm": md["tumour_distance"]["hausdorff"]})
+    from regtrack.pipeline.guards import check_metrics_row
+
+    check_metrics_row(f"register {view}", row)
     _timed(ctx, f"register_{view}", t0)
     return ViewOutcome(view, sim.key, row, real, vm, al, m, sim)
 
@@ -224,10 +236,11 @@ def report_stage(ctx, mesh: MeshOutput, results: list[ViewOutcome], out: Path, p
     views = []
     for r in results:
         vdir = out / r.view.lower()
-        _io.write_json(vdir / "real.json", r.real.to_dict())
-        _io.write_json(vdir / "virtual.json", r.virtual.view.to_dict())
-        _io.write_json(vdir / "alignment.json", r.alignment.to_dict())
-        _io.write_json(vdir / "simulation.json", {"summary": r.sim.summary, "steps": r.sim.steps})
+        _io.write_json(vdir / "real.json", ctx.clean(r.real.to_dict()))
+        _io.write_json(vdir / "virtual.json", ctx.clean(r.virtual.view.to_dict()))
+        _io.write_json(vdir / "alignment.json", ctx.clean(r.alignment.to_dict()))
+        _io.write_json(vdir / "simulation.json", ctx.clean({"summary": r.sim.summary,
+                                                            "steps": r.sim.steps}))
         F.save_figure(F.overlay_figure(r.real, r.virtual.view, r.alignment), vdir / "overlay.png")
         F.save_figure(F.images_figure(r.real, r.virtual.view), vdir / "images.png")
         for p in r.sim.pictures:

@@ -1,0 +1,319 @@
+"""Patient privacy: identifiers kept out of every output, de-identified DICOM.
+
+Radiology inputs carry patient identifiers (DICOM PatientName, PatientID, birth date,
+accession number, institution, ...).  regtrack never needs them, so by default none of
+them reaches a report, a JSON/CSV file, a PNG, a PDF or a log line:
+
+* :func:`collect_identifiers` reads the identifying attributes of the case's DICOM
+  headers (mammograms and the MR series; headers only, no pixels) into an
+  :class:`Identifiers` set;
+* :meth:`Identifiers.scrub` / :meth:`Identifiers.scrub_obj` replace every occurrence of
+  those values (and the case folder's absolute path, which often holds a patient name)
+  in text and JSON-like objects; :func:`scrub_logs` does the same for every log record
+  while a run is active;
+* :func:`pseudonymous_id` makes sure the case id that names the outputs is not itself an
+  identifier (a case folder named after the patient ID gets ``anon-<hash>`` instead);
+* :func:`deidentify_dataset` applies the DICOM PS3.15 Annex E *Basic Application Level
+  Confidentiality Profile* to the attributes regtrack sets in DICOM files it writes, and
+  records the fact (PatientIdentityRemoved, DeidentificationMethod(CodeSequence)).
+
+``regtrack run --keep-identifiers`` opts out: the identifiers are then written into
+``provenance.json`` (``patient``) and nothing is scrubbed.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import logging
+import os
+import re
+from collections.abc import Iterable, Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+log = logging.getLogger(__name__)
+
+#: DICOM attributes that identify the patient, the study or the site (keywords; the
+#: PS3.15 Table E.1-1 attributes regtrack could plausibly meet in MG/MR headers).
+IDENTIFYING_KEYWORDS: tuple[str, ...] = (
+    "PatientName", "PatientID", "PatientBirthDate", "PatientBirthTime", "PatientBirthName",
+    "OtherPatientIDs", "OtherPatientNames", "PatientMotherBirthName", "PatientAddress",
+    "PatientTelephoneNumbers", "MedicalRecordLocator", "IssuerOfPatientID",
+    "AccessionNumber", "StudyID", "InstitutionName", "InstitutionAddress",
+    "InstitutionalDepartmentName", "ReferringPhysicianName", "PerformingPhysicianName",
+    "NameOfPhysiciansReadingStudy", "PhysiciansOfRecord", "RequestingPhysician",
+    "OperatorsName", "StationName", "DeviceSerialNumber", "PatientComments",
+    "AdditionalPatientHistory", "Occupation", "MilitaryRank", "BranchOfService",
+    "RegionOfResidence", "CountryOfResidence", "EthnicGroup",
+)
+
+#: Basic profile action for the attributes regtrack's writers set: "Z" = zero-length
+#: (Type 2 attributes), "X" = remove, "D" = dummy value.  Every other identifying
+#: attribute of :data:`IDENTIFYING_KEYWORDS` is removed.
+BASIC_PROFILE_ACTIONS: dict[str, str] = {
+    "PatientName": "D", "PatientID": "D", "PatientBirthDate": "Z", "PatientSex": "Z",
+    "StudyDate": "Z", "StudyTime": "Z", "AccessionNumber": "Z", "ReferringPhysicianName": "Z",
+    "StudyID": "Z", "SeriesDate": "X", "SeriesTime": "X", "ContentDate": "Z",
+    "ContentTime": "Z", "AcquisitionDate": "X", "AcquisitionTime": "X",
+    "AcquisitionDateTime": "X", "PatientAge": "X", "PatientWeight": "X", "PatientSize": "X",
+}
+
+#: DCM code of the profile (PS3.16 CID 7050)
+BASIC_PROFILE_CODE = ("113100", "DCM", "Basic Application Confidentiality Profile")
+DEIDENTIFICATION_METHOD = "regtrack: DICOM PS3.15 Basic Application Level Confidentiality Profile"
+
+#: values that are placeholders, not identifiers (never scrubbed)
+_PLACEHOLDERS = {"", "ANONYMOUS", "ANONYMIZED", "ANON", "UNKNOWN", "NONE", "N/A", "NA", "^", "1"}
+_MIN_LEN = 3  # shorter values (e.g. "F", "12") would scrub innocent text
+
+
+def _variants(keyword: str, value: str) -> set[str]:
+    """The forms a value can take in text: PN components and orderings, ISO dates."""
+    v = value.strip()
+    out = {v}
+    if "^" in v:  # person name: Family^Given^Middle^Prefix^Suffix
+        parts = [p.strip() for p in v.split("^") if p.strip()]
+        out |= set(parts)
+        if len(parts) >= 2:
+            fam, given = parts[0], parts[1]
+            out |= {f"{given} {fam}", f"{fam} {given}", f"{fam}, {given}", f"{fam}_{given}",
+                    f"{given}_{fam}", " ".join(parts)}
+    if keyword.endswith("Date") and re.fullmatch(r"\d{8}", v):
+        out |= {f"{v[:4]}-{v[4:6]}-{v[6:]}", f"{v[6:]}/{v[4:6]}/{v[:4]}", f"{v[4:6]}/{v[6:]}/{v[:4]}"}
+    return {s for s in out if len(s) >= _MIN_LEN and s.upper() not in _PLACEHOLDERS}
+
+
+def _values(elem_value: Any) -> list[str]:
+    if elem_value is None:
+        return []
+    if isinstance(elem_value, (list, tuple)) or type(elem_value).__name__ == "MultiValue":
+        return [str(v) for v in elem_value]
+    return [str(elem_value)]
+
+
+@dataclass
+class Identifiers:
+    """Identifying values found in a case's inputs, and the scrubbing they imply.
+
+    Attributes
+    ----------
+    by_keyword : dict
+        ``{keyword: [value, ...]}`` as read from the DICOM headers.
+    values : set of str
+        Every form to scrub (PN components, date formats, ...), at least 3 characters.
+    paths : dict
+        Absolute paths (the case folder) replaced by a neutral label.
+    """
+
+    by_keyword: dict[str, list[str]] = field(default_factory=dict)
+    values: set[str] = field(default_factory=set)
+    paths: dict[str, str] = field(default_factory=dict)
+
+    REDACTED = "[redacted]"
+
+    def add(self, keyword: str, value: str) -> None:
+        for v in _values(value):
+            forms = _variants(keyword, v)
+            if forms:
+                self.by_keyword.setdefault(keyword, [])
+                if v not in self.by_keyword[keyword]:
+                    self.by_keyword[keyword].append(v)
+                self.values |= forms
+
+    def _pattern(self) -> re.Pattern | None:
+        if not self.values:
+            return None
+        alts = sorted(self.values, key=len, reverse=True)  # longest first
+        return re.compile("|".join(re.escape(a) for a in alts), re.IGNORECASE)
+
+    def scrub(self, text: str) -> str:
+        """``text`` with every identifier replaced by ``[redacted]`` and every recorded
+        absolute path by its label (case-insensitive)."""
+        for p, label in sorted(self.paths.items(), key=lambda kv: -len(kv[0])):
+            text = text.replace(p, label)
+        pat = self._pattern()
+        return text if pat is None else pat.sub(self.REDACTED, text)
+
+    def found_in(self, text: str) -> list[str]:
+        """The identifier forms that occur in ``text`` (case-insensitive)."""
+        low = text.lower()
+        return sorted(v for v in self.values if v.lower() in low)
+
+    def scrub_obj(self, obj: Any) -> Any:
+        """Copy of a JSON-like object (dict/list/tuple/str/...) with every string scrubbed."""
+        if isinstance(obj, str):
+            return self.scrub(obj)
+        if isinstance(obj, Path):
+            return self.scrub(str(obj))
+        if isinstance(obj, dict):
+            return {self.scrub(k) if isinstance(k, str) else k: self.scrub_obj(v)
+                    for k, v in obj.items()}
+        if isinstance(obj, (list, tuple)):
+            return type(obj)(self.scrub_obj(v) for v in obj)
+        return obj
+
+    def __bool__(self) -> bool:
+        return bool(self.values or self.paths)
+
+
+def read_identifiers(path: str | os.PathLike, into: Identifiers | None = None) -> Identifiers:
+    """Identifying values of one DICOM file's header (pixels are not read).
+
+    Unreadable files contribute nothing (the readers report them on their own).
+    """
+    import pydicom
+
+    ids = into if into is not None else Identifiers()
+    try:
+        ds = pydicom.dcmread(path, stop_before_pixels=True, force=True)
+    except Exception as err:  # noqa: BLE001 - privacy scan must never fail a run
+        log.debug("identifier scan skipped %s: %s", Path(path).name, type(err).__name__)
+        return ids
+    for kw in IDENTIFYING_KEYWORDS:
+        try:
+            value = ds.get(kw)
+        except Exception:  # noqa: BLE001 - a corrupt element is not an identifier
+            continue
+        if value is not None and str(value).strip():
+            ids.add(kw, value)
+    return ids
+
+
+def collect_identifiers(case: Any, *, max_series_files: int = 3) -> Identifiers:
+    """Identifiers of a loaded :class:`regtrack.case.Case`: its mammograms' headers, the
+    first files of its MR series, and its folder's absolute path (shown as ``<case>``)."""
+    ids = Identifiers()
+    for view in getattr(case, "views", {}).values():
+        read_identifiers(view.mammogram, ids)
+    series = getattr(getattr(case, "mri", None), "series", None)
+    if series is not None and Path(series).is_dir():
+        files = sorted(p for p in Path(series).iterdir() if p.is_file())[:max_series_files]
+        for p in files:
+            read_identifiers(p, ids)
+    root = getattr(case, "root", None)
+    if root is not None:
+        ids.paths[str(Path(root).resolve())] = "<case>"
+        ids.paths[os.path.abspath(root)] = "<case>"
+    return ids
+
+
+def pseudonymous_id(case_id: str, ids: Identifiers) -> str:
+    """``case_id``, or ``anon-<8 hex>`` when it contains a patient identifier.
+
+    The replacement is a SHA-256 of the id, so the same case always gets the same
+    pseudonym (outputs of repeated runs line up) while the id itself is not shown.
+    """
+    if not ids.found_in(case_id):
+        return case_id
+    pseudo = "anon-" + hashlib.sha256(case_id.encode()).hexdigest()[:8]
+    log.warning("[case] id contains a DICOM patient identifier; outputs are named %s instead "
+                "(give a pseudonymous id in case.toml, or pass --keep-identifiers)", pseudo)
+    return pseudo
+
+
+class ScrubFilter(logging.Filter):
+    """Logging filter that scrubs identifiers from each record's final message."""
+
+    def __init__(self, ids: Identifiers):
+        super().__init__()
+        self.ids = ids
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        try:
+            msg = record.getMessage()
+        except Exception:  # noqa: BLE001 - leave malformed records to logging
+            return True
+        clean = self.ids.scrub(msg)
+        if clean != msg or record.args:
+            record.msg, record.args = clean, None
+        return True
+
+
+@contextlib.contextmanager
+def scrub_logs(ids: Identifiers) -> Iterator[None]:
+    """While active, every handler of the root logger scrubs ``ids`` from its records."""
+    if not ids:
+        yield
+        return
+    flt = ScrubFilter(ids)
+    handlers = list(logging.getLogger().handlers)
+    for h in handlers:
+        h.addFilter(flt)
+    try:
+        yield
+    finally:
+        for h in handlers:
+            h.removeFilter(flt)
+
+
+# ----------------------------------------------------------------------------- DICOM out
+def deidentify_dataset(ds: Any, *, pseudonym: str) -> Any:
+    """Apply the Basic Application Level Confidentiality Profile (DICOM PS3.15 E.1) to
+    ``ds`` in place, for the attributes regtrack writes; return ``ds``.
+
+    Actions (:data:`BASIC_PROFILE_ACTIONS`): PatientName and PatientID get the pseudonym
+    (dummy value "D"), Type-2 dates/times/numbers are emptied ("Z"), the other
+    identifying attributes of :data:`IDENTIFYING_KEYWORDS` and all private tags are
+    removed ("X").  PatientIdentityRemoved = YES, DeidentificationMethod and
+    DeidentificationMethodCodeSequence (113100, DCM) record it.
+    """
+    from pydicom.dataset import Dataset
+
+    if not pseudonym or any(c in pseudonym for c in "^\\"):
+        raise ValueError(f"pseudonym {pseudonym!r}: give a non-empty id without '^' or '\\'")
+    for kw, action in BASIC_PROFILE_ACTIONS.items():
+        if action == "D":
+            setattr(ds, kw, pseudonym)
+        elif kw in ds:
+            if action == "Z":
+                setattr(ds, kw, "")
+            else:
+                delattr(ds, kw)
+    for kw in IDENTIFYING_KEYWORDS:
+        if kw not in BASIC_PROFILE_ACTIONS and kw in ds:
+            delattr(ds, kw)
+    ds.remove_private_tags()
+    ds.PatientIdentityRemoved = "YES"
+    ds.DeidentificationMethod = DEIDENTIFICATION_METHOD
+    item = Dataset()
+    item.CodeValue, item.CodingSchemeDesignator, item.CodeMeaning = BASIC_PROFILE_CODE
+    ds.DeidentificationMethodCodeSequence = [item]
+    return ds
+
+
+def dicom_leaks(path: str | os.PathLike, *, pseudonym: str | None = None) -> list[str]:
+    """Identifying attributes of a DICOM file that break the basic profile (empty = clean).
+
+    Allowed: PatientName/PatientID equal to ``pseudonym`` (when given), empty Type-2
+    attributes, and PatientIdentityRemoved = YES must be present.
+    """
+    import pydicom
+
+    ds = pydicom.dcmread(path, stop_before_pixels=True)
+    bad = []
+    for kw in IDENTIFYING_KEYWORDS:
+        value = str(ds.get(kw, "") or "").strip()
+        if not value:
+            continue
+        if kw in ("PatientName", "PatientID") and pseudonym is not None and value == pseudonym:
+            continue
+        bad.append(f"{kw}={value!r}")
+    if str(ds.get("PatientIdentityRemoved", "")).upper() != "YES":
+        bad.append("PatientIdentityRemoved is not YES")
+    if any(elem.tag.is_private for elem in ds):
+        bad.append("private tags present")
+    return bad
+
+
+def files_under(folder: str | os.PathLike) -> Iterable[Path]:
+    """Every regular file below ``folder`` (sorted)."""
+    return sorted(p for p in Path(folder).rglob("*") if p.is_file())
+
+
+__all__ = [
+    "BASIC_PROFILE_ACTIONS", "IDENTIFYING_KEYWORDS", "Identifiers", "ScrubFilter",
+    "collect_identifiers", "deidentify_dataset", "dicom_leaks", "files_under",
+    "pseudonymous_id", "read_identifiers", "scrub_logs",
+]
