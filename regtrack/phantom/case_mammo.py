@@ -74,7 +74,7 @@ def write_view(case: Path, sm: SimulatedMammogram, p: MammoTruthParams, *, case_
 
 def make_case_mammograms(case: str | Path, labels: LabelVolume, phantom_truth: dict, *,
                          params: MammoTruthParams | None = None, case_id: str = "phantom01",
-                         progress: Any = None) -> dict:
+                         views: tuple[str, ...] = VIEWS, progress: Any = None) -> dict:
     """Simulate, render and write the CC and MLO mammograms of a phantom case.
 
     Parameters
@@ -86,6 +86,8 @@ def make_case_mammograms(case: str | Path, labels: LabelVolume, phantom_truth: d
     phantom_truth : dict
         :func:`regtrack.phantom.make_phantom`'s truth (for the nipple and side).
     params : MammoTruthParams
+    views : tuple of {"CC", "MLO"}
+        Views to simulate (both for the sample case).
     progress : callable ``(step_name, t)``, optional
         Called after every converged solver increment.
 
@@ -98,16 +100,17 @@ def make_case_mammograms(case: str | Path, labels: LabelVolume, phantom_truth: d
     case = Path(case)
     side = phantom_truth["params"]["side"]
     t0 = time.perf_counter()
-    sim = simulate_truth(labels, phantom_truth["nipple_lps_mm"], p, side=side, progress=progress)
+    sim = simulate_truth(labels, phantom_truth["nipple_lps_mm"], p, side=side, views=views,
+                         progress=progress)
     t1 = time.perf_counter()
-    entries, views = {}, {}
-    for v in VIEWS:
+    entries, per_view = {}, {}
+    for v in views:
         vt = sim.views[v]
         sm = simulate_mammogram(sim.model, vt.positions, v, p, plate_angle_deg=vt.plate_angle_deg,
                                 gap_mm=vt.summary["plate_gap_mm"])
         entries[v] = write_view(case, sm, p, case_id=case_id)
         size = (case / entries[v]["mammogram"]).stat().st_size
-        views[v] = {**sm.truth, "simulation": vt.summary, "steps": vt.steps,
+        per_view[v] = {**sm.truth, "simulation": vt.summary, "steps": vt.steps,
                     "dicom": entries[v]["mammogram"], "dicom_bytes": size,
                     "compression_ratio_measured": float(sm.stored.size * 2 / size)}
     t2 = time.perf_counter()
@@ -123,7 +126,7 @@ def make_case_mammograms(case: str | Path, labels: LabelVolume, phantom_truth: d
         "materials": sim.materials,
         "model": {"n_nodes": sim.model.n_nodes, "n_tets": sim.model.n_tets,
                   "nipple_node": int(sim.model.nipple), "frame": sim.model.frame.to_dict()},
-        "views": views,
+        "views": per_view,
         "timing_s": {**sim.timing_s, "render_and_write": t2 - t1, "total": t2 - t0},
     }
     _io.write_json(case / "truth" / "mammo_truth.json", doc)

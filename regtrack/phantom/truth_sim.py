@@ -119,7 +119,8 @@ def simulate_view(model: BreastModel, view: str, p: MammoTruthParams, *, progres
 
     c1 = element_c1_kpa(model, p)
     mats = material_summary(model, c1, p)
-    cfg = MechanicsConfig(tissue_c1_kpa=mats["tissue_c1_mean_kpa"], tumour_c1_kpa=p.tumour_c1_kpa, nu=p.nu)
+    cfg = MechanicsConfig(tissue_c1_kpa=mats["tissue_c1_mean_kpa"], tumour_c1_kpa=p.tumour_c1_kpa, nu=p.nu,
+                          skin_enabled=p.skin_membrane)
     t0 = time.perf_counter()
     problem = build_problem(model, cfg)
     # heterogeneous deviatoric stiffness; K (hence the ANP groups) stays that of the mean c1
