@@ -205,34 +205,56 @@ class SystemLayout:
     d_pos: np.ndarray | None = None
 
 
-def _positions(indptr: np.ndarray, indices: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
-    """Value positions of (rows, cols) in a CSR with sorted indices (all must exist)."""
-    n = len(indptr) - 1
-    keys = np.repeat(np.arange(n, dtype=np.int64), np.diff(indptr)) * n + indices
-    pos = np.searchsorted(keys, rows.astype(np.int64) * n + cols)
-    assert np.all(keys[np.minimum(pos, len(keys) - 1)] == rows.astype(np.int64) * n + cols)
-    return pos
-
-
 def system_layout(pattern: Pattern, tets: np.ndarray, groups: AnpGroups | None) -> SystemLayout:
-    """Build the solver matrix layout (see :class:`SystemLayout`)."""
+    """Build the solver matrix layout (see :class:`SystemLayout`) directly from the
+    structure (no searching): a dof row ``3p+k`` holds the tangent's columns, then one
+    pressure column ``3N+g`` per group containing node ``p`` (increasing ``g``); a pressure
+    row ``3N+g`` holds the dofs of the group's nodes, then its diagonal."""
     n3 = 3 * pattern.n_nodes
     if groups is None:
         return SystemLayout(n3, pattern.indptr, pattern.indices)
-    ne, ng = len(tets), groups.n_groups
-    b_rows = np.repeat(groups.of.reshape(-1), 12)  # (e, i) -> 4 nodes x 3 comps
-    b_cols = np.broadcast_to((3 * tets[:, None, :, None] + np.arange(3)), (ne, 4, 4, 3)).reshape(-1)
-    K = pattern.matrix(np.ones(pattern.nnz))
-    B = sp.csr_matrix((np.ones(len(b_rows)), (b_rows, b_cols)), shape=(ng, n3))
-    A = sp.bmat([[K, B.T], [B, sp.identity(ng)]], format="csr")
-    A.sum_duplicates()
-    A.sort_indices()
-    kr = np.repeat(np.arange(n3, dtype=np.int64), np.diff(pattern.indptr))
-    k_pos = _positions(A.indptr, A.indices, kr, pattern.indices)
-    b_pos = _positions(A.indptr, A.indices, n3 + b_rows, b_cols)
-    bt_pos = _positions(A.indptr, A.indices, b_cols, n3 + b_rows)
-    d = n3 + np.arange(ng)
-    d_pos = _positions(A.indptr, A.indices, d, d)
-    idx_dtype = np.int32 if A.nnz < 2**31 - 1 else np.int64
-    return SystemLayout(n3 + ng, A.indptr.astype(idx_dtype), A.indices.astype(idx_dtype), k_pos, b_rows,
-                        b_cols, b_pos, bt_pos, d_pos)
+    N, ng, ne = pattern.n_nodes, groups.n_groups, len(tets)
+    scount = np.diff(groups.sptr)  # nodes per group
+    # groups containing each node, in increasing g: stable sort of the (g, node) pairs by node
+    pair_g = np.repeat(np.arange(ng), scount)
+    by_node = np.argsort(groups.snodes, kind="stable")
+    gcount = np.bincount(groups.snodes, minlength=N)
+    gptr = np.zeros(N + 1, np.int64)
+    np.cumsum(gcount, out=gptr[1:])
+    rank = np.empty(len(pair_g), np.int64)
+    rank[by_node] = np.arange(len(pair_g)) - gptr[groups.snodes[by_node]]
+    kdeg = np.diff(pattern.indptr).astype(np.int64)  # 3 deg(p) per dof row
+    rowlen = np.concatenate([kdeg + np.repeat(gcount, 3), 3 * scount + 1])
+    indptr = np.zeros(n3 + ng + 1, np.int64)
+    np.cumsum(rowlen, out=indptr[1:])
+    indices = np.empty(indptr[-1], np.int64)
+    # dof rows: tangent columns, then pressure columns
+    kr = np.repeat(np.arange(n3), kdeg)
+    k_pos = indptr[kr] + (np.arange(len(kr)) - pattern.indptr[kr].astype(np.int64))
+    indices[k_pos] = pattern.indices
+    gnode_sorted = pair_g[by_node]  # groups of node 0, then node 1, ...
+    nodes_rep = np.repeat(np.arange(N), gcount)
+    for k in range(3):
+        r = 3 * nodes_rep + k
+        pos = indptr[r] + kdeg[r] + (np.arange(len(r)) - gptr[nodes_rep])
+        indices[pos] = n3 + gnode_sorted
+    # pressure rows: dofs of the group's nodes, then the diagonal
+    prow = n3 + pair_g
+    local = np.arange(len(pair_g)) - groups.sptr[pair_g]
+    for k in range(3):
+        indices[indptr[prow] + 3 * local + k] = 3 * groups.snodes + k
+    d_pos = indptr[n3 + np.arange(ng)] + 3 * scount
+    indices[d_pos] = n3 + np.arange(ng)
+    # B entries in evaluate() order: (e, i, a, k) -> row g = of[e, i], column 3 tets[e, a] + k
+    g_ei = groups.of[:, :, None, None]
+    loc = groups.pos[:, :, :, None].astype(np.int64)
+    kk = np.arange(3)[None, None, None, :]
+    b_pos = (indptr[n3 + g_ei] + 3 * loc + kk).reshape(-1)
+    pair_idx = groups.sptr[g_ei] + loc  # index of (g, node a) in the group node lists
+    node_a = tets[:, None, :, None]
+    bt_pos = (indptr[3 * node_a + kk] + kdeg[3 * node_a + kk] + rank[pair_idx]).reshape(-1)
+    b_rows = np.broadcast_to(groups.of[:, :, None, None], (ne, 4, 4, 3)).reshape(-1)
+    b_cols = np.broadcast_to(3 * node_a + kk, (ne, 4, 4, 3)).reshape(-1)
+    idx_dtype = np.int32 if len(indices) < 2**31 - 1 else np.int64
+    return SystemLayout(n3 + ng, indptr.astype(idx_dtype), indices.astype(idx_dtype), k_pos, b_rows, b_cols,
+                        b_pos, bt_pos, d_pos)
