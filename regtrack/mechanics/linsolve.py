@@ -11,7 +11,8 @@ Two re-uses keep the cost down, since the assembly keeps one fixed pattern:
 * the symbolic analysis (ordering, fill pattern) is done once per pattern;
 * optionally (``reuse_factorisation``, off by default: on a 2k-node hemisphere the
   PARDISO solve phase cost ~1/3 of a factorisation and GMRES needed ~15 of them, 5x
-  slower overall) the last numeric factorisation preconditions GMRES on the new matrix; the correction is accepted only when the *true* residual satisfies
+  slower overall) the last numeric factorisation preconditions GMRES on the new
+  matrix; the correction is accepted only when the *true* residual satisfies
   ``||A x - b|| <= krylov_rtol ||b||`` (default 1e-10, so Newton stays quadratic) within
   ``krylov_max`` iterations, else the matrix is refactorised and solved directly.
 

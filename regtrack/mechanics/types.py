@@ -35,7 +35,8 @@ class StepStats:
 
     def to_dict(self) -> dict:
         keys = ("name", "increments", "iterations", "cutbacks", "augmentations", "line_search_trials",
-                "factorisations", "analyses", "krylov_solves", "t_assembly", "t_contrib", "t_solve", "t_line_search", "t_total")
+                "factorisations", "analyses", "krylov_solves", "t_assembly", "t_contrib", "t_solve",
+                "t_line_search", "t_total")
         d = {k: getattr(self, k) for k in keys}
         d["reports"] = self.reports[-1:] if self.reports else []
         return d
