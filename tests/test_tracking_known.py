@@ -280,3 +280,19 @@ def test_pixel_frame_matches_the_mammogram_reader():
     assert np.allclose(pf.px_to_mm(nip_stored), view.nipple, atol=1e-9)
     assert np.allclose(pf.mm_to_px(view.nipple), nip_stored, atol=1e-9)
     assert np.allclose(view.nipple, [nip_canon[1] * 0.2, nip_canon[0] * 0.25], atol=1e-9)
+
+
+def test_contour_gives_one_curve_per_vertex_and_their_hull(model, views):
+    from shapely.geometry import Point, Polygon
+
+    from regtrack.tracking.cc_to_mlo import track_view_contour
+
+    t = np.linspace(0, 2 * np.pi, 40, endpoint=False)
+    contour = np.c_[70 + 5 * np.cos(t), 55 + 4 * np.sin(t)]
+    pred = track_view_contour(model, views["CC"], views["MLO"], contour, pixels=False,
+                              max_vertices=10)
+    assert len(pred.segments) == 10
+    hull = Polygon(pred.region_mm).buffer(1e-9)
+    for s, p in zip(pred.segments, contour[::4]):
+        assert np.allclose(s.source_mm, p)
+        assert all(hull.covers(Point(*q)) for q in s.polyline_mm)

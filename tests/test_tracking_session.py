@@ -118,9 +118,11 @@ def test_cc_point_on_the_tumour_gives_an_mlo_curve_through_it(session):
 
 
 def test_outputs_and_report_section(session, tmp_path):
-    res = track_case(session, label="tumour", view_points={"CC": session.views["CC"].real.nipple
-                                                          - np.array([30.0, 0.0])},
-                     view_points_mm=True)
+    cc_nip = session.views["CC"].real.nipple
+    t = np.linspace(0, 2 * np.pi, 12, endpoint=False)
+    res = track_case(session, label="tumour", view_points={"CC": cc_nip - np.array([30.0, 0.0])},
+                     view_points_mm=True,
+                     view_contours={"CC": cc_nip + np.c_[-30 + 4 * np.cos(t), 4 * np.sin(t)]})
     reals = {v: vm.real for v, vm in session.views.items()}
     paths = write_outputs(res, tmp_path, reals=reals)
     names = sorted(p.name for p in paths)
@@ -128,6 +130,7 @@ def test_outputs_and_report_section(session, tmp_path):
     doc = json.loads((tmp_path / "tracking.json").read_text())
     assert doc["mri"]["views"]["CC"]["xy_mm"] == pytest.approx(res.mri.views["CC"].xy_mm.tolist())
     assert doc["segments"][0]["length_mm"] > 10
+    assert doc["contours"]["CC"]["target_view"] == "MLO" and len(doc["contours"]["CC"]["curves"]) == 12
     assert all((tmp_path / n).stat().st_size > 10_000 for n in names if n.endswith((".png", ".pdf")))
     sec = report_section(res)
     assert sec["title"].startswith("Lesion tracking") and any("curve of" in ln for ln in sec["lines"])

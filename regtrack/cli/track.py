@@ -6,6 +6,7 @@ Examples::
     regtrack track CASE --mri-point -109.7 0.3 10.3          # LPS mm
     regtrack track CASE --cc-point 1510 2210                  # DICOM (row, col) on the CC
     regtrack track CASE --mlo-point 1800 2000 --label tumour  # curve on the CC + most likely point
+    regtrack track CASE --cc-contour mammo/cc_tumour.json     # region on the MLO
 
 The mesh and the simulations come from the stage cache of ``regtrack run`` (same
 ``--cache``); when they are missing they are run first (minutes, with progress
@@ -32,6 +33,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "predicted as a curve on the MLO")
     p.add_argument("--mlo-point", nargs=2, type=float, metavar=("ROW", "COL"),
                    help="point on the real MLO mammogram (DICOM row, col): a curve on the CC")
+    p.add_argument("--cc-contour", metavar="JSON",
+                   help='contour marked on the real CC ({"points_rc": [[row, col], ...]}, the '
+                        "tumour annotation format): its region on the MLO")
+    p.add_argument("--mlo-contour", metavar="JSON", help="the same for a contour on the MLO")
     p.add_argument("--views", default=None, help="comma-separated views (default: all in the case)")
     p.add_argument("--out", default=None, help="output folder (default: reports/<case id>/track)")
     p.add_argument("--cache", default=".regtrack-cache",
@@ -72,8 +77,14 @@ def run(args: argparse.Namespace) -> int:
         points["CC"] = tuple(args.cc_point)
     if args.mlo_point is not None:
         points["MLO"] = tuple(args.mlo_point)
+    contours = {}
+    for v, f in (("CC", args.cc_contour), ("MLO", args.mlo_contour)):
+        if f is not None:
+            from regtrack.case.annotations import read_tumour_polygons
+
+            contours[v] = read_tumour_polygons(f)[0]
     if views is not None:
-        for v in points:
+        for v in [*points, *contours]:
             other = "MLO" if v == "CC" else "CC"
             if v not in views or other not in views:
                 raise TrackingError(f"--{v.lower()}-point needs both CC and MLO in --views")
@@ -91,7 +102,7 @@ def run(args: argparse.Namespace) -> int:
         session = open_case(args.case, views=views, cache_dir=args.cache,
                             simulate=not args.no_simulate, config=cfg, progress=progress)
         result = track_case(session, mri_point=args.mri_point, label=args.label,
-                            view_points=points)
+                            view_points=points, view_contours=contours)
     reals = {v: vm.real for v, vm in session.views.items()}
     paths = write_outputs(result, out, reals=reals, pdf=not args.no_pdf)
     for line in summary_lines(result):

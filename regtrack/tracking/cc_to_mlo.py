@@ -233,3 +233,39 @@ def track_view_point(model: BreastModel, src: ViewMap, dst: ViewMap, point, *,
     log.info("%s -> %s: curve of %.1f mm (ray %.1f mm inside the breast)", src.view, dst.view,
              seg.length_mm, seg.thickness_mm)
     return seg
+
+
+@dataclass
+class ContourPrediction:
+    """The region predicted in the target view for a contour marked in the source view:
+    one curve per (resampled) contour vertex and their convex hull (mm, real target frame)."""
+
+    segments: list[SegmentPrediction]
+    region_mm: np.ndarray
+
+    def to_dict(self) -> dict:
+        return {"region_mm": self.region_mm.tolist(),
+                "curves": [s.to_dict(max_vertices=50) for s in self.segments]}
+
+
+def track_view_contour(model: BreastModel, src: ViewMap, dst: ViewMap, contour, *,
+                       pixels: bool = True, max_vertices: int = 24,
+                       config: TrackingConfig | None = None) -> ContourPrediction:
+    """Curves in ``dst`` of up to ``max_vertices`` vertices of a ``src`` contour, and the
+    convex hull of all of them (the region where the marked lesion can appear).
+
+    ``contour`` is (K, 2): (row, col) of the source DICOM grid, or mm when not ``pixels``.
+    """
+    from shapely.geometry import MultiPoint
+
+    c = np.asarray(contour, float)
+    if c.ndim != 2 or c.shape[1] != 2 or len(c) < 1:
+        raise TrackingError(f"{src.view} contour must be (K, 2) points (row, col); got shape "
+                            f"{c.shape}")
+    step = max(1, int(np.ceil(len(c) / max_vertices)))
+    loc = TetLocator(src.positions, model.tets)
+    segs = [track_view_point(model, src, dst, p, pixels=pixels, config=config, src_locator=loc)
+            for p in c[::step]]
+    hull = MultiPoint(np.vstack([s.polyline_mm for s in segs])).convex_hull
+    region = np.asarray(getattr(hull, "exterior", hull).coords)
+    return ContourPrediction(segs, region[:-1] if len(region) > 2 else region)

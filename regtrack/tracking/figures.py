@@ -92,6 +92,16 @@ def draw_view(ax, view: str, result: TrackResult, real=None, *, truth=None) -> N
         if seg.source_view == view:
             ax.plot(*seg.source_mm, "x", color="tab:green", ms=10, mew=2, label="marked point")
             pts.append(seg.source_mm)
+    for src_view, cp in result.contours.items():
+        if src_view != view and len(cp.region_mm) > 2:
+            r = np.vstack([cp.region_mm, cp.region_mm[:1]])
+            ax.fill(*r.T, color=CURVE, alpha=0.2, lw=0)
+            ax.plot(*r.T, color=CURVE, lw=1.2, ls="--", label=f"region from {src_view} contour")
+            title.append("contour region")
+        elif src_view == view:
+            pts_src = np.array([s.source_mm for s in cp.segments])
+            ax.plot(*np.vstack([pts_src, pts_src[:1]]).T, color="tab:green", lw=1.2,
+                    label="marked contour")
     if truth is not None and view in truth:
         ax.plot(*np.asarray(truth[view], float), "x", color="k", ms=9, mew=2, label="truth")
     ax.set_title(": ".join([title[0], ", ".join(title[1:])]) if len(title) > 1 else title[0],

@@ -15,7 +15,8 @@ import numpy as np
 
 from regtrack.errors import TrackingError
 from regtrack.model.types import TUMOUR
-from regtrack.tracking.cc_to_mlo import SegmentPrediction, most_likely, track_view_point
+from regtrack.tracking.cc_to_mlo import (ContourPrediction, SegmentPrediction, most_likely,
+                                         track_view_contour, track_view_point)
 from regtrack.tracking.mri_to_view import (MriTrack, track_mri_point, track_points_region,
                                            track_tumour)
 
@@ -32,6 +33,7 @@ class TrackResult:
     views: dict[str, dict] = field(default_factory=dict)   # registration + pixel frame per view
     mri: MriTrack | None = None
     segments: list[SegmentPrediction] = field(default_factory=list)
+    contours: dict[str, ContourPrediction] = field(default_factory=dict)  # source view -> region
     notes: list[str] = field(default_factory=list)
 
     def to_dict(self) -> dict:
@@ -51,6 +53,8 @@ class TrackResult:
             "views": self.views,
             "mri": None if self.mri is None else self.mri.to_dict(),
             "segments": [s.to_dict() for s in self.segments],
+            "contours": {v: {"target_view": OTHER[v], **c.to_dict()}
+                         for v, c in self.contours.items()},
             "notes": self.notes,
         }
 
@@ -100,7 +104,7 @@ def _label_points(session, value: int) -> np.ndarray:
 
 def track_case(session, *, mri_point=None, label: str | None = None,
                view_points: dict | None = None, truth: dict | None = None,
-               view_points_mm: bool = False) -> TrackResult:
+               view_points_mm: bool = False, view_contours: dict | None = None) -> TrackResult:
     """Run the requested tracking on an opened case.
 
     Parameters
@@ -116,13 +120,16 @@ def track_case(session, *, mri_point=None, label: str | None = None,
         the other view.
     truth : dict, optional
         ``{view: (2,) real canonical mm}`` of the true lesion, for the distances reported.
+    view_contours : dict, optional
+        ``{"CC": (K, 2) (row, col)}``: a contour marked on a real view; gives the region
+        (convex hull of the vertices' curves) in the other view.
 
     Raises
     ------
     TrackingError
         Nothing requested, or an invalid request (see the functions called).
     """
-    if mri_point is None and label is None and not view_points:
+    if mri_point is None and label is None and not view_points and not view_contours:
         raise TrackingError("nothing to track: give --mri-point X Y Z, --label tumour, "
                             "--cc-point ROW COL or --mlo-point ROW COL")
     cfg, model = session.config, session.model
@@ -164,4 +171,8 @@ def track_case(session, *, mri_point=None, label: str | None = None,
             most_likely(seg, lesions[k], truth_mm=(truth or {}).get(dst.view),
                         lesion=f"MRI tumour {k} (mass centroid)")
         res.segments.append(seg)
+    for src_name, contour in (view_contours or {}).items():
+        src = session.view(src_name)
+        res.contours[src.view] = track_view_contour(model, src, session.view(OTHER[src.view]),
+                                                    contour, pixels=not view_points_mm, config=cfg)
     return res
