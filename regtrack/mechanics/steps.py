@@ -165,6 +165,7 @@ def run_steps(problem: Problem, steps: list[LoadStep], *, node_sets: dict[str, n
                 held[int(d)] = float(val)
         u, sstats = solve_step(problem, u, gravity=gravity, dirichlet=dirichlet, step_name=st.name,
                                progress=progress)
+        _check_state(problem, u, st.name)
         R = reaction_forces(problem, u, gravity_ms2=gravity(1.0))
         cons = np.zeros(problem.n_dofs, bool)
         cons[problem.fixed_dofs] = True
@@ -175,6 +176,19 @@ def run_steps(problem: Problem, steps: list[LoadStep], *, node_sets: dict[str, n
         log.info("step %s: %d increments, %d iterations, chest-wall reaction %s N", st.name,
                  sstats.increments, sstats.iterations, np.round(results[-1].chest_wall_reaction_n, 6))
     return Deformation(results, stats)
+
+
+def _check_state(problem: Problem, u: np.ndarray, name: str) -> None:
+    """Guard rail: a returned state is finite and has no inverted element."""
+    from regtrack.errors import ResultCheckError
+    from regtrack.mechanics.problem import evaluate
+
+    if not np.all(np.isfinite(u)):
+        raise ResultCheckError(f"step '{name}': non-finite displacements; the result was not written")
+    ev = evaluate(problem, u, want_k=False)
+    if ev.n_inverted:
+        raise ResultCheckError(f"step '{name}': {ev.n_inverted} inverted elements in the converged state; "
+                               "refine the mesh or reduce the load")
 
 
 def _held(held: dict[int, float], new):
