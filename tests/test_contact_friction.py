@@ -20,10 +20,10 @@ from regtrack.mechanics.contributions import Contribution
 from regtrack.mechanics.plates import RigidPlate
 
 
-def _contact(X, *, mu=0.3, method="penalty", eps=2.0, areas=None, plate=None):
+def _contact(X, *, mu=0.3, method="penalty", eps=2.0, areas=None, plate=None, bound="multiplier"):
     plate = plate or RigidPlate(name="upper", origin=(0, 0, 0), normal=(0, 0, 1), e1=(1, 0, 0),
                                 s_range=(0.0, np.inf), edge_radius=3.0)
-    cfg = ContactConfig(friction=mu, method=method)
+    cfg = ContactConfig(friction=mu, method=method, friction_bound=bound)
     nodes = np.arange(len(X))
     a = np.full(len(X), 2.0) if areas is None else areas
     return PlateContact(plate, X, nodes, a, config=cfg, penalty=eps)
@@ -34,8 +34,10 @@ def test_is_a_contribution():
     assert isinstance(c, Contribution)
 
 
-def test_tangent_matches_finite_differences_node_by_node():
-    """Nodes in every state: inactive, stick, slip (flat face) and on the rounded edge."""
+@pytest.mark.parametrize("bound", ["multiplier", "current"])
+def test_tangent_matches_finite_differences_node_by_node(bound):
+    """Nodes in every state: inactive, stick, slip (flat face) and on the rounded edge;
+    slip bound from the lagged pressure (fixed during Newton) or the current one."""
     X = np.array([
         [10.0, 0.0, 1.0],    # inactive (gap 1 mm)
         [10.0, 0.0, -0.2],   # penetrating, stick (anchor at its position)
@@ -43,15 +45,16 @@ def test_tangent_matches_finite_differences_node_by_node():
         [-1.0, 2.0, -2.5],   # on the rounded edge, penetrating, slip
         [-0.5, 1.0, -1.0],   # on the rounded edge, stick
     ])
-    c = _contact(X, mu=0.3, eps=2.0)
+    c = _contact(X, mu=0.3, eps=2.0, bound=bound)
     u0 = np.zeros(X.size)
-    c.commit(u0)  # anchors = current positions
+    c.commit(u0)  # anchors = current positions; lagged bound = pressures at u0
     anchors = c._anchor.copy()
     anchors[2] += [3.0, -1.0, 0.0]
     anchors[3] += [0.0, 4.0, 0.0]
     anchors[4] += [0.0, 0.01, 0.0]
     c._anchor = anchors
     u = np.random.default_rng(0).normal(scale=0.01, size=X.size)
+    assert np.all(c.pbar[1:] > 0)
     r, K = c.residual_tangent(u)
     K = K.toarray()
     # states as designed
@@ -71,32 +74,42 @@ def test_tangent_matches_finite_differences_node_by_node():
     np.testing.assert_allclose(K, fd, atol=1e-6 * np.abs(K).max())
 
 
-def _drag(mu, *, fn=1.0, k=0.5, path=None):
+def _drag(mu, *, fn=1.0, k=0.5, path=None, bound="multiplier"):
     """One node pressed by fn (N) onto z=0 and pulled along x by a spring k (N/mm) whose
-    end follows ``path`` (mm). Returns (spring end, spring force, contact report) per step."""
+    end follows ``path`` (mm), solved like the solver does (Newton, then ``augment`` until
+    the lagged friction bound is consistent). Returns (spring end, spring force, contact
+    report) per step."""
     X = np.zeros((1, 3))
-    c = _contact(X, mu=mu, eps=50.0, areas=np.array([1.0]))
+    c = _contact(X, mu=mu, eps=50.0, areas=np.array([1.0]), bound=bound)
     u = np.zeros(3)
     out = []
-    for s in path:
+    for s in [0.0, *path]:  # first press the node (spring end at 0), then drag
         c.set_time(1.0)
-        for _ in range(50):
-            r, K = c.residual_tangent(u)
-            fext = np.array([k * (s - u[0]), 0.0, -fn])
-            R = r - fext
-            Kt = (K.toarray() if K is not None else np.zeros((3, 3))) + np.diag([k, 0, 0])
-            if np.linalg.norm(R) < 1e-12:
+        for _aug in range(20):
+            for _ in range(50):
+                r, K = c.residual_tangent(u)
+                fext = np.array([k * (s - u[0]), 0.0, -fn])
+                R = r - fext
+                Kt = (K.toarray() if K is not None else np.zeros((3, 3))) + np.diag([k, 0, 0])
+                if np.linalg.norm(R) < 1e-13:
+                    break
+                u = u - np.linalg.solve(Kt + 1e-12 * np.eye(3), R)
+            else:
+                raise AssertionError(f"Newton did not converge at spring end {s} mm")
+            if c.augment(u):
                 break
-            u = u - np.linalg.solve(Kt + 1e-12 * np.eye(3), R)
+        else:
+            raise AssertionError(f"friction bound not converged at spring end {s} mm")
         c.commit(u)
         out.append((s, k * (s - u[0]), c.report(u)))
-    return out
+    return out[1:]
 
 
-def test_node_sticks_below_mu_n_and_slides_at_mu_n():
+@pytest.mark.parametrize("bound", ["multiplier", "current"])
+def test_node_sticks_below_mu_n_and_slides_at_mu_n(bound):
     mu, fn = 0.2, 1.0
     forward = list(np.linspace(0, 4.0, 41)[1:])
-    hist = _drag(mu, fn=fn, path=forward + [3.99, 3.98])
+    hist = _drag(mu, fn=fn, path=forward + [3.99, 3.98], bound=bound)
     for s, f_spring, rep in hist:
         assert rep["normal_force_N"] == pytest.approx(fn, rel=1e-9)
         # the tangential contact force balances the spring, never exceeds mu N

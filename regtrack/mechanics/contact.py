@@ -28,21 +28,26 @@ costs a pressure equal to ``E``, the stress of a unit strain of the tissue, so t
 contact stiffness stays ``kappa`` times the local stiffness of the surface elements
 whatever the mesh size or material (well conditioned, yet small penetration).
 
-Regularised Coulomb friction (stick/slip return mapping, Wriggers, *Computational
-Contact Mechanics*, ch. 5).  ``a_i`` is the stick point (plate-local, committed at the
-end of each converged increment) and ``g_T = (I - n n^T)(x_i - a_i)`` the elastic
-tangential slip:
+Regularised Coulomb friction (stick/slip return mapping, :mod:`.friction`): with the
+stick point ``a_i`` (plate-local, committed at the end of each converged increment) and
+``g_T = (I - n n^T)(x_i - a_i)``, ``t = -eps_T g_T`` while ``eps_T |g_T| <= mu pbar``
+(stick), else ``t = -mu pbar g_T / |g_T|`` (slip; the stick point is then dragged so that
+``|g_T| = mu pbar / eps_T``: slip history).  By default the bound uses the pressure
+``pbar`` of the last converged solve (``friction_bound = "multiplier"``), held fixed while
+Newton iterates and updated like the multipliers until the friction forces agree with
+those of the exact bound within ``friction_tol`` (Simo & Laursen 1992); the stick/slip
+state of each node is frozen after ``stick_slip_freeze`` residual evaluations of a solve
+and checked afterwards (chatter control).
 
-.. math::
+Predictor: at each new increment of a step the multipliers and the friction bound are
+extrapolated linearly in pseudo-time from the last two converged increments, so that the
+first solve of an increment already carries nearly the right pressures and the
+augmented-Lagrangian loop rarely needs an extra solve.
 
-    t^{trial} = -\\varepsilon_T\\, g_T, \\qquad
-    t = \\begin{cases} t^{trial} & |t^{trial}| \\le \\mu p \\ \\text{(stick)} \\\\
-        \\mu p\\, t^{trial}/|t^{trial}| & \\text{otherwise (slip)} \\end{cases}
-
-and on slip the stick point is moved so that ``|g_T| = mu p / eps_T`` (slip history).
 The nodal force on the body is ``f_i = A_i (p_i n_i + t_i)``; the residual added to the
-solver's ``R = f_int - f_ext`` is ``-f_i`` and the tangent is its exact derivative
-(non-symmetric when slipping), including the curvature of the rounded plate edges.
+solver's ``R = f_int - f_ext`` is ``-f_i`` and the tangent is its exact derivative for the
+current bound and state (non-symmetric with ``friction_bound = "current"`` or on the
+rounded plate edges), including the curvature of the rounded plate edges.
 """
 
 from __future__ import annotations
@@ -56,11 +61,13 @@ import scipy.sparse as sp
 
 from regtrack.config import param
 from regtrack.errors import ConfigError
+from regtrack.mechanics import friction as fr
 from regtrack.mechanics.plates import RigidPlate
 
 log = logging.getLogger(__name__)
 
 METHODS = ("augmented-lagrangian", "penalty")
+BOUNDS = ("multiplier", "current")
 
 
 @dataclass(frozen=True)
@@ -81,6 +88,16 @@ class ContactConfig:
                                       "penetration", gt=0.0, le=5.0)
     max_penetration_mm: float = param(0.1, "mm", "guard rail: a converged step with a deeper "
                                       "penetration is rejected", gt=0.0)
+    friction_bound: str = param("multiplier", "", "slip bound mu*p from the last converged "
+                                "solve, fixed during Newton ('multiplier'), or from the current "
+                                "iterate ('current')", choices=BOUNDS)
+    friction_tol: float = param(0.005, "-", "accepted error of the friction forces (lagged "
+                                "bound, frozen state) relative to mu * normal force", gt=0.0,
+                                le=0.5)
+    stick_slip_freeze: int = param(8, "-", "residual evaluations of a solve after which the "
+                                   "stick/slip state is frozen (0: never)", ge=0, le=1000)
+    predictor: bool = param(True, "", "extrapolate multipliers and friction bound from the "
+                            "last two increments of a step")
 
 
 def tributary_areas(points: np.ndarray, tris: np.ndarray) -> np.ndarray:
@@ -160,28 +177,40 @@ class PlateContact:
         self.eps_t = float(penalty * config.stick_ratio)
         self.mu = float(config.friction)
         self.use_al = config.method == "augmented-lagrangian"
+        self.lagged = config.friction_bound == "multiplier"
         m = len(self.nodes)
         # committed state (end of the last converged increment)
         self._lam = np.zeros(m)
+        self._pconv = np.zeros(m)  # pressure of the last converged increment (MPa)
         self._anchor = self.plate.to_local(self.X[self.nodes])  # stick points, plate-local
-        # trial state (current increment)
+        self._hist: list[tuple[float, np.ndarray]] = []  # (t, converged pressure) of this step
+        # trial state (current increment / solve)
         self.lam = self._lam.copy()
+        self.pbar = self._pconv.copy()  # friction bound pressure of the current solve
+        self._t = 0.0
+        self._frozen: np.ndarray | None = None
+        self._n_eval = 0
         self._plate0 = plate
         self._n_slip = 0
         self.motion: tuple[np.ndarray, np.ndarray] | None = None
+        self.counters = {"friction_resolves": 0, "freezes": 0}
 
     # -- state snapshots (protocol engine: retry a plate move) ---------------------------
     def get_state(self) -> dict:
-        """Copy of the committed state (plate, stick points, multipliers)."""
+        """Copy of the committed state (plate, stick points, multipliers, pressures)."""
         return {"plate": self.plate, "anchor": self._anchor.copy(), "lam": self._lam.copy(),
-                "motion": self.motion}
+                "pconv": self._pconv.copy(), "motion": self.motion}
 
     def set_state(self, state: dict) -> None:
         """Restore a state returned by :meth:`get_state`."""
         self.plate = self._plate0 = state["plate"]
         self._anchor = state["anchor"].copy()
         self._lam = state["lam"].copy()
+        self._pconv = state["pconv"].copy()
         self.lam = self._lam.copy()
+        self.pbar = self._pconv.copy()
+        self._hist = []
+        self._new_solve()
         self.motion = state["motion"]
 
     def min_gap(self, u: np.ndarray) -> float:
@@ -197,11 +226,30 @@ class PlateContact:
     def begin_step(self, step: Any) -> None:
         """Start of a protocol step: the committed plate position is the step's start."""
         self._plate0 = self.plate
+        self._hist = [(0.0, self._pconv.copy())]
+        self._t = 0.0
 
     def set_time(self, t: float) -> None:
+        """Move the plate to its position at ``t``; start a new increment (predictor)."""
         if self.motion is not None:
             a, b = self.motion
             self.plate = self.plate.moved_to(a + float(t) * (b - a))
+        self._t = float(t)
+        self.lam = self._lam.copy()
+        self.pbar = self._pconv.copy()
+        if self.config.predictor and len(self._hist) >= 2:
+            (t0, p0), (t1, p1) = self._hist[-2:]
+            if t1 > t0 and t > t1:
+                pred = np.maximum(p1 + (p1 - p0) * (t - t1) / (t1 - t0), 0.0)
+                self.pbar = pred
+                if self.use_al:
+                    # only where the node is pressed now: a separating node keeps lambda
+                    self.lam = np.where(self._lam > 0, pred, self._lam)
+        self._new_solve()
+
+    def _new_solve(self) -> None:
+        self._frozen = None
+        self._n_eval = 0
 
     # -- the physics ------------------------------------------------------------------
     def _state(self, u: np.ndarray, *, tangent: bool):
@@ -212,22 +260,12 @@ class PlateContact:
         p = np.where(act, p, 0.0)
         return x, q, p, act
 
-    def _friction(self, x, q, p, act):
-        """Tangential traction (M, 3), stick mask, unit slip direction, g_T and |g_T|."""
-        anchor = self.plate.to_model(self._anchor)
-        d = x - anchor
-        n = q.normal
-        gt = d - n * np.einsum("ni,ni->n", n, d)[:, None]
-        gn = np.linalg.norm(gt, axis=1)
-        ttrial = self.eps_t * gn
-        limit = self.mu * p
-        stick = act & (ttrial <= limit)
-        slip = act & ~stick & (gn > 0)
-        ghat = gt / np.where(gn > 0, gn, 1.0)[:, None]
-        t = np.zeros_like(x)
-        t[stick] = -self.eps_t * gt[stick]
-        t[slip] = -(limit[slip])[:, None] * ghat[slip]
-        return t, stick, slip, ghat, gt, gn, d
+    def _friction(self, x, q, p, act, *, exact: bool = False) -> fr.Traction:
+        """Return mapping with the solve's bound and frozen state (``exact``: bound from
+        the current pressure, state from the trial)."""
+        bound = self.mu * (self.pbar if (self.lagged and not exact) else p)
+        return fr.return_map(x, self.plate.to_model(self._anchor), q.normal, act, bound,
+                             eps_t=self.eps_t, frozen=None if exact else self._frozen)
 
     def nodal_forces(self, u: np.ndarray) -> tuple[np.ndarray, dict]:
         """Contact force on each candidate node (M, 3) in N, and state figures."""
@@ -235,13 +273,20 @@ class PlateContact:
         f = p[:, None] * q.normal
         nslip = 0
         if self.mu > 0:
-            t, stick, slip, *_ = self._friction(x, q, p, act)
-            f = f + t
-            nslip = int(slip.sum())
+            tr = self._friction(x, q, p, act)
+            f = f + tr.t
+            nslip = int(tr.slip.sum())
         f *= self.areas[:, None]
         pen = float(max(0.0, -q.gap[act].min())) if act.any() else 0.0
         return f, {"active": act, "gap": q.gap, "pressure": p, "n_slip": nslip,
                    "max_penetration_mm": pen}
+
+    def _maybe_freeze(self, x, q, p, act) -> None:
+        self._n_eval += 1
+        n = self.config.stick_slip_freeze
+        if self.mu > 0 and n > 0 and self._frozen is None and self._n_eval > n:
+            self._frozen = fr.state_code(self._friction(x, q, p, act))
+            self.counters["freezes"] += 1
 
     def residual_tangent(self, u: np.ndarray) -> tuple[np.ndarray, sp.spmatrix | None]:
         """Residual ``-f`` (3N,) and its tangent (3N, 3N) CSR, or None without contact."""
@@ -250,6 +295,7 @@ class PlateContact:
         res = np.zeros(ndof)
         if not act.any():
             return res, None
+        self._maybe_freeze(x, q, p, act)
         idx = np.flatnonzero(act)
         A = self.areas[idx]
         n = q.normal[idx]
@@ -259,21 +305,10 @@ class PlateContact:
         # normal: r = -A p n ; dr/dx = A (eps n n^T - p H)
         K = A[:, None, None] * (self.eps_n * _outer(n, n) - pa[:, None, None] * H)
         if self.mu > 0:
-            t, stick, slip, ghat, gt, gn, d = self._friction(x, q, p, act)
-            f = f + t[idx]
-            st, sl = stick[idx], slip[idx]
-            nd = np.einsum("ni,ni->n", n, d[idx])
-            P = np.eye(3)[None] - _outer(n, n)
-            dgt = P - nd[:, None, None] * H - _outer(n, np.einsum("nij,nj->ni", H, d[idx]))
-            Kt = np.zeros_like(K)
-            Kt[st] = self.eps_t * dgt[st]
-            if sl.any():
-                gh = ghat[idx][sl]
-                dp = self.eps_n * n[sl]  # -dp/dx
-                proj = np.eye(3)[None] - _outer(gh, gh)
-                Kt[sl] = self.mu * (-_outer(gh, dp) + (pa[sl] / gn[idx][sl])[:, None, None]
-                                    * np.einsum("nij,njk->nik", proj, dgt[sl]))
-            K = K + A[:, None, None] * Kt
+            tr = self._friction(x, q, p, act).subset(idx)
+            f = f + tr.t
+            dB = None if self.lagged else -self.mu * self.eps_n * n  # dB/dx = mu dp/dx
+            K = K + A[:, None, None] * fr.tangent(tr, n, H, eps_t=self.eps_t, dbound_dx=dB)
         f = f * A[:, None]
         dof = 3 * self.nodes[idx][:, None] + np.arange(3)[None]
         np.add.at(res, dof.ravel(), -f.ravel())
@@ -284,46 +319,62 @@ class PlateContact:
 
     # -- increment bookkeeping --------------------------------------------------------
     def commit(self, u: np.ndarray) -> None:
-        """Store the stick points (slip history) and multipliers of a converged increment."""
+        """Store the stick points (slip history), multipliers and pressures of a converged
+        increment."""
         x, q, p, act = self._state(u, tangent=False)
-        new = self.plate.to_local(x)  # inactive nodes: stick point follows the node
+        new = x.copy()  # off contact: the stick point follows the node
         self._n_slip = 0
         if self.mu > 0 and act.any():
-            t, stick, slip, ghat, gt, gn, d = self._friction(x, q, p, act)
-            anchor = self.plate.to_model(self._anchor)
-            keep = stick
-            new[keep] = self.plate.to_local(anchor[keep])
-            moved = x[slip] - (self.mu * p[slip] / self.eps_t)[:, None] * ghat[slip]
-            new[slip] = self.plate.to_local(moved)
-            self._n_slip = int(slip.sum())
-        elif act.any():
-            new[act] = self.plate.to_local(x[act])
-        self._anchor = new
+            tr = self._friction(x, q, p, act)
+            new = fr.slid_anchor(x, tr, eps_t=self.eps_t)
+            self._n_slip = int(tr.slip.sum())
+        self._anchor = self.plate.to_local(new)
         # augmented Lagrangian: keep the multipliers of the converged solve, so the next
         # increment starts in equilibrium (p = lambda - eps g is unchanged at this u)
         self._lam = self.lam.copy()
+        self._pconv = p.copy()
+        self.pbar = p.copy()
+        self._hist = (self._hist + [(self._t, p.copy())])[-2:]
         self._plate0 = self.plate
+        self._new_solve()
 
     def rollback(self) -> None:
         """Forget the trial multipliers and plate position of a cut-back increment."""
         self.lam = self._lam.copy()
+        self.pbar = self._pconv.copy()
         self.plate = self._plate0
+        self._new_solve()
 
     def augment(self, u: np.ndarray) -> bool:
-        """Uzawa update ``lambda <- max(0, lambda - eps g)``.
+        """After a converged solve: update the multipliers (Uzawa ``lambda <- max(0,
+        lambda - eps g)``) and the friction bound; True when nothing needs updating.
 
-        Returns True when every pressed node lies within ``penetration_tol_mm`` of the
-        plate (neither penetrating nor pushed from a distance), False after updating the
-        multipliers (the solver then re-solves the increment).
+        Normal: every pressed node lies within ``penetration_tol_mm`` of the plate
+        (neither penetrating nor pushed from a distance).  Friction: the forces of the
+        solve (lagged bound, frozen state) differ from the exact return mapping at the
+        current pressure by at most ``friction_tol`` of ``mu`` times the normal force
+        (:func:`regtrack.mechanics.friction.friction_error`).  On False the solver
+        re-solves the increment with the updated multipliers / bound / free state.
         """
-        if not self.use_al:
-            return True
         x, q, p, act = self._state(u, tangent=False)
-        viol = float(np.abs(q.gap[act]).max()) if act.any() else 0.0
-        if viol <= self.config.penetration_tol_mm:
-            return True
-        self.lam = p
-        return False
+        done = True
+        if self.use_al:
+            viol = float(np.abs(q.gap[act]).max()) if act.any() else 0.0
+            if viol > self.config.penetration_tol_mm:
+                self.lam = p
+                done = False
+        if self.mu > 0 and act.any() and (self.lagged or self._frozen is not None):
+            err = fr.friction_error(self._friction(x, q, p, act),
+                                    self._friction(x, q, p, act, exact=True),
+                                    self.areas, p, self.mu)
+            if err > self.config.friction_tol:
+                if done:
+                    self.counters["friction_resolves"] += 1
+                done = False
+        if not done:
+            self.pbar = p.copy()
+            self._new_solve()
+        return done
 
     def report(self, u: np.ndarray) -> dict:
         """Plate force (N), maximum penetration (mm), active nodes, contact area (mm^2).
