@@ -52,12 +52,16 @@ def _read_header(path: Path, at: str):
     from pydicom.errors import InvalidDicomError
 
     try:
-        return pydicom.dcmread(path, stop_before_pixels=True), None
+        ds = pydicom.dcmread(path, stop_before_pixels=True)
+        for _ in ds:  # pydicom decodes lazily: surface every malformed element here
+            pass
+        return ds, None
     except InvalidDicomError:
         return None, (f"{at}: not a DICOM file (no 'DICM' marker); give the mammogram as "
                       "exported by the modality or PACS (MG, DX or CR)")
-    except (OSError, EOFError, ValueError, TypeError, AttributeError) as exc:
-        return None, f"{at}: cannot read the DICOM header ({exc}); the file may be truncated"
+    except Exception as exc:  # noqa: BLE001 - pydicom raises many types on corrupt files
+        first = (str(exc).strip().splitlines() or [type(exc).__name__])[0][:160]
+        return None, f"{at}: cannot read the DICOM header ({first}); the file may be truncated"
 
 
 def _spacing(ds, view: ViewInput, at: str, at_file: str, p: list[str], w: list[str]):

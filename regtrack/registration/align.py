@@ -123,6 +123,11 @@ class Alignment:
         }
 
 
+#: coordinates beyond this (mm) are a unit or spacing error, not a breast (and would
+#: overflow the squared distances of the objective)
+MAX_COORD_MM = 1e5
+
+
 def _label(v: MammogramView, who: str) -> str:
     src = f" ({v.source})" if v.source else ""
     return f"{who} {v.view} view{src}"
@@ -140,6 +145,13 @@ def check_view(v: MammogramView, who: str, cfg: RegistrationConfig) -> None:
     if not (np.isfinite(bc).all() and nip.shape == (2,) and np.isfinite(nip).all()):
         raise RegistrationError(f"{name}: breast contour or nipple is not finite; give the "
                                 "nipple explicitly (case.toml [views.*] nipple_px)")
+    if max(np.abs(bc).max(), np.abs(nip).max()) > MAX_COORD_MM:
+        raise RegistrationError(f"{name}: breast contour or nipple lies more than "
+                                f"{MAX_COORD_MM:g} mm from the origin; check the pixel spacing")
+    breast = G.polygon(bc)
+    if breast.is_empty or breast.area <= 0.0:
+        raise RegistrationError(f"{name}: breast contour encloses no area (collinear or "
+                                "coincident points); check the segmentation or the simulation")
     if not cfg.use_tumour:
         return
     if not v.tumour_contours:
@@ -147,14 +159,17 @@ def check_view(v: MammogramView, who: str, cfg: RegistrationConfig) -> None:
                if who == "real" else "the model has no tumour region")
         raise RegistrationError(f"{name}: no tumour contour; {fix}, or set [registration] "
                                 "use_tumour = false to align on the breast contour only")
-    breast = G.polygon(bc)
     for k, t in enumerate(v.tumour_contours):
         t = np.asarray(t, float)
         if t.ndim != 2 or t.shape[1:] != (2,) or len(t) < cfg.min_tumour_points or not np.isfinite(t).all():
             raise RegistrationError(
                 f"{name}: tumour contour {k} has {len(t)} points (< {cfg.min_tumour_points}) "
                 "or non-finite values; redraw the tumour polygon")
-        c = G.polygon(t).representative_point()
+        tp = G.polygon(t)
+        if tp.is_empty or tp.area <= 0.0 or np.abs(t).max() > MAX_COORD_MM:
+            raise RegistrationError(f"{name}: tumour contour {k} encloses no area or lies more "
+                                    f"than {MAX_COORD_MM:g} mm away; redraw the tumour polygon")
+        c = tp.representative_point()
         if not breast.covers(c):
             raise RegistrationError(
                 f"{name}: tumour contour {k} (near x={c.x:.1f}, y={c.y:.1f} mm) lies outside the "

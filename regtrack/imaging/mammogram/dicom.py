@@ -108,17 +108,37 @@ def _spacing_from_tags(ds, name: str, user) -> tuple[np.ndarray, str]:
                         sp.tolist(), [float(v) for v in tag])
         return sp, "user (pixel_spacing_mm)"
     if ds.get("PixelSpacing"):
-        return np.asarray([float(v) for v in ds.PixelSpacing]), "PixelSpacing"
+        return _spacing_tag(ds, "PixelSpacing", name), "PixelSpacing"
     if ds.get("ImagerPixelSpacing"):
-        sp = np.asarray([float(v) for v in ds.ImagerPixelSpacing])
-        mag = ds.get("EstimatedRadiographicMagnificationFactor")
-        if mag is not None and float(mag) > 0:
+        sp = _spacing_tag(ds, "ImagerPixelSpacing", name)
+        mag = _finite_or_none(ds.get("EstimatedRadiographicMagnificationFactor"))
+        if mag is not None and mag > 0:
             return sp / float(mag), ("ImagerPixelSpacing / EstimatedRadiographicMagnification"
                                      f"Factor ({float(mag):g})")
         return sp, "ImagerPixelSpacing"
     raise DicomError(f"{name}: no PixelSpacing or ImagerPixelSpacing tag; give "
                      "pixel_spacing_mm = [row, col] (mm) under [views.<VIEW>] in case.toml "
                      "(or --spacing R C)")
+
+
+def _finite_or_none(value) -> float | None:
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        return None
+    return v if np.isfinite(v) else None
+
+
+def _spacing_tag(ds, keyword: str, name: str) -> np.ndarray:
+    """``(row, col)`` mm of a spacing tag; anything but two positive numbers is an error."""
+    value = ds.get(keyword)
+    values = [value] if isinstance(value, (str, bytes, int, float)) else list(value)
+    sp = np.asarray([_finite_or_none(v) for v in values], dtype=float)
+    if sp.size != 2 or not np.all(np.isfinite(sp)) or np.any(sp <= 0):
+        raise DicomError(f"{name}: {keyword} {[str(v) for v in values]} is not two positive "
+                         "numbers (row, col) in mm; fix the tag or give pixel_spacing_mm = "
+                         "[row, col] under [views.<VIEW>] in case.toml (or --spacing R C)")
+    return sp
 
 
 def _laterality_from_tags(ds) -> tuple[str | None, str]:
@@ -214,10 +234,14 @@ def read_mammogram(path: str | os.PathLike, *, pixel_spacing_mm=None, view: str 
         raise DicomError(f"{name}: file not found; check the mammogram path")
     try:
         ds = pydicom.dcmread(path)
+        for _ in ds:  # pydicom decodes lazily: surface every malformed element here
+            pass
     except InvalidDicomError as err:
         raise DicomError(f"{name}: not a DICOM file ({err}); give a DICOM MG/DX/CR image") from err
     except Exception as err:
-        raise DicomError(f"{name}: cannot read the DICOM file ({err})") from err
+        first = (str(err).strip().splitlines() or [type(err).__name__])[0][:160]
+        raise DicomError(f"{name}: cannot read the DICOM file ({first}); the file may be "
+                         "truncated or corrupt") from err
     modality = str(ds.get("Modality", "") or "").strip().upper()
     meta: dict = {"modality": modality or None, "notes": []}
     if modality and modality not in ACCEPTED_MODALITIES:

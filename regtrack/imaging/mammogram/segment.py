@@ -90,6 +90,11 @@ def block_average(image: np.ndarray, spacing,
     fr = max(1, int(round(working_spacing_mm / float(spacing[0]))))
     fc = max(1, int(round(working_spacing_mm / float(spacing[1]))))
     h, w = (image.shape[0] // fr) * fr, (image.shape[1] // fc) * fc
+    if h < 3 * fr or w < 3 * fc:  # fewer than 3 x 3 working pixels: nothing to segment
+        raise MammogramError(
+            f"mammogram: {image.shape[0]}x{image.shape[1]} px at {float(spacing[0]):.4g} x "
+            f"{float(spacing[1]):.4g} mm is under 3 x 3 blocks of {working_spacing_mm:g} mm; "
+            "check the pixel spacing (PixelSpacing / pixel_spacing_mm)")
     small = image[:h, :w].reshape(h // fr, fr, w // fc, fc).mean(axis=(1, 3), dtype=np.float64)
     return small.astype(np.float32), (fr, fc)
 
