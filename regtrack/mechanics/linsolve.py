@@ -75,8 +75,13 @@ class LinearSolver:
                 log.warning("PARDISO not available (%s): falling back to SuperLU (slower)", exc)
                 self.kind = "splu"
 
-    def solve(self, A: sp.csr_matrix, b: np.ndarray, *, symmetric: bool = False) -> np.ndarray:
-        """Solve ``A x = b``; ``symmetric=True`` promises ``A == A.T`` (upper triangle used)."""
+    def solve(self, A: sp.csr_matrix, b: np.ndarray, *, symmetric: bool = False,
+              rtol: float | None = None, refactor: bool = False) -> np.ndarray:
+        """Solve ``A x = b``; ``symmetric=True`` promises ``A == A.T`` (upper triangle used).
+
+        ``rtol`` overrides ``krylov_rtol`` for a re-used factorisation (inexact Newton);
+        ``refactor`` forces a fresh factorisation.
+        """
         b = np.asarray(b, float)
         if self.kind == "splu":
             t0 = time.perf_counter()
@@ -86,8 +91,9 @@ class LinearSolver:
             return x
         M = self._upper_triangle(A) if symmetric else A
         key = self._key(M)
-        if self.reuse and self._keys[symmetric] == key and self._factored[symmetric] is not None:
-            x = self._krylov(A, b, symmetric)
+        if (self.reuse and not refactor and self._keys[symmetric] == key
+                and self._factored[symmetric] is not None):
+            x = self._krylov(A, b, symmetric, self.krylov_rtol if rtol is None else max(rtol, self.krylov_rtol))
             if x is not None:
                 return x
         return self._factor_solve(M, b, symmetric, key)
@@ -135,7 +141,7 @@ class LinearSolver:
         self._factored[symmetric] = M
         return x
 
-    def _krylov(self, A: sp.csr_matrix, b: np.ndarray, symmetric: bool) -> np.ndarray | None:
+    def _krylov(self, A: sp.csr_matrix, b: np.ndarray, symmetric: bool, rtol: float) -> np.ndarray | None:
         """GMRES preconditioned by the stored factorisation; None if not accurate enough."""
         t0 = time.perf_counter()
         F = self._factored[symmetric]
@@ -148,15 +154,15 @@ class LinearSolver:
         nb = float(np.linalg.norm(b))
         # left preconditioning: GMRES monitors the preconditioned residual, so aim lower and
         # judge by the true residual below
-        x, _ = spla.gmres(A, b, M=prec, rtol=min(1e-15, self.krylov_rtol * 1e-5), atol=0.0, restart=self.krylov_max,
+        x, _ = spla.gmres(A, b, M=prec, rtol=min(1e-15, rtol * 1e-5), atol=0.0, restart=self.krylov_max,
                           maxiter=1, callback=cb, callback_type="pr_norm")
         self.time_krylov += time.perf_counter() - t0
         self.krylov_iterations += count[0]
-        if nb == 0.0 or np.linalg.norm(A @ x - b) <= self.krylov_rtol * nb:
+        if nb == 0.0 or np.linalg.norm(A @ x - b) <= rtol * nb:
             self.n_krylov_solves += 1
             return x
         log.debug("stale factorisation: GMRES did not reach %.1e in %d iterations; refactorising",
-                  self.krylov_rtol, self.krylov_max)
+                  rtol, self.krylov_max)
         return None
 
     def release(self) -> None:

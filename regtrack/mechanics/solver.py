@@ -190,7 +190,13 @@ class _Newton:
                 keep = (~cons.system_mask).astype(float)
                 K = (sp.diags(keep) @ K @ sp.diags(keep) + sp.diags(1.0 - keep)).tocsr()
             t0 = time.perf_counter()
-            du = self.ls.solve(K, rhs, symmetric=self.symmetric)[:n3]
+            # inexact Newton (reuse_factorisation): factorise at an increment's first iteration,
+            # then GMRES on that factorisation with the Eisenstat-Walker forcing term
+            # eta_k = 0.9 (|R_k| / |R_k-1|)^2, capped at 0.1
+            eta = None
+            if o.reuse_factorisation and it > 0 and len(hist) > 1 and hist[-2] > 0:
+                eta = min(0.1, 0.9 * (hist[-1] / hist[-2]) ** 2)
+            du = self.ls.solve(K, rhs, symmetric=self.symmetric, rtol=eta, refactor=it == 0)[:n3]
             self.stats.t_solve += time.perf_counter() - t0
             if not np.all(np.isfinite(du)):
                 raise _Failed("linear solve returned non-finite values")
