@@ -12,6 +12,7 @@ import logging
 from dataclasses import dataclass
 
 import numpy as np
+from scipy import ndimage
 
 from regtrack.model.chestwall import SUPERIOR_LPS
 from regtrack.model.config import MeshConfig
@@ -49,7 +50,11 @@ def make_surfaces(prep: PreparedBreast, *, smoothing_mm: float, tumour_smoothing
         g = np.minimum(g, plane_field(vol.shape, vol.affine, p, s))
     snap = 0.5 * float(sp.min())
     outer = extract_surface(g, vol.affine, step=step, planes=tuple(prep.planes), snap_mm=0.0)
-    dist_out = g / s  # ~ signed distance (mm) to the outer surface, positive inside
+    # distance (mm) inside the breast voxels to their boundary (cut faces included)
+    dist_out = ndimage.distance_transform_edt(np.pad(prep.breast, 1), sampling=sp)[1:-1, 1:-1, 1:-1] - 0.5 * float(np.mean(sp))
+    # a coarse marching-cubes step cuts corners by up to half a step: keep tumours clear of it
+    base_clearance = clearance_mm
+    clearance_mm = clearance_mm + 0.5 * step * float(np.max(sp))
     tumours, tvox = [], []
     st = slope_per_mm(tumour_smoothing_mm)
     pad = np.ceil(3 * tumour_smoothing_mm / sp).astype(int) + 2
@@ -58,6 +63,10 @@ def make_surfaces(prep: PreparedBreast, *, smoothing_mm: float, tumour_smoothing
         m = prep.tumours.labelled[sl] == t.component
         ft = smooth_levelset(m, tumour_smoothing_mm, sp)
         gt = np.minimum(ft, st * (dist_out[sl] - clearance_mm))
+        if gt.max() <= 0:  # the whole tumour lies within the clearance band: keep the base one
+            log.warning("tumour %d lies within %.1f mm of the outer surface; clearance reduced to %.1f mm",
+                        t.id, clearance_mm, base_clearance)
+            gt = np.minimum(ft, st * (dist_out[sl] - base_clearance))
         aff = vol.affine.copy()
         aff[:3, 3] = vol.index_to_world([a.start for a in sl])
         tumours.append(extract_surface(gt, aff, step=tumour_steps[i] if tumour_steps else 1))
