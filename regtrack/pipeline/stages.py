@@ -92,6 +92,7 @@ def mesh_stage(ctx) -> MeshOutput:
         nipple = None if mri.nipple_lps_mm is None else np.asarray(mri.nipple_lps_mm, float)
         model = build_model(labels, scheme=mri.scheme, config=ctx.configs["model"], side=mri.side,
                             nipple_lps=nipple, progress=lambda m: ctx.say(f"mesh: {m}"))
+        model.meta = ctx.clean(model.meta)  # input paths may name the patient
         with ctx.cache.produce("mesh", key, info={"nodes": model.n_nodes, "tets": model.n_tets}) as d:
             save_model(model, d / "model.vtu")
             _model_pictures(model, d)
@@ -119,11 +120,17 @@ def _protocol(ctx, view: str):
                              where=str(ctx.case.toml_path), base_dir=ctx.case.root)
 
 
+def simulate_key(ctx, mesh_key_: str, view: str) -> str:
+    """Cache key of the ``view`` simulation: the mesh key, mechanics, contact and protocol."""
+    return fingerprint("simulate", mesh_key_, view, to_table(ctx.configs["mechanics"]),
+                       to_table(ctx.configs["contact"]), _protocol(ctx, view).to_dict())
+
+
 def simulate_stage(ctx, mesh: MeshOutput, view: str) -> SimOutput:
     """Simulate the mammography of ``view`` on the model (or find it in the cache)."""
     protocol = _protocol(ctx, view)
     mech, contact = ctx.configs["mechanics"], ctx.configs["contact"]
-    key = fingerprint("simulate", mesh.key, view, to_table(mech), to_table(contact), protocol.to_dict())
+    key = simulate_key(ctx, mesh.key, view)
     hit = ctx.cache.lookup("simulate", key)
     t0 = time.perf_counter()
     if hit is None:
@@ -263,7 +270,26 @@ def report_stage(ctx, mesh: MeshOutput, results: list[ViewOutcome], out: Path, p
     pics = []
     for p in mesh.pictures:
         pics.append(_io.write_bytes(out / "model" / p.name, p.read_bytes()))
-    rep = CaseReport(ctx.case.id, ctx.case.title, views, ms, pics, prov["config"], prov)
+    tracking = _tracking_section(mesh, results, out)
+    rep = CaseReport(ctx.case.id, ctx.case.title, views, ms, pics, prov["config"], prov,
+                     extra_pages=[tracking] if tracking else [])
     path = write_pdf(rep, out / "report.pdf")
     _timed(ctx, "report", t0)
     return path
+
+
+def _tracking_section(mesh: MeshOutput, results: list[ViewOutcome], out: Path):
+    """Where the MRI tumour lands in each real mammogram (``tracking.json`` + a PDF page)."""
+    from regtrack.tracking.figures import draw_tracking_page, report_section
+    from regtrack.tracking.session import viewmap_from_outcome
+    from regtrack.tracking.mri_to_view import track_tumour
+    from regtrack.tracking.track import TrackResult
+
+    if int(mesh.model.tumour_id.max(initial=0)) < 1:
+        return None
+    vms = {r.view: viewmap_from_outcome(r) for r in results}
+    res = TrackResult(results[0].row["case_id"], views={v: {} for v in vms},
+                      mri=track_tumour(mesh.model, vms))
+    _io.write_json(out / "tracking.json", report_section(res))
+    reals = {r.view: r.real for r in results}
+    return lambda fig: draw_tracking_page(fig, res, reals)

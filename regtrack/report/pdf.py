@@ -65,6 +65,8 @@ class CaseReport:
     model_pictures: list[Path] = field(default_factory=list)
     config: dict = field(default_factory=dict)
     provenance: dict = field(default_factory=dict)
+    #: callables drawing extra A4 pages (e.g. the lesion-tracking section) on a Figure
+    extra_pages: list = field(default_factory=list)
 
 
 def _fmt(value, fmt: str) -> str:
@@ -182,6 +184,11 @@ def write_pdf(report: CaseReport, path: str | Path) -> Path:
                     ax.set_xlabel("x (mm)")
                 pdf.savefig(fig)
                 plt.close(fig)
+        for draw in report.extra_pages:
+            fig = plt.figure(figsize=(8.27, 11.69))
+            draw(fig)
+            pdf.savefig(fig)
+            plt.close(fig)
         # 5. provenance
         lines = []
         for title, obj in (("configuration", report.config), ("provenance", report.provenance)):

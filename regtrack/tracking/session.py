@@ -80,16 +80,10 @@ def viewmap_from_outcome(outcome) -> ViewMap:
 
 
 def _simulate_key(ctx, mesh_key: str, view: str) -> str:
-    """Key of the simulate stage, computed as :func:`regtrack.pipeline.stages.simulate_stage`
-    does (checked against it by the end-to-end test)."""
-    from regtrack.config import to_table
-    from regtrack.mechanics.protocol import protocol_for_view
-    from regtrack.pipeline.cache import fingerprint
+    """Key of the simulate stage (the pipeline's own :func:`simulate_key`)."""
+    from regtrack.pipeline.stages import simulate_key
 
-    protocol = protocol_for_view(view, ctx.protocol_tables.get(view) or None,
-                                 where=str(ctx.case.toml_path), base_dir=ctx.case.root)
-    return fingerprint("simulate", mesh_key, view, to_table(ctx.configs["mechanics"]),
-                       to_table(ctx.configs["contact"]), protocol.to_dict())
+    return simulate_key(ctx, mesh_key, view)
 
 
 def missing_stages(ctx, views) -> list[str]:
