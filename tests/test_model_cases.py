@@ -34,6 +34,7 @@ def assert_targets(q: dict, *, voxel_mm: float = 1.0) -> None:
     assert q["surface_distance_mean_mm"] < voxel_mm
 
 
+@pytest.mark.slow
 def test_mesh_cli_on_phantom_case(tmp_path):
     case = SAMPLE_CASES / "phantom01"
     if not (case / "case.toml").is_file():
