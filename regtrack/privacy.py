@@ -62,7 +62,7 @@ BASIC_PROFILE_ACTIONS: dict[str, str] = {
 
 #: DCM code of the profile (PS3.16 CID 7050)
 BASIC_PROFILE_CODE = ("113100", "DCM", "Basic Application Confidentiality Profile")
-DEIDENTIFICATION_METHOD = "regtrack: DICOM PS3.15 Basic Application Level Confidentiality Profile"
+DEIDENTIFICATION_METHOD = "regtrack: DICOM PS3.15 E.1 Basic Profile"  # LO: <= 64 chars
 
 #: values that are placeholders, not identifiers (never scrubbed)
 _PLACEHOLDERS = {"", "ANONYMOUS", "ANONYMIZED", "ANON", "UNKNOWN", "NONE", "N/A", "NA", "^", "1"}
@@ -199,6 +199,48 @@ def collect_identifiers(case: Any, *, max_series_files: int = 3) -> Identifiers:
     return ids
 
 
+def identifiers_of_case_folder(path: str | os.PathLike) -> Identifiers:
+    """Like :func:`collect_identifiers`, straight from a case folder (or its case.toml),
+    *before* it is loaded: the loader's own log lines and warnings name the case's files,
+    so the scrubbing must be in place first.  Paths are followed only inside the folder;
+    an unreadable case.toml gives the folder paths alone (the loader reports it)."""
+    import tomllib
+
+    p = Path(path)
+    toml = p / "case.toml" if p.is_dir() else p
+    root = toml.parent
+    ids = Identifiers()
+    ids.paths[str(root.resolve())] = "<case>"
+    ids.paths[os.path.abspath(root)] = "<case>"
+    given = str(root)
+    if len(given) >= 3 and given.strip("./"):
+        ids.paths[given] = "<case>"
+    try:
+        doc = tomllib.loads(toml.read_text(encoding="utf-8"))
+    except Exception:  # noqa: BLE001 - the loader reports a bad case.toml
+        return ids
+    real_root = root.resolve()
+
+    def inside(value: Any, *, folder: bool) -> Path | None:
+        if not isinstance(value, str) or not value.strip() or os.path.isabs(value):
+            return None
+        q = (root / value).resolve()
+        ok = q.is_relative_to(real_root) and (q.is_dir() if folder else q.is_file())
+        return q if ok else None
+
+    views = doc.get("views")
+    for table in (views.values() if isinstance(views, dict) else []):
+        q = inside(table.get("mammogram") if isinstance(table, dict) else None, folder=False)
+        if q is not None:
+            read_identifiers(q, ids)
+    mri = doc.get("mri")
+    series = inside(mri.get("series") if isinstance(mri, dict) else None, folder=True)
+    if series is not None:
+        for f in sorted(f for f in series.iterdir() if f.is_file())[:3]:
+            read_identifiers(f, ids)
+    return ids
+
+
 def pseudonymous_id(case_id: str, ids: Identifiers) -> str:
     """``case_id``, or ``anon-<8 hex>`` when it contains a patient identifier.
 
@@ -315,5 +357,6 @@ def files_under(folder: str | os.PathLike) -> Iterable[Path]:
 __all__ = [
     "BASIC_PROFILE_ACTIONS", "IDENTIFYING_KEYWORDS", "Identifiers", "ScrubFilter",
     "collect_identifiers", "deidentify_dataset", "dicom_leaks", "files_under",
+    "identifiers_of_case_folder",
     "pseudonymous_id", "read_identifiers", "scrub_logs",
 ]

@@ -85,6 +85,15 @@ def _spacing(ds, view: ViewInput, at: str, at_file: str, p: list[str], w: list[s
     return found, tag
 
 
+def _int_tag(ds, keyword: str) -> int:
+    """A single positive integer tag, else 0 (multi-valued or malformed: not an image)."""
+    value = getattr(ds, keyword, None)
+    try:
+        return max(int(value), 0) if isinstance(value, (int, float, str)) else 0
+    except (TypeError, ValueError, OverflowError):
+        return 0
+
+
 def _float(value) -> float | None:
     try:
         return None if value is None else float(value)
@@ -140,7 +149,7 @@ def check_view(view: ViewInput, *, where: str,
     ds, bad = _read_header(view.mammogram, f"{at} mammogram = {mammo!r}")
     if ds is None:
         return None, [bad], []  # type: ignore[list-item]
-    rows, cols = int(getattr(ds, "Rows", 0) or 0), int(getattr(ds, "Columns", 0) or 0)
+    rows, cols = _int_tag(ds, "Rows"), _int_tag(ds, "Columns")
     if rows <= 0 or cols <= 0:
         return None, [f"{at} mammogram = {mammo!r}: DICOM tag Rows/Columns missing; "
                       "this is not an image file"], []

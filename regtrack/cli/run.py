@@ -31,13 +31,12 @@ def run(args: argparse.Namespace) -> int:
     from regtrack.pipeline.run import run_case
 
     console = Console(stderr=True)
-    case = load_case(args.case, deep=False)
-    if args.keep_identifiers:
-        case_id = case.id
-    else:
-        from regtrack.privacy import collect_identifiers, pseudonymous_id
+    from regtrack.privacy import Identifiers, identifiers_of_case_folder, pseudonymous_id, scrub_logs
 
-        case_id = pseudonymous_id(case.id, collect_identifiers(case))
+    found = identifiers_of_case_folder(args.case)
+    with scrub_logs(Identifiers() if args.keep_identifiers else found):
+        case = load_case(args.case, deep=False)
+    case_id = case.id if args.keep_identifiers else pseudonymous_id(case.id, found)
     out = Path(args.out) if args.out else Path("reports") / case_id
     views = tuple(v.strip().upper() for v in args.views.split(",")) if args.views else None
     t0 = time.perf_counter()

@@ -337,6 +337,8 @@ def write_dicom_series(
             "the JPEG 2000 encoder (6 wavelet levels need >= 32 px); use transfer_syntax='rle'"
         )
     date = (study_date or datetime.date(2000, 1, 1)).strftime("%Y%m%d")
+    from regtrack.privacy import deidentify_dataset
+
     study_uid, series_uid, for_uid = (_uid(uid_seed, t) for t in ("study", "series", "for"))
     folder.mkdir(parents=True, exist_ok=True)
     nk = stored.shape[2]
@@ -384,6 +386,7 @@ def write_dicom_series(
         ds.PixelData = arr.tobytes()
         if ts != ExplicitVRLittleEndian:
             ds.compress(ts, arr, generate_instance_uid=False)
+        deidentify_dataset(ds, pseudonym=patient)  # DICOM PS3.15 basic profile
         path = folder / f"slice_{k:04d}.dcm"
         with atomic_path(path) as tmp:
             ds.save_as(tmp, enforce_file_format=True)

@@ -28,7 +28,7 @@ from regtrack.config import parse_section, to_table
 from regtrack.errors import CaseError, RegtrackError
 from regtrack.pipeline import stages
 from regtrack.pipeline.cache import StageCache, file_digest, fingerprint
-from regtrack.privacy import (IDENTIFYING_KEYWORDS, Identifiers, collect_identifiers,
+from regtrack.privacy import (IDENTIFYING_KEYWORDS, Identifiers, identifiers_of_case_folder,
                               pseudonymous_id, scrub_logs)
 
 log = logging.getLogger(__name__)
@@ -124,9 +124,19 @@ def run_case(case_dir: str | Path, *, overrides: dict | None = None,
         an output, a progress line or a log record, and a case id that contains one is
         replaced by a pseudonym.
     """
+    t_start = time.perf_counter()
+    found = identifiers_of_case_folder(case_dir)
+    ids = Identifiers() if keep_identifiers else found
+    with scrub_logs(ids):  # the loader's messages name the case's files
+        return _run_case(case_dir, found, ids, overrides=overrides, views=views,
+                         cache_dir=cache_dir, out_dir=out_dir, progress=progress, report=report,
+                         keep_identifiers=keep_identifiers, t_start=t_start)
+
+
+def _run_case(case_dir, found: Identifiers, ids: Identifiers, *, overrides, views, cache_dir,
+              out_dir, progress, report, keep_identifiers, t_start) -> list[dict]:
     from regtrack.case import load_case
 
-    t_start = time.perf_counter()
     case = load_case(case_dir)
     all_views = tuple(case.views)
     views = tuple(v.upper() for v in (views or all_views))
@@ -140,22 +150,19 @@ def run_case(case_dir: str | Path, *, overrides: dict | None = None,
                         "mammogram to run the pipeline")
     configs, protocol_tables = effective_configs(case, overrides)
     cache = StageCache(Path(cache_dir) if cache_dir else Path(".regtrack-cache"))
-    found = collect_identifiers(case)
-    ids = Identifiers() if keep_identifiers else found
     if not keep_identifiers:
         case = dataclasses.replace(case, id=pseudonymous_id(case.id, found),
                                    title=found.scrub(case.title))
     ctx = RunContext(case, configs, protocol_tables, cache, progress=progress, ids=ids)
-    with scrub_logs(ids):
-        # the real mammograms first: a bad DICOM fails in seconds, before any stage is
-        # computed or cached
-        reals = {view: stages.real_stage(ctx, view) for view in views}
-        mesh_out = stages.mesh_stage(ctx)
-        results = []
-        for view in views:
-            sim = stages.simulate_stage(ctx, mesh_out, view)
-            virtual = stages.virtual_stage(ctx, mesh_out, sim, view)
-            results.append(stages.align_stage(ctx, mesh_out, sim, virtual, reals[view], view))
+    # the real mammograms first: a bad DICOM fails in seconds, before any stage is
+    # computed or cached
+    reals = {view: stages.real_stage(ctx, view) for view in views}
+    mesh_out = stages.mesh_stage(ctx)
+    results = []
+    for view in views:
+        sim = stages.simulate_stage(ctx, mesh_out, view)
+        virtual = stages.virtual_stage(ctx, mesh_out, sim, view)
+        results.append(stages.align_stage(ctx, mesh_out, sim, virtual, reals[view], view))
     rows = [r.row for r in results]
     ctx.timings["total"] = time.perf_counter() - t_start
     if out_dir is not None:
@@ -169,8 +176,7 @@ def run_case(case_dir: str | Path, *, overrides: dict | None = None,
         _io.write_text(out / "metrics.csv", _csv(rows))
         _io.write_json(out / "provenance.json", prov)
         if report:
-            with scrub_logs(ids):
-                stages.report_stage(ctx, mesh_out, results, out, prov)
+            stages.report_stage(ctx, mesh_out, results, out, prov)
     log.info("case %s done in %.1f s (cache: %d hits, %d misses)", case.id,
              ctx.timings["total"], cache.hits, cache.misses)
     return rows

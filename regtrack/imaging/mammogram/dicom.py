@@ -181,13 +181,30 @@ def _pixels(ds, name: str, apply_voi: bool) -> tuple[np.ndarray, dict]:
     if arr.ndim != 2:
         raise DicomError(f"{name}: pixel data has shape {arr.shape}; a single-frame grey-level "
                          "mammogram is needed (NumberOfFrames 1, SamplesPerPixel 1)")
-    out = apply_modality_lut(arr, ds).astype(np.float64)
+    try:
+        out = apply_modality_lut(arr, ds).astype(np.float64)
+    except Exception as err:  # noqa: BLE001 - malformed RescaleSlope / Modality LUT
+        raise DicomError(f"{name}: cannot apply the Modality LUT / RescaleSlope and "
+                         f"RescaleIntercept ({err}); fix those tags") from err
+    if not np.isfinite(out).all():
+        raise DicomError(f"{name}: RescaleSlope {ds.get('RescaleSlope')} / RescaleIntercept "
+                         f"{ds.get('RescaleIntercept')} give non-finite pixel values; fix those tags")
     has_voi = bool(ds.get("VOILUTSequence") or ds.get("WindowCenter") is not None)
+    info["voi"] = "none"
     if apply_voi and has_voi:
-        out = np.asarray(apply_voi_lut(out, ds, index=0), dtype=np.float64)
-        info["voi"] = "VOILUTSequence" if ds.get("VOILUTSequence") else "WindowCenter/Width"
-    else:
-        info["voi"] = "none"
+        try:
+            voi = np.asarray(apply_voi_lut(out, ds, index=0), dtype=np.float64)
+        except Exception as err:  # noqa: BLE001 - e.g. WindowWidth 0: the tag, not the image
+            info["voi_error"] = (f"{name}: VOI LUT / window not applied ({err}); the image is "
+                                 "used without it")
+            log.warning("%s", info["voi_error"])
+        else:
+            if np.isfinite(voi).all():
+                out = voi
+                info["voi"] = "VOILUTSequence" if ds.get("VOILUTSequence") else "WindowCenter/Width"
+            else:
+                info["voi_error"] = f"{name}: the VOI window gives non-finite values; not applied"
+                log.warning("%s", info["voi_error"])
     lo, hi = float(out.min()), float(out.max())
     if not hi > lo:
         raise DicomError(f"{name}: pixel data are constant ({lo:g}); not an image")
