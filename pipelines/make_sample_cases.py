@@ -163,6 +163,7 @@ and a shift, and rendered by Beer-Lambert line integrals through fat, gland and 
 * Poisson ratio: {mm['nu']};
 * friction: {mm['friction']};
 * mesh: {mm['mesh']};
+* solver: {mm['solver']};
 * patient positioning: in-plane rotation CC {p['rotation_cc_deg']:+g} deg, MLO {p['rotation_mlo_deg']:+g} deg about
   the nipple (sense of `regtrack.registration`: R = [[c, -s], [s, c]] with y down), shifts as in the table;
 * detector: {mm['detector']};

@@ -97,19 +97,20 @@ def material_summary(model: BreastModel, c1_kpa: np.ndarray, p: MammoTruthParams
 
 def build_truth_model(labels: LabelVolume, nipple_lps, p: MammoTruthParams, *, side: str = "R",
                       progress: Any = None) -> BreastModel:
-    """Mesh the phantom label map finer than the pipeline default (``p.target_nodes``)."""
+    """Mesh the phantom label map finer than the pipeline default (``p.element_size_mm``)."""
     from regtrack.model.build import build_model
     from regtrack.model.config import MeshConfig
     from regtrack.model.labels import PRESETS
 
     return build_model(labels, scheme=PRESETS["pelicano-detailed"],
-                       config=MeshConfig(target_nodes=p.target_nodes), side=side,
+                       config=MeshConfig(element_size_mm=p.element_size_mm,
+                                         surface_step_vox=p.surface_step_vox), side=side,
                        nipple_lps=np.asarray(nipple_lps, float), progress=progress)
 
 
 def simulate_view(model: BreastModel, view: str, p: MammoTruthParams, *, progress: Any = None) -> ViewTruth:
     """Run the shipped protocol of ``view`` to the truth D with the truth materials."""
-    from regtrack.mechanics.config import MechanicsConfig
+    from regtrack.mechanics.config import MechanicsConfig, SolverOptions
     from regtrack.mechanics.contact import ContactConfig
     from regtrack.mechanics.materials import KPA
     from regtrack.mechanics.problem import build_problem
@@ -120,7 +121,8 @@ def simulate_view(model: BreastModel, view: str, p: MammoTruthParams, *, progres
     c1 = element_c1_kpa(model, p)
     mats = material_summary(model, c1, p)
     cfg = MechanicsConfig(tissue_c1_kpa=mats["tissue_c1_mean_kpa"], tumour_c1_kpa=p.tumour_c1_kpa, nu=p.nu,
-                          skin_enabled=p.skin_membrane)
+                          skin_enabled=p.skin_membrane,
+                          solver=SolverOptions(force_tol=p.force_tol, disp_tol=p.force_tol))
     t0 = time.perf_counter()
     problem = build_problem(model, cfg)
     # heterogeneous deviatoric stiffness; K (hence the ANP groups) stays that of the mean c1
