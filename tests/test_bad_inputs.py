@@ -20,6 +20,7 @@ exit code and that no traceback reaches the terminal.
 
 from __future__ import annotations
 
+import json
 import logging
 import re
 import subprocess
@@ -371,3 +372,102 @@ def test_bad_input_in_a_real_process(tmp_path: Path, name: str) -> None:
 def test_corpus_names_are_unique() -> None:
     names = [c[0] for c in CORPUS]
     assert len(set(names)) == len(names)
+
+
+# ----------------------------------------------------------------------------- guard rails
+def _box():
+    from regtrack.mechanics.meshes import box_model
+
+    return box_model((10.0, 10.0, 10.0), (2, 2, 2))
+
+
+def _doc(**summary) -> dict:
+    base = {"complete": True, "D": 0.4, "max_penetration_mm": 0.01}
+    return {"summary": {**base, **summary}, "steps": [{"max_penetration_mm": 0.01}],
+            "error": None}
+
+
+@pytest.mark.parametrize("case, message", [
+    ("incomplete", r"simulate CC: the protocol did not complete \(converged flag false\)"),
+    ("error", r"simulate CC: the solver reported an error \(diverged at step 2\)"),
+    ("nan", r"simulate CC: 1 node position\(s\) are not finite"),
+    ("inverted", r"simulate CC: \d+ of 48 element\(s\) inverted or collapsed"),
+    ("penetration", r"simulate CC: plate penetration 0\.5 mm exceeds \[contact\] "
+                    r"max_penetration_mm = 0\.1 mm"),
+    ("D", r"simulate CC: compression degree D = 1\.2 is outside \[0, 1\)"),
+    ("shape", r"simulate CC: \(26, 3\) deformed positions for a model of 27 nodes"),
+])
+def test_simulation_guard_rails(case: str, message: str) -> None:
+    """Each check on its own: a result that breaks it is an error naming the stage."""
+    from regtrack.errors import ResultCheckError
+    from regtrack.pipeline.guards import check_simulation
+
+    model = _box()
+    x = model.points * np.array([1.0, 1.0, 0.6])  # a valid 40 % compression
+    doc = _doc()
+    check_simulation("simulate CC", doc, x, model, max_penetration_mm=0.1)  # valid: passes
+    if case == "incomplete":
+        doc = _doc(complete=False)
+    elif case == "error":
+        doc = {**doc, "error": "diverged at step 2"}
+    elif case == "nan":
+        x = x.copy()
+        x[5, 1] = np.nan
+    elif case == "inverted":
+        x = x.copy()
+        x[:, 2] = -x[:, 2]  # mirror: every element turned inside out
+    elif case == "penetration":
+        doc["steps"][0]["max_penetration_mm"] = 0.5
+    elif case == "D":
+        doc = _doc(D=1.2)
+    elif case == "shape":
+        x = x[:-1]
+    with pytest.raises(ResultCheckError, match=message) as info:
+        check_simulation("simulate CC", doc, x, model, max_penetration_mm=0.1)
+    assert info.value.exit_code == 3 and "\n" not in str(info.value)
+
+
+def test_metrics_guard_rail() -> None:
+    from regtrack.errors import ResultCheckError
+    from regtrack.pipeline.guards import check_metrics_row
+
+    row = {"BS_Av": 90.0, "theta_p_b": 1.0, "theta_p": 1.5, "d_B": 2.0, "TS_Av": None}
+    check_metrics_row("register CC", row)
+    with pytest.raises(ResultCheckError, match=r"register CC: TS_Av = nan is not finite"):
+        check_metrics_row("register CC", {**row, "TS_Av": float("nan")})
+    with pytest.raises(ResultCheckError, match=r"register CC: BS_Av could not be computed"):
+        check_metrics_row("register CC", {**row, "BS_Av": None})
+
+
+def test_failed_simulation_check_is_never_cached(tmp_path: Path, monkeypatch) -> None:
+    """simulate_stage runs the guard inside the cache's temporary folder: a diverged
+    result raises ResultCheckError naming the stage and leaves no stage folder."""
+    import meshio
+
+    import regtrack.mechanics.run_view as run_view
+    from regtrack.errors import ResultCheckError
+    from regtrack.pipeline import stages
+    from regtrack.pipeline.cache import StageCache
+    from regtrack.pipeline.run import RunContext, effective_configs
+
+    case_dir = build_case(tmp_path / "synth01")
+    from regtrack.case import load_case
+
+    case = load_case(case_dir)
+    configs, tables = effective_configs(case, None)
+    ctx = RunContext(case, configs, tables, StageCache(tmp_path / "cache"))
+    model = _box()
+
+    def diverged(case, model, view, *, out_dir, **kw):
+        u = np.zeros_like(model.points)
+        u[3] = np.nan
+        meshio.write(out_dir / "x.vtu", meshio.Mesh(model.points, [("tetra", model.tets)],
+                                                    point_data={"displacement": u}))
+        (out_dir / "x.json").write_text(json.dumps(_doc()))
+
+    monkeypatch.setattr(run_view, "simulate_view", diverged)
+    mesh = stages.MeshOutput("k", tmp_path, model)
+    with pytest.raises(ResultCheckError, match=r"^simulate CC: .*non-finite values"):
+        stages.simulate_stage(ctx, mesh, "CC")
+    folder = tmp_path / "cache" / "simulate"
+    assert [d.name for d in folder.iterdir()] == []  # nothing cached, no temporary left

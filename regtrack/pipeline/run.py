@@ -167,6 +167,7 @@ def _run_case(case_dir, found: Identifiers, ids: Identifiers, *, overrides, view
     ctx.timings["total"] = time.perf_counter() - t_start
     if out_dir is not None:
         out = Path(out_dir)
+        _remove_stale_parts(out)
         prov = ctx.clean(provenance(ctx, mesh_out, results))
         prov["privacy"] = ({"identifiers": "kept (--keep-identifiers)",
                             "patient": found.by_keyword} if keep_identifiers else
@@ -180,6 +181,18 @@ def _run_case(case_dir, found: Identifiers, ids: Identifiers, *, overrides, view
     log.info("case %s done in %.1f s (cache: %d hits, %d misses)", case.id,
              ctx.timings["total"], cache.hits, cache.misses)
     return rows
+
+
+def _remove_stale_parts(out: Path) -> None:
+    """Delete temporary files (``.<name>.*.part<ext>``, see :func:`regtrack._io.atomic_path`)
+    left in ``out`` by a run that was killed while writing; they are never read."""
+    if not out.is_dir():
+        return
+    stale = [p for p in out.rglob(".*.part*") if p.is_file()]
+    for p in stale:
+        p.unlink(missing_ok=True)
+    if stale:
+        log.info("removed %d unfinished file(s) of an interrupted run from %s", len(stale), out)
 
 
 def _csv(rows: list[dict]) -> str:

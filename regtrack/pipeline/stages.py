@@ -109,7 +109,7 @@ def _model_pictures(model, folder: Path) -> None:
         from regtrack.model import pictures
     except ImportError:  # pictures module optional
         return
-    pictures.save_pictures(model, folder)
+    pictures.save_pictures(model, folder / "model")  # a stem: model_sections.png, model_3d.png
 
 
 # -- simulate -----------------------------------------------------------------------------
@@ -158,8 +158,13 @@ def _checked_result(ctx, folder: Path, mesh: MeshOutput, view: str) -> tuple[dic
     from regtrack.pipeline.guards import check_simulation
     from regtrack.virtual.io import read_result_positions
 
+    from regtrack.errors import InputFileError, ResultCheckError
+
     doc = json.loads((folder / "result.json").read_text())
-    positions = read_result_positions(folder / "result.vtu", mesh.model)
+    try:
+        positions = read_result_positions(folder / "result.vtu", mesh.model)
+    except InputFileError as err:
+        raise ResultCheckError(f"simulate {view}: {err}") from err
     check_simulation(f"simulate {view}", doc, positions, mesh.model,
                      max_penetration_mm=ctx.configs["contact"].max_penetration_mm)
     return doc, positions
