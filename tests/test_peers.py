@@ -12,6 +12,11 @@ Tolerances and why:
 * Hertz, locking-free (average nodal pressure) vs the closed form F = 4/3 E* R^1/2 d^3/2,
   a = (R d)^1/2 at small indentation (d <= 0.3 mm = 0.6 % of R): 5 % (issue 5); the tet10
   references themselves are 0.5-4.6 % above Hertz on this mesh.
+* mammo with friction 0.1 vs CalculiX (peers/README.md: trust CalculiX's forces with
+  friction; FEBio's frictional run stopped with a 34 mN residual): the codes' penalties
+  differ, and CalculiX's own result moves by < 3e-4 mm across its stick slopes; we ask
+  0.3 % in force and relRMS < 1.5e-3 (measured 0.05 % and 3.1e-4), and that friction
+  raises the plate force over the frictionless run, as it does in CalculiX (+10.4 mN).
 """
 
 from __future__ import annotations
@@ -183,3 +188,19 @@ def test_mammo_frictionless_matches_three_codes():
         assert force == pytest.approx(ref["hist_force_upper"][-1], rel=3e-3), name
         assert rel_rms(u, ref["u"]) < 1e-3, name
     np.testing.assert_allclose(u[tum], _ref("mammo_ccx_mu0")["u"][tum], atol=0.02)
+
+
+@pytest.mark.slow
+def test_mammo_friction_matches_calculix():
+    """Measured (friction 0.1): 2373.2 mN vs CalculiX 2371.9 mN, relRMS 3.1e-4."""
+    u, force, tum = _mammo(0.1, None)
+    ref = _ref("mammo_ccx_mu01")
+    assert force == pytest.approx(ref["hist_force_upper"][-1], rel=3e-3)
+    assert rel_rms(u, ref["u"]) < 1.5e-3
+    # friction raises the plate force (the lower plate holds the base back): the same
+    # direction and size as CalculiX's mu 0 -> 0.1 change (2361.5 -> 2371.9 mN)
+    f0 = _ref("mammo_ccx_mu0")["hist_force_upper"][-1]
+    assert 0.5 < (force - f0) / (ref["hist_force_upper"][-1] - f0) < 2.0
+    # and the displacements differ from the frictionless reference by more than the
+    # agreement with the frictional one (a frictionless solver would fail here)
+    assert rel_rms(u, _ref("mammo_ccx_mu0")["u"]) > 3 * rel_rms(u, ref["u"])

@@ -88,15 +88,23 @@ class ContactConfig:
                                       "penetration", gt=0.0, le=5.0)
     max_penetration_mm: float = param(0.1, "mm", "guard rail: a converged step with a deeper "
                                       "penetration is rejected", gt=0.0)
-    friction_bound: str = param("multiplier", "", "slip bound mu*p from the last converged "
+    friction_bound: str = param("current", "", "slip bound mu*p from the last converged "
                                 "solve, fixed during Newton ('multiplier'), or from the current "
                                 "iterate ('current')", choices=BOUNDS)
     friction_tol: float = param(0.005, "-", "accepted error of the friction forces (lagged "
                                 "bound, frozen state) relative to mu * normal force", gt=0.0,
                                 le=0.5)
-    stick_slip_freeze: int = param(8, "-", "residual evaluations of a solve after which the "
+    stick_slip_freeze: int = param(0, "-", "Newton iterations of a solve after which the "
                                    "stick/slip state is frozen (0: never)", ge=0, le=1000)
-    predictor: bool = param(True, "", "extrapolate multipliers and friction bound from the "
+    hold_state_in_line_search: bool = param(False, "", "line-search evaluations use the "
+                                            "stick/slip state of the Newton iterate")
+    slip_predictor: bool = param(False, "", "first Newton iterate of an increment: nodes that "
+                                 "slipped in the previous increment are taken as slipping")
+    first_plate_increment_mm: float = param(2.0, "mm", "protocols: largest plate travel of the "
+                                            "first increment of a plate move (the first "
+                                            "contact of a plate is the hardest increment)",
+                                            gt=0.0)
+    predictor: bool = param(False, "", "extrapolate multipliers and friction bound from the "
                             "last two increments of a step")
 
 
@@ -188,8 +196,11 @@ class PlateContact:
         self.lam = self._lam.copy()
         self.pbar = self._pconv.copy()  # friction bound pressure of the current solve
         self._t = 0.0
-        self._frozen: np.ndarray | None = None
-        self._n_eval = 0
+        self._frozen: np.ndarray | None = None  # stick/slip state frozen for the solve
+        self._held: np.ndarray | None = None  # state of the last Newton iterate (line search)
+        self._n_iter = 0
+        self._last_x: np.ndarray | None = None
+        self._slip_pred: np.ndarray | None = None  # state code of the last increment
         self._plate0 = plate
         self._n_slip = 0
         self.motion: tuple[np.ndarray, np.ndarray] | None = None
@@ -210,6 +221,7 @@ class PlateContact:
         self.lam = self._lam.copy()
         self.pbar = self._pconv.copy()
         self._hist = []
+        self._slip_pred = None
         self._new_solve()
         self.motion = state["motion"]
 
@@ -249,7 +261,9 @@ class PlateContact:
 
     def _new_solve(self) -> None:
         self._frozen = None
-        self._n_eval = 0
+        self._held = None
+        self._n_iter = 0
+        self._last_x = None
 
     # -- the physics ------------------------------------------------------------------
     def _state(self, u: np.ndarray, *, tangent: bool):
@@ -265,7 +279,9 @@ class PlateContact:
         the current pressure, state from the trial)."""
         bound = self.mu * (self.pbar if (self.lagged and not exact) else p)
         return fr.return_map(x, self.plate.to_model(self._anchor), q.normal, act, bound,
-                             eps_t=self.eps_t, frozen=None if exact else self._frozen)
+                             eps_t=self.eps_t,
+                             frozen=None if exact else (self._frozen if self._frozen is not None
+                                                        else self._held))
 
     def nodal_forces(self, u: np.ndarray) -> tuple[np.ndarray, dict]:
         """Contact force on each candidate node (M, 3) in N, and state figures."""
@@ -281,12 +297,33 @@ class PlateContact:
         return f, {"active": act, "gap": q.gap, "pressure": p, "n_slip": nslip,
                    "max_penetration_mm": pen}
 
-    def _maybe_freeze(self, x, q, p, act) -> None:
-        self._n_eval += 1
+    def _chatter_control(self, x, q, p, act) -> None:
+        """Stick/slip state bookkeeping at each residual evaluation of a solve.
+
+        The solver evaluates the residual at each Newton iterate (with the tangent) and at
+        line-search points; an iterate is recognised as a call at the same positions as
+        the previous call (the accepted line-search point) or the first call of a solve.
+        At an iterate the state is decided by the trial and held for the line search
+        (``hold_state_in_line_search``); after ``stick_slip_freeze`` iterates it is frozen
+        for the rest of the solve.  :meth:`augment` checks the state afterwards.
+        """
+        if self.mu <= 0:
+            return
+        iterate = self._last_x is None or np.array_equal(self._last_x, x)
+        self._last_x = x.copy()
+        if not iterate or self._frozen is not None:
+            return
+        self._n_iter += 1
+        self._held = None
+        if self._n_iter == 1 and self._slip_pred is not None and self.config.slip_predictor:
+            self._held = np.where(self._slip_pred == fr.SLIP, fr.SLIP, 0).astype(np.int8)
+            return
         n = self.config.stick_slip_freeze
-        if self.mu > 0 and n > 0 and self._frozen is None and self._n_eval > n:
+        if n > 0 and self._n_iter > n:
             self._frozen = fr.state_code(self._friction(x, q, p, act))
             self.counters["freezes"] += 1
+        elif self.config.hold_state_in_line_search:
+            self._held = fr.state_code(self._friction(x, q, p, act))
 
     def residual_tangent(self, u: np.ndarray) -> tuple[np.ndarray, sp.spmatrix | None]:
         """Residual ``-f`` (3N,) and its tangent (3N, 3N) CSR, or None without contact."""
@@ -295,7 +332,7 @@ class PlateContact:
         res = np.zeros(ndof)
         if not act.any():
             return res, None
-        self._maybe_freeze(x, q, p, act)
+        self._chatter_control(x, q, p, act)
         idx = np.flatnonzero(act)
         A = self.areas[idx]
         n = q.normal[idx]
@@ -328,6 +365,7 @@ class PlateContact:
             tr = self._friction(x, q, p, act)
             new = fr.slid_anchor(x, tr, eps_t=self.eps_t)
             self._n_slip = int(tr.slip.sum())
+            self._slip_pred = fr.state_code(tr)
         self._anchor = self.plate.to_local(new)
         # augmented Lagrangian: keep the multipliers of the converged solve, so the next
         # increment starts in equilibrium (p = lambda - eps g is unchanged at this u)
@@ -363,7 +401,8 @@ class PlateContact:
             if viol > self.config.penetration_tol_mm:
                 self.lam = p
                 done = False
-        if self.mu > 0 and act.any() and (self.lagged or self._frozen is not None):
+        if self.mu > 0 and act.any() and (self.lagged or self._frozen is not None
+                                          or self._held is not None):
             err = fr.friction_error(self._friction(x, q, p, act),
                                     self._friction(x, q, p, act, exact=True),
                                     self.areas, p, self.mu)

@@ -148,6 +148,17 @@ def make_plates(body: BodySetup, protocol: Protocol, *, config: ContactConfig
     return plates, frame
 
 
+def _merge_stats(a: dict, b: dict) -> dict:
+    """Solver statistics of two solves of one step: counts and times added, the rest of ``b``."""
+    if not a:
+        return dict(b)
+    out = dict(b)
+    for k, v in a.items():
+        if isinstance(v, (int, float)) and not isinstance(v, bool) and isinstance(b.get(k), (int, float)):
+            out[k] = v + b[k]
+    return out
+
+
 def _gap(plates: dict[str, PlateContact], n: np.ndarray) -> float:
     return float((plates["upper"].plate.origin - plates["lower"].plate.origin) @ n)
 
@@ -176,11 +187,15 @@ class ProtocolRunner:
         self._tmean0: float | None = None
 
     # -- one solve ------------------------------------------------------------------
-    def _solve(self, g_end: np.ndarray, name: str) -> dict:
+    def _solve(self, g_end: np.ndarray, name: str, *, single: bool = False) -> dict:
         contribs = list(self.plates.values())
         for c in contribs:
             c.begin_step(name)
-        u, stats = self.solve(self.u, self.g, g_end, contribs, name)
+        if single and getattr(self.solve, "takes_increment", False):
+            # one increment first (the solver cuts it back if it fails)
+            u, stats = self.solve(self.u, self.g, g_end, contribs, name, initial_increment=1.0)
+        else:
+            u, stats = self.solve(self.u, self.g, g_end, contribs, name)
         self.u = np.asarray(u, float).reshape(-1, 3)
         self.g = np.asarray(g_end, float)
         for c in contribs:
@@ -194,9 +209,21 @@ class ProtocolRunner:
         return max(r["max_penetration_mm"] for r in reps.values()), reps
 
     def _move(self, pc: PlateContact, distance: float, name: str) -> dict:
-        start = pc.plate.origin.copy()
-        pc.set_motion(start, start + distance * pc.plate.normal)
-        return self._solve(self.g, name)
+        """Move a plate along its normal by ``distance`` (mm).
+
+        A move longer than ``first_plate_increment_mm`` is solved in two parts: that first
+        travel on its own (where contact spreads from a few nodes to many: DESIGN.md,
+        "first-contact blow-up"), then the rest with the solver's own load stepping.
+        """
+        first = self.config.first_plate_increment_mm
+        parts = [distance] if abs(distance) <= 1.5 * first else [np.sign(distance) * first,
+                                                                 distance - np.sign(distance) * first]
+        stats: dict = {}
+        for k, d in enumerate(parts):
+            start = pc.plate.origin.copy()
+            pc.set_motion(start, start + d * pc.plate.normal)
+            stats = _merge_stats(stats, self._solve(self.g, name, single=len(parts) > 1 and k == 0))
+        return stats
 
     def _snapshot(self):
         return (self.u.copy(), {k: c.get_state() for k, c in self.plates.items()})
@@ -334,11 +361,18 @@ def solver_from_problem(problem: Any, *, options: Any = None, progress: Any = No
     """
     from regtrack.mechanics.solver import reaction_forces, solve_step
 
-    def solve(u0, g0, g1, contribs, name):
+    from dataclasses import replace
+
+    def solve(u0, g0, g1, contribs, name, initial_increment=None):
         g0 = np.asarray(g0, float)
         g1 = np.asarray(g1, float)
+        opts = options
+        if initial_increment is not None:
+            o = options or problem.config.solver
+            opts = replace(o, initial_increment=initial_increment,
+                           max_increment=max(o.max_increment, initial_increment))
         u, st = solve_step(problem, u0, gravity=lambda t: g0 + t * (g1 - g0), dirichlet=dirichlet,
-                           contributions=contribs, options=options, progress=progress,
+                           contributions=contribs, options=opts, progress=progress,
                            step_name=name, step=name)
         out = st.to_dict()
         out.pop("reports", None)
@@ -347,4 +381,6 @@ def solver_from_problem(problem: Any, *, options: Any = None, progress: Any = No
             r = reaction_forces(problem, u, gravity_ms2=g1, contributions=contribs)
             out["chest_wall_reaction_N"] = r[fixed].sum(axis=0).tolist()
         return u, out
+    solve.takes_increment = True  # type: ignore[attr-defined]
     return solve
+
