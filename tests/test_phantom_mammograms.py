@@ -128,6 +128,9 @@ def test_dicom_reads_back_through_the_real_mammogram_reader(cc):
     assert [float(v) for v in ds.PixelSpacing] == [float(v) for v in ds.ImagerPixelSpacing] == [0.1, 0.1]
     assert ds.SOPClassUID == "1.2.840.10008.5.1.4.1.1.1.2"
     np.testing.assert_array_equal(ds.pixel_array, sm.stored)  # JPEG 2000 lossless here
+    from regtrack.privacy import dicom_leaks
+
+    assert dicom_leaks(path, pseudonym="test") == []
     img = read_mammogram(path)
     assert (img.view, img.laterality) == ("CC", "R")
     assert img.orientation.flip_lr and not img.orientation.flip_ud  # stored with the nipple left

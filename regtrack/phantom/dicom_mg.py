@@ -17,7 +17,9 @@ Geometry tags (DICOM PS3.3 C.8.11.7 and the IHE Mammography profile):
 Pixel data is JPEG 2000: lossless (``compression_ratio=None``), or lossy with the given
 ratio, in which case ``LossyImageCompression`` "01", ``LossyImageCompressionRatio`` and
 ``LossyImageCompressionMethod`` "ISO_15444_1" are recorded as the standard requires.
-Every UID derives from ``uid_seed`` so the file is reproducible byte for byte.
+Every UID derives from ``uid_seed`` so the file is reproducible byte for byte; the
+dataset is de-identified with :func:`regtrack.privacy.deidentify_dataset` (DICOM PS3.15
+basic profile, PatientName/ID = the pseudonym) like the project's MR series.
 """
 
 from __future__ import annotations
@@ -157,6 +159,9 @@ def write_mg_dicom(path: str | os.PathLike, stored: np.ndarray, *, view: str, la
     ds.BitsAllocated, ds.BitsStored, ds.HighBit = 16, bits_stored, bits_stored - 1
     ds.PixelRepresentation = 0
     ds.PixelData = arr.tobytes()
+    from regtrack.privacy import deidentify_dataset
+
+    deidentify_dataset(ds, pseudonym=patient)  # DICOM PS3.15 basic profile, as the MR series
     if compression_ratio is None:
         ds.compress(JPEG2000Lossless, arr, generate_instance_uid=False)
     else:
