@@ -35,7 +35,7 @@ import scipy.sparse as sp
 from regtrack.errors import ContactDidNotConvergeError, SolverDidNotConvergeError
 from regtrack.mechanics.config import SolverOptions
 from regtrack.mechanics.contributions import Contribution
-from regtrack.mechanics.linsolve import LinearSolver
+from regtrack.mechanics.linsolve import LinearSolveError, LinearSolver
 from regtrack.mechanics.problem import (Problem, body_force, build_problem, evaluate, internal_force,
                                         scatter_add, system_matrix, tangent)
 from regtrack.mechanics.types import StepStats
@@ -190,13 +190,10 @@ class _Newton:
                 keep = (~cons.system_mask).astype(float)
                 K = (sp.diags(keep) @ K @ sp.diags(keep) + sp.diags(1.0 - keep)).tocsr()
             t0 = time.perf_counter()
-            # inexact Newton (reuse_factorisation): factorise at an increment's first iteration,
-            # then GMRES on that factorisation with the Eisenstat-Walker forcing term
-            # eta_k = 0.9 (|R_k| / |R_k-1|)^2, capped at 0.1
-            eta = None
-            if o.reuse_factorisation and it > 0 and len(hist) > 1 and hist[-2] > 0:
-                eta = min(0.1, 0.9 * (hist[-1] / hist[-2]) ** 2)
-            du = self.ls.solve(K, rhs, symmetric=self.symmetric, rtol=eta, refactor=it == 0)[:n3]
+            try:
+                du = self.ls.solve(K, rhs, symmetric=self.symmetric, rtol=self.forcing(hist))[:n3]
+            except LinearSolveError as exc:
+                raise _Failed(str(exc)) from None
             self.stats.t_solve += time.perf_counter() - t0
             if not np.all(np.isfinite(du)):
                 raise _Failed("linear solve returned non-finite values")
@@ -209,6 +206,17 @@ class _Newton:
                     hist.append(rn1)
                     return u
         raise _Failed(f"no convergence in {o.max_iterations} iterations (|R| = {hist[-1]:.3g} N)")
+
+    def forcing(self, hist: list[float]) -> float | None:
+        """Relative tolerance of the linear solve (inexact Newton, Eisenstat & Walker 1996,
+        choice 2): ``eta_k = min(forcing_max, 0.9 (|R_k| / |R_k-1|)^2)``, ``forcing_max`` at
+        an increment's first iteration; None (direct solve) without factorisation re-use."""
+        o = self.o
+        if not o.reuse_factorisation:
+            return None
+        if len(hist) < 2 or hist[-2] <= 0:
+            return o.forcing_max
+        return min(o.forcing_max, 0.9 * (hist[-1] / hist[-2]) ** 2)
 
     def line_search(self, u, du, R, fext, cons):
         """Step length in (0, 1] (halve on inversion; secant on ``s(a) = du.R(u + a du)``),
@@ -321,11 +329,11 @@ def solve_step(problem: Problem, u0: np.ndarray, *, gravity: Gravity | None = No
 
 def _linear_solver(problem: Problem, o: SolverOptions) -> LinearSolver:
     """The problem's cached solver (the analysis of its fixed pattern is re-used across steps)."""
-    key = (o.linear_solver, o.reuse_factorisation, o.krylov_rtol, o.krylov_max)
+    key = (o.linear_solver, o.reuse_factorisation, o.precision, o.krylov_rtol, o.krylov_max)
     cached = getattr(problem, "_linear_solver", None)
     if cached is None or cached[0] != key:
         cached = (key, LinearSolver(o.linear_solver, reuse_factorisation=o.reuse_factorisation,
-                                    krylov_rtol=o.krylov_rtol, krylov_max=o.krylov_max))
+                                    precision=o.precision, krylov_rtol=o.krylov_rtol, krylov_max=o.krylov_max))
         problem._linear_solver = cached  # type: ignore[attr-defined]
     return cached[1]
 
