@@ -1,17 +1,27 @@
 """Benchmark of the mechanics core on gmsh hemispheres (R = 50 mm, chest wall fixed).
 
-For each mesh size and formulation it prints: nodes, tets, setup time (pattern and
-maps), assembly of residual + tangent, residual only, PARDISO analysis (once per
-pattern), factorisation + solve, one Newton iteration (assembly + factor/solve),
-Newton iterations of a standing-gravity step (with how many factorisations and how
-many GMRES solves preconditioned by a re-used factorisation), and the peak resident memory of the
-process (each size runs in its own subprocess, so the peak is per size).
+For each mesh size and formulation, in its own subprocess (so the memory peak is per
+size), it measures, as wall-clock / process-CPU seconds (the CPU time counts every thread
+and does not grow with other jobs on a shared machine; the wall time is what a user
+waits):
+
+* ``assembly``: residual + consistent tangent + the system matrix that is factorised;
+* ``factor+solve``: PARDISO factorisation (float32 factors, ``precision = "mixed"``) and
+  GMRES to a relative residual of 1e-10; ``factor+solve dbl``: the same in float64;
+* ``re-used solve``: the tangent at the gravity-loaded state solved to 1e-2 (the inexact
+  Newton tolerance) on the factors of the unloaded state (GMRES iterations in brackets);
+* ``iteration``: ``assembly + factor+solve`` (an iteration that refactorises) and
+  ``assembly + re-used solve`` (one that does not);
+* the standing-gravity step (9.81 m/s^2, -y) from rest with the default solver options
+  and the whole load in one increment (``initial_increment = 1``): increments, Newton
+  iterations, factorisations, wall / CPU time;
+* peak resident memory of the process (MB).
 
     .venv/bin/python pipelines/bench_mechanics.py            # ~2k, ~10k, ~50k nodes
-    .venv/bin/python pipelines/bench_mechanics.py --lc 5.5 2.9
+    .venv/bin/python pipelines/bench_mechanics.py --lc 5.5 2.9 --formulations p1-anp
 
-Timings are wall-clock medians of 3 repetitions; on a shared machine compare ratios
-within one run.
+On a shared machine compare ratios within one run.  With other jobs on the cores set
+``MKL_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1`` (threads otherwise spin against them).
 """
 
 from __future__ import annotations
@@ -23,6 +33,19 @@ import sys
 import time
 
 
+def _timed(f, n: int = 1):
+    """Median (wall, cpu) seconds of ``n`` calls of ``f``; returns (wall, cpu, last value)."""
+    import numpy as np
+
+    ws, cs, out = [], [], None
+    for _ in range(n):
+        w, c = time.perf_counter(), time.process_time()
+        out = f()
+        ws.append(time.perf_counter() - w)
+        cs.append(time.process_time() - c)
+    return float(np.median(ws)), float(np.median(cs)), out
+
+
 def one(lc: float, formulation: str, with_step: bool = True) -> dict:
     import resource
 
@@ -30,72 +53,74 @@ def one(lc: float, formulation: str, with_step: bool = True) -> dict:
 
     from regtrack.mechanics import problem as P
     from regtrack.mechanics import solver as S
-    from regtrack.mechanics.config import MechanicsConfig
+    from regtrack.mechanics.config import MechanicsConfig, SolverOptions
     from regtrack.mechanics.linsolve import LinearSolver
     from regtrack.mechanics.meshes import hemisphere_model
 
-    t = time.perf_counter()
     model = hemisphere_model(50.0, lc, tumour_radius=6.0)
-    t_mesh = time.perf_counter() - t
-    t = time.perf_counter()
-    pr = S.build_problem(model, MechanicsConfig(formulation=formulation))
-    t_setup = time.perf_counter() - t
+    w_setup, c_setup, pr = _timed(lambda: S.build_problem(model, MechanicsConfig(formulation=formulation)))
     u = np.zeros_like(pr.X)
     P.evaluate(pr, u)  # JIT warm-up (cached on disk after the first run)
-
-    def med(f, n=3):
-        ts = []
-        for _ in range(n):
-            t0 = time.perf_counter()
-            f()
-            ts.append(time.perf_counter() - t0)
-        return float(np.median(ts))
-
-    t_asm = med(lambda: P.evaluate(pr, u, want_k=True))
-    t_res = med(lambda: P.evaluate(pr, u, want_k=False))
-    ev = P.evaluate(pr, u)
-    A = P.system_matrix(pr, ev)
     cons = S._Constraints(pr, pr.fixed_dofs)
-    A.data[cons.zero] = 0.0
-    A.data[cons.diag] = 1.0
+
+    def system(uu):
+        A = P.system_matrix(pr, P.evaluate(pr, uu))
+        A.data[cons.zero] = 0.0
+        A.data[cons.diag] = 1.0
+        return A
+
+    w_asm, c_asm, A = _timed(lambda: system(u), 3)
     b = np.ones(A.shape[0])
-    ls = LinearSolver(reuse_factorisation=False)
-    ls.solve(A, b, symmetric=True)
-    t_an = ls.time_analysis
-    t_fs = med(lambda: ls.solve(A, b, symmetric=True))
-    ls.release()
-    out = {"gravity_iterations": "-", "gravity_increments": "-", "gravity_step_s": "-",
-           "gravity_factorisations": "-", "gravity_krylov_solves": "-", "gravity_t_assembly_s": "-",
-           "gravity_t_solve_s": "-"}
-    if with_step:
-        t = time.perf_counter()
-        _, st = S.solve_step(pr, u, gravity=lambda s: np.array([0.0, -9.81 * s, 0.0]), step_name="gravity")
-        out = {"gravity_iterations": st.iterations, "gravity_increments": st.increments,
-               "gravity_step_s": time.perf_counter() - t, "gravity_factorisations": st.factorisations,
-               "gravity_krylov_solves": st.krylov_solves, "gravity_t_assembly_s": st.t_assembly,
-               "gravity_t_solve_s": st.t_solve}
-    return {**out, "lc": lc, "formulation": formulation, "nodes": pr.n_nodes, "tets": len(pr.tets),
-            "system": A.shape[0], "nnz": int(A.nnz), "mesh_s": t_mesh, "setup_s": t_setup,
-            "assembly_s": t_asm, "residual_s": t_res, "analysis_s": t_an, "factor_solve_s": t_fs,
-            "newton_iteration_s": t_asm + t_fs,
-            "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}
+    r = {"lc": lc, "formulation": formulation, "nodes": pr.n_nodes, "tets": len(pr.tets), "system": A.shape[0],
+         "nnz": int(A.nnz), "setup": [w_setup, c_setup], "assembly": [w_asm, c_asm]}
+    for prec in ("double", "mixed"):  # mixed last: its factors precondition the re-used solve
+        ls = LinearSolver(precision=prec, reuse_factorisation=False)
+        ls.solve(A, b, symmetric=True)  # analysis (once per pattern) + first factorisation
+        r[f"analysis_{prec}"] = ls.time_analysis
+        w, c, _ = _timed(lambda: ls.solve(A, b, symmetric=True), 2)
+        r[f"factor_solve_{prec}"] = [w, c]
+        r[f"factor_nnz_{prec}"] = ls.factor_nnz
+        if prec == "double":
+            ls.release()
+    # re-used factors of the unloaded state on the tangent of the gravity-loaded state
+    step_opts = SolverOptions(initial_increment=1.0)
+    pr._linear_solver = None
+    w_st, c_st, (ug, st) = _timed(lambda: S.solve_step(pr, u, gravity=lambda s: np.array([0.0, -9.81 * s, 0.0]),
+                                                      options=step_opts, step_name="gravity")) \
+        if with_step else (None, None, (None, None))
+    if ug is not None:
+        Ag = system(ug)
+        ls.reuse = True
+        k0 = ls.krylov_iterations
+        w, c, _ = _timed(lambda: ls.solve(Ag, b, symmetric=True, rtol=1e-2))
+        r["reused_solve"] = [w, c]
+        r["reused_gmres_iterations"] = ls.krylov_iterations - k0
+        r["gravity"] = {"increments": st.increments, "iterations": st.iterations,
+                        "factorisations": st.factorisations, "krylov_solves": st.krylov_solves,
+                        "wall": w_st, "cpu": c_st, "u_max_mm": float(np.abs(ug).max())}
+    r["peak_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    return r
+
+
+def _fmt(x) -> str:
+    return "-" if x is None else f"{x[0]:.2f} / {x[1]:.2f}"
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--lc", type=float, nargs="+", default=[5.5, 2.9, 1.65], help="gmsh element sizes (mm)")
     ap.add_argument("--formulations", nargs="+", default=["p1-anp", "p1"])
-    ap.add_argument("--no-step-above", type=int, default=30000,
+    ap.add_argument("--no-step-above", type=int, default=100000,
                     help="skip the gravity step for meshes with more nodes than this (time)")
+    ap.add_argument("--json", action="store_true", help="print the raw records as JSON lines too")
     ap.add_argument("--one", nargs=3, metavar=("LC", "FORM", "STEP"), help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.one:
         print(json.dumps(one(float(args.one[0]), args.one[1], args.one[2] == "1")))
         return
-    cols = ["formulation", "nodes", "tets", "system", "nnz", "setup_s", "assembly_s", "residual_s", "analysis_s",
-            "factor_solve_s", "newton_iteration_s", "gravity_iterations", "gravity_factorisations",
-            "gravity_krylov_solves", "gravity_t_assembly_s", "gravity_t_solve_s", "gravity_step_s", "peak_rss_mb"]
-    print(" | ".join(cols))
+    print("| formulation | nodes | system | assembly | factor+solve | factor+solve dbl | re-used solve (GMRES it) "
+          "| iteration: refactor / re-use | gravity step: incr, it, fact | gravity step | peak MB |")
+    print("|---" * 11 + "|")
     for lc in args.lc:
         for form in args.formulations:
             est_nodes = 2.0e3 * (5.5 / lc) ** 3  # measured: lc 5.5 mm -> ~2k nodes on R = 50 mm
@@ -106,8 +131,18 @@ def main() -> None:
                 print(f"lc={lc} {form}: failed: {out.stderr.strip().splitlines()[-1:]}")
                 continue
             r = json.loads(out.stdout.strip().splitlines()[-1])
-            print(" | ".join(f"{r[c]:.3f}" if isinstance(r[c], float) else str(r[c]) for c in cols), flush=True)
-    print("(times in s, memory in MB; '-': gravity step skipped for size)")
+            asm, fs, ru = r["assembly"], r["factor_solve_mixed"], r.get("reused_solve")
+            it_ref = [asm[0] + fs[0], asm[1] + fs[1]]
+            it_re = None if ru is None else [asm[0] + ru[0], asm[1] + ru[1]]
+            g = r.get("gravity")
+            gi = "-" if g is None else f"{g['increments']}, {g['iterations']}, {g['factorisations']}"
+            gt = "-" if g is None else _fmt([g["wall"], g["cpu"]])
+            print(f"| {form} | {r['nodes']} | {r['system']} | {_fmt(asm)} | {_fmt(fs)} | "
+                  f"{_fmt(r['factor_solve_double'])} | {_fmt(ru)} ({r.get('reused_gmres_iterations', '-')}) | "
+                  f"{_fmt(it_ref)} ; {_fmt(it_re)} | {gi} | {gt} | {r['peak_rss_mb']:.0f} |", flush=True)
+            if args.json:
+                print(json.dumps(r))
+    print("(seconds as wall / CPU; memory in MB; '-': not run for this size)")
 
 
 if __name__ == "__main__":

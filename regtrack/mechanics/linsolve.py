@@ -272,14 +272,20 @@ class LinearSolver:
         return max(int(getattr(be, "factor_nnz", 0)) for be in self._backends.values())
 
     # -- internals ----------------------------------------------------------------------
-    @staticmethod
-    def _key(A: sp.csr_matrix) -> tuple:
-        """Identity of a sparsity pattern (a full hash: a wrong match would corrupt PARDISO)."""
+    def _key(self, A: sp.csr_matrix) -> tuple:
+        """Identity of a sparsity pattern: a full hash (a wrong match would corrupt PARDISO),
+        skipped when ``A`` shares the very index arrays of the last matrix (the solver's
+        fixed layout; the arrays are kept referenced, so their identity cannot be recycled)."""
         import hashlib
 
-        return (A.shape[0], A.nnz, hashlib.blake2b(np.ascontiguousarray(A.indices).view(np.uint8),
-                                                   digest_size=16).digest(),
-                hashlib.blake2b(np.ascontiguousarray(A.indptr).view(np.uint8), digest_size=16).digest())
+        last = getattr(self, "_last_pattern", None)
+        if last is not None and A.indices is last[0] and A.indptr is last[1]:
+            return last[2]
+        key = (A.shape[0], A.nnz, hashlib.blake2b(np.ascontiguousarray(A.indices).view(np.uint8),
+                                                  digest_size=16).digest(),
+               hashlib.blake2b(np.ascontiguousarray(A.indptr).view(np.uint8), digest_size=16).digest())
+        self._last_pattern = (A.indices, A.indptr, key)
+        return key
 
     def _upper_triangle(self, A: sp.csr_matrix, key: tuple) -> sp.csr_matrix:
         if self._upper is None or self._upper[0] != key:
