@@ -20,8 +20,8 @@ After every interruption: every stage folder in the cache carries its completion
 (unfinished ones only exist as hidden ``.<key>.*.part`` folders, which are never looked up),
 and every output file is complete (JSON parses; temporary ``.part`` files are the only
 exception and the next run removes them).  At the end the two output folders hold the same
-files and the same numbers (rel. 1e-6, see :data:`RTOL`: round-off of the multithreaded
-sparse solver is allowed, anything physical is not).
+files and the same numbers (to 1e-3, see :data:`RTOL`: the solver is not run-to-run
+reproducible), and one more run on the resumed cache reproduces them to the last bit.
 """
 
 from __future__ import annotations
@@ -53,12 +53,14 @@ sys.exit(main(sys.argv[1:]))
 """
 
 
-def _start(tmp: Path, case: Path, tag: str) -> subprocess.Popen:
+def _start(tmp: Path, case: Path, tag: str, *, out: str | None = None) -> subprocess.Popen:
     driver = tmp / "driver.py"
     driver.write_text(DRIVER)
-    env = {**os.environ, "PYTHONUNBUFFERED": "1", "COLUMNS": "200"}
+    # one thread: less contention on a shared machine, fewer sources of round-off noise
+    env = {**os.environ, "PYTHONUNBUFFERED": "1", "COLUMNS": "200", "OMP_NUM_THREADS": "1",
+           "MKL_NUM_THREADS": "1", "NUMBA_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1"}
     return subprocess.Popen([sys.executable, str(driver), "run", str(case), "--out",
-                             str(tmp / f"out_{tag}"), "--cache", str(tmp / f"cache_{tag}")],
+                             str(tmp / f"out_{out or tag}"), "--cache", str(tmp / f"cache_{tag}")],
                             cwd=tmp, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
                             env=env)
 
@@ -93,28 +95,30 @@ def _check_nothing_untrusted(tmp: Path, tag: str) -> None:
         assert f.stat().st_size > 0, f
 
 
-#: Two identical runs differ by round-off only, amplified by the conditioning of the
-#: contact problem: measured 2e-9 relative on max_penetration_mm (multithreaded PARDISO is
-#: not bitwise reproducible).  1e-6 bounds that with margin and stays far below any real
-#: change (another mesh, protocol step or a stale stage changes the metrics by > 1e-3).
-RTOL, ATOL = 1e-6, 1e-9
+#: The reference and the interrupted chain simulate separately, and the solver is not
+#: run-to-run reproducible: it picks factorisation re-use from measured timings (measured:
+#: 98 vs 100 and 99 vs 103 Newton iterations between two identical runs, max_penetration_mm
+#: 2e-9 apart).  Both converge to the Newton displacement tolerance (1e-4 relative), so the
+#: physics agrees to well under 1e-3; a stale or half-written stage moves it by far more.
+RTOL, ATOL = 1e-3, 1e-3
 
-#: wall-clock figures differ between runs by nature
-_CLOCK = re.compile(r"(timing|seconds|time|_s$)")
+#: solver path statistics and wall-clock figures differ between runs by nature
+_CLOCK = re.compile(r"(timing|seconds|time|_s$|iteration|increment|cutback|^solver$|analys|"
+                    r"factori|evaluations)")
 
 
-def _same(a, b, where: str) -> None:
+def _same(a, b, where: str, *, rtol: float = RTOL, atol: float = ATOL) -> None:
     if isinstance(a, dict):
         assert isinstance(b, dict) and a.keys() == b.keys(), where
         for k in a:
             if not _CLOCK.search(str(k)):
-                _same(a[k], b[k], f"{where}.{k}")
+                _same(a[k], b[k], f"{where}.{k}", rtol=rtol, atol=atol)
     elif isinstance(a, list):
         assert isinstance(b, list) and len(a) == len(b), where
         for i, (x, y) in enumerate(zip(a, b)):
-            _same(x, y, f"{where}[{i}]")
+            _same(x, y, f"{where}[{i}]", rtol=rtol, atol=atol)
     elif isinstance(a, float) and isinstance(b, float):
-        assert math.isclose(a, b, rel_tol=RTOL, abs_tol=ATOL), (where, a, b)
+        assert math.isclose(a, b, rel_tol=rtol, abs_tol=atol), (where, a, b)
     else:
         assert a == b, (where, a, b)
 
@@ -159,6 +163,16 @@ def test_killed_run_resumes_to_the_same_result(tmp_path: Path) -> None:
     for name in ("metrics.json", "cc/real.json", "cc/virtual.json", "cc/alignment.json",
                  "cc/simulation.json"):
         _same(json.loads((ref / name).read_text()), json.loads((cut / name).read_text()), name)
+
+    # 5. once more on the resumed cache: every stage is re-used and every number is the
+    #    same to the last bit (the 2-D stages and the report are deterministic)
+    rc, text = _run_until(_start(tmp_path, case, "cut", out="again"), None, None)
+    assert rc == 0 and "simulate CC: found in the cache" in text, text
+    again = tmp_path / "out_again"
+    for name in ("metrics.json", "cc/real.json", "cc/virtual.json", "cc/alignment.json",
+                 "cc/simulation.json"):
+        a, b = (json.loads((d / name).read_text()) for d in (cut, again))
+        _same(a, b, name, rtol=0.0, atol=0.0)
     assert (ref / "metrics.csv").read_text().splitlines()[0] == \
         (cut / "metrics.csv").read_text().splitlines()[0]
     for pdf in (ref / "report.pdf", cut / "report.pdf"):
