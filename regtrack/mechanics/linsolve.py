@@ -1,37 +1,46 @@
 """Sparse linear solver for the Newton corrections, chosen by measurement.
 
-Direct solver: MKL PARDISO (loaded through pypardiso, called directly with our own
-``iparm``), symmetric indefinite LDL^T (``mtype = -2``, upper triangle) for symmetric
-systems, general LU (``mtype = 11``) when a contribution (sliding friction) makes the
-tangent unsymmetric.  ``splu`` (SuperLU, scipy) is the fallback without MKL (logged).
+Direct solver: MKL PARDISO (located through pypardiso, called directly with our own
+``iparm``); ``splu`` (SuperLU, scipy) is the fallback without MKL (logged).  Every solve
+is right-preconditioned GMRES (:func:`right_gmres`) on a stored factorisation, to the
+relative residual the caller asks for.
 
 Measured on the 10.5k-node gmsh hemisphere (ANP augmented system, 42k unknowns,
 ``pipelines/bench_mechanics.py``; CPU seconds, one MKL thread, shared 2-core machine):
 
-* factorisation 1.5 s (41 GFlop), forward/backward solve 0.03 s: a solve costs ~1/50
-  of a factorisation.  (The earlier finding "a solve costs ~1/2 of a factorisation"
-  came from PARDISO's default ``iparm`` -- matching, scaling, extra refinement -- and
-  from MKL threads spinning against other jobs.)
-* the condensed ANP tangent (2-ring, SPD, ``mtype = 2``) needs 97 GFlop, 2.4x the
-  augmented 1-ring system; plain P1 needs 17 GFlop.  Cholesky (``mtype 2``) is not
-  cheaper than LDL^T (``-2``) on the same matrix (same flops, within noise), so LDL^T is
+* factorisation 1.5-1.8 s (41 GFlop), forward/backward solve 0.03 s: a solve costs
+  ~1/50 of a factorisation.  (The earlier finding "a solve costs ~1/2 of a
+  factorisation" came from PARDISO's default ``iparm`` -- matching, scaling,
+  refinement -- and from MKL threads spinning against other jobs.)
+* the condensed ANP tangent (2-ring, ``mtype 2``) needs 97 GFlop, 2.4x the augmented
+  1-ring system; plain P1 needs 17 GFlop.  Cholesky (``mtype 2``) is not cheaper than
+  LDL^T (``mtype -2``) on the same matrix (same flops, times within noise), so LDL^T is
   used throughout: it also survives the indefinite tangents of contact and buckling.
-* ``iparm``: METIS ordering (the parallel nested dissection was not faster on 2 cores),
-  no weighted matching or scaling for the symmetric systems (the ANP system is
-  quasi-definite, [[K, B^T], [B, -D]] with K positive definite and D > 0 diagonal, so
-  LDL^T needs no pivoting; matching made the analysis 1.6x slower and added 5 % flops),
-  pivot perturbation 1e-8 (symmetric) / 1e-13 with matching and scaling (LU),
-  zero-based indices (no per-call copies), no matrix checker.
+* float32 factors (``precision = "mixed"``, PARDISO ``iparm(28) = 1``): factorisation
+  1.07 s instead of 1.8 s, solve 0.023 s instead of 0.035 s, half the factor memory;
+  their solution has a relative residual ~1e-4, so GMRES in float64 reaches 1e-10 in 2-3
+  iterations.  If a fresh float32 factorisation cannot bring its own matrix to the
+  tolerance (ill-conditioned), the solver switches to float64 for good (logged).
+* ``iparm``: METIS ordering (the parallel nested dissection was not faster on 2 cores);
+  no weighted matching or scaling for the symmetric systems (the ANP system
+  [[K, B^T], [B, -D]] is quasi-definite when K is positive definite (D > 0 diagonal), so
+  LDL^T needs no pivoting; matching made the analysis 1.6x slower and added 5 % flops);
+  pivot perturbation 1e-8 (symmetric) / 1e-13 with matching and scaling (LU);
+  zero-based indices (no per-call copies); no matrix checker.
+* unsymmetric tangents (sliding friction) are solved by GMRES preconditioned with the
+  LDL^T factors of their symmetric part ``(A + A^T) / 2`` (same pattern, one analysis,
+  half the cost of LU, and the factors stay valid while the stick/slip state flips);
+  only if a fresh factorisation of the symmetric part cannot reach the tolerance does
+  the solver switch to LU (``mtype 11``) for the unsymmetric systems (logged).
 
 Because a solve is so much cheaper than a factorisation, the factorisation is
-**re-used** (``reuse_factorisation``, default on): a new system ``A x = b`` is solved by
-right-preconditioned GMRES with the last factorisation ``P`` as preconditioner,
-``A P^{-1} y = b``, ``x = P^{-1} y`` (so the residual GMRES monitors is the true one),
-to the relative tolerance ``rtol`` the Newton solver asks for (inexact Newton; see
-:mod:`.solver`).  The matrix is refactorised when
+**re-used** (``reuse_factorisation``, default on): a new matrix is first solved on the
+old factors (``A P^{-1} y = b``, ``x = P^{-1} y``: the residual GMRES monitors is the
+true one) to the tolerance the Newton solver asks for (inexact Newton, :mod:`.solver`).
+It is refactorised when
 
-* GMRES does not reach ``rtol`` within ``k_max`` iterations, where ``k_max`` is set
-  from the measured CPU cost ratio so that a failed attempt wastes at most half a
+* GMRES does not reach ``rtol`` within ``k_max`` iterations, where ``k_max`` follows
+  the measured CPU cost ratio so that a failed attempt wastes at most half a
   factorisation (``k_max = clip(t_factor / (2 t_iteration), 4, krylov_max)``), or
 * the previous re-used solve already cost more than a quarter of a factorisation
   (the preconditioner has gone stale: refactorise at once rather than try again).
@@ -205,6 +214,7 @@ class LinearSolver:
         self._factored: dict[bool, bool] = {True: False, False: False}
         self._stale: dict[bool, bool] = {True: False, False: False}
         self._upper: tuple | None = None
+        self._lu_needed = False
         self.n_analyses = self.n_factorisations = self.n_krylov_solves = self.krylov_iterations = 0
         self.time_analysis = self.time_factor_solve = self.time_krylov = 0.0
         self.cpu_factor = 0.0
@@ -236,9 +246,10 @@ class LinearSolver:
         Raises :class:`LinearSolveError` when the factorisation fails.
         """
         b = np.asarray(b, float)
-        sym = bool(symmetric) and self.kind == "pardiso"
         tol = self.krylov_rtol if rtol is None else max(rtol, self.krylov_rtol)
         key = self._key(A)
+        # handle True: LDL^T of the symmetric part (A itself when symmetric); False: LU
+        sym = self.kind == "pardiso" and (symmetric or (not self._lu_needed and self._upper_sym(A, key) is not None))
         same = self._keys[sym] == key and self._factored[sym]
         if self.reuse and same and not refactor and not self._stale[sym]:
             x = self._krylov(A, b, sym, tol, fresh=False)
@@ -247,6 +258,13 @@ class LinearSolver:
         t0 = time.perf_counter()
         self._factorise(A, sym, key)
         x = self._krylov(A, b, sym, tol, fresh=True)
+        if x is None and sym and not symmetric:
+            log.info("unsymmetric tangent too far from its symmetric part to precondition with it: "
+                     "general LU from now on")
+            self._lu_needed = True
+            sym = False
+            self._factorise(A, sym, key)
+            x = self._krylov(A, b, sym, tol, fresh=True)
         if x is None and self._backends[sym].single:
             log.warning("float32 factorisation too inaccurate for this system (ill-conditioned): "
                         "switching the linear solver to double precision")
@@ -287,15 +305,25 @@ class LinearSolver:
         self._last_pattern = (A.indices, A.indptr, key)
         return key
 
-    def _upper_triangle(self, A: sp.csr_matrix, key: tuple) -> sp.csr_matrix:
+    def _upper_sym(self, A: sp.csr_matrix, key: tuple) -> sp.csr_matrix | None:
+        """Upper triangle of the symmetric part ``(A + A^T) / 2`` on A's own pattern, or
+        None when that pattern is not structurally symmetric (maps cached per pattern)."""
         if self._upper is None or self._upper[0] != key:
-            rows = np.repeat(np.arange(A.shape[0]), np.diff(A.indptr))
-            up = np.flatnonzero(A.indices >= rows)
-            indptr = np.zeros(A.shape[0] + 1, np.int32)
-            np.cumsum(np.bincount(rows[up], minlength=A.shape[0]), out=indptr[1:])
-            self._upper = (key, up, A.indices[up].astype(np.int32), indptr)
-        _, up, idx, ptr = self._upper
-        U = sp.csr_matrix((A.data[up], idx, ptr), shape=A.shape, copy=False)
+            n = A.shape[0]
+            rows = np.repeat(np.arange(n, dtype=np.int64), np.diff(A.indptr))
+            cols = A.indices.astype(np.int64)
+            up = np.flatnonzero(cols >= rows)
+            indptr = np.zeros(n + 1, np.int32)
+            np.cumsum(np.bincount(rows[up], minlength=n), out=indptr[1:])
+            keys = rows * n + cols  # sorted: rows ascending, sorted column indices
+            tpos = np.searchsorted(keys, cols[up] * n + rows[up])
+            tpos = np.minimum(tpos, len(keys) - 1)
+            tmap = tpos if np.array_equal(keys[tpos], cols[up] * n + rows[up]) else None
+            self._upper = (key, up, cols[up].astype(np.int32), indptr, tmap)
+        _, up, idx, ptr, tmap = self._upper
+        if tmap is None:
+            return None
+        U = sp.csr_matrix((0.5 * (A.data[up] + A.data[tmap]), idx, ptr), shape=A.shape, copy=False)
         U.has_sorted_indices = True
         return U
 
@@ -309,7 +337,7 @@ class LinearSolver:
 
     def _factorise(self, A: sp.csr_matrix, sym: bool, key: tuple) -> None:
         be = self._backends[sym]
-        M = self._upper_triangle(A, key) if sym else A
+        M = self._upper_sym(A, key) if sym else A
         if key != self._keys[sym]:
             t0 = time.perf_counter()
             if self._keys[sym] is not None:
