@@ -128,7 +128,7 @@ def test_pseudonymous_id_replaces_an_identifying_case_id(caplog) -> None:
     ids = Identifiers()
     ids.add("PatientID", "PID7731902")
     assert pseudonymous_id("breast01", ids) == "breast01"
-    with caplog.at_level(logging.WARNING):
+    with caplog.at_level(logging.WARNING, logger="regtrack.privacy"):
         p = pseudonymous_id(CASE_ID, ids)
     assert re.fullmatch(r"anon-[0-9a-f]{8}", p) and p == pseudonymous_id(CASE_ID, ids)
     assert "PID7731902" not in caplog.text and p in caplog.text
@@ -138,7 +138,8 @@ def test_scrub_logs_filters_every_handler(caplog) -> None:
     ids = Identifiers()
     ids.add("PatientName", "Doe^Jane")
     log = logging.getLogger("regtrack.test_privacy")
-    with caplog.at_level(logging.DEBUG), scrub_logs(ids):
+    # the logger's own level too: `regtrack run` (in-process in other tests) quiets "regtrack"
+    with caplog.at_level(logging.DEBUG, logger="regtrack.test_privacy"), scrub_logs(ids):
         log.info("reading %s for %s", "/data/Doe_Jane/cc.dcm", "Jane Doe")
     log.info("after: %s", "Doe")  # the filter is removed afterwards
     assert "reading /data/[redacted]/cc.dcm for [redacted]" in caplog.text
