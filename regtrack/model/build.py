@@ -19,8 +19,8 @@ from regtrack.errors import MeshQualityError
 from regtrack.imaging.volume import LabelVolume
 from regtrack.model import checks
 from regtrack.model.config import MeshConfig
-from regtrack.model.geometry import (detect_nipple, make_frame, make_surfaces, skin_vertices,
-                                     surface_step, target_size, tumour_sizes)
+from regtrack.model.boundary import make_surfaces
+from regtrack.model.geometry import detect_nipple, make_frame, skin_vertices, target_size, tumour_sizes
 from regtrack.model.labels import LabelScheme
 from regtrack.model.mesher import MeshRequest, MeshResult, run_gmsh
 from regtrack.model.prepare import PreparedBreast, prepare_breast
@@ -63,8 +63,11 @@ def evaluate(res: MeshResult, prep: PreparedBreast, sdf_outer: checks.SignedDist
     tum = []
     for k, t in enumerate(prep.tumours.kept, start=1):
         v = float(vol[res.tumour_id == k].sum())
+        kept = prep.info.get("tumours_kept", [])
+        uncut = kept[k - 1].get("uncut_volume_mm3", t.volume_mm3) if k <= len(kept) else t.volume_mm3
+        # reference: the voxel volume inside the model (after the cuts); the uncut one is kept
         tum.append({"id": k, "volume_mm3": v, "voxel_volume_mm3": t.volume_mm3,
-                    "volume_error": v / t.volume_mm3 - 1.0})
+                    "volume_error": v / t.volume_mm3 - 1.0, "uncut_voxel_volume_mm3": uncut})
     fig["tumours"] = tum
     bf, _ = checks.boundary_faces(res.tets)
     bn = np.unique(bf)
@@ -161,24 +164,33 @@ def build_model(labels: LabelVolume, *, scheme: LabelScheme, config: MeshConfig,
     while i < len(plan):
         a = plan[i]
         h = target_size(prep.info["breast_voxel_volume_mm3"], config) * a["size_factor"] * size_scale
-        sp = prep.volume.spacing
-        step = surface_step(h, sp, config.surface_step_vox)
         hts = tumour_sizes([t.volume_mm3 for t in prep.tumours.kept], h, config)
-        tsteps = [surface_step(x, sp, 0) for x in hts]
-        key = (a["smoothing_mm"], step, tuple(tsteps))
+        key = (a["smoothing_mm"], round(h, 6))
+        rec = {"attempt": i + 1, **a, "size_mm": h, "tumour_sizes_mm": hts}
         if key not in surf_cache:
-            _progress(progress, f"surfaces (smoothing {a['smoothing_mm']:.2f} mm, step {step})")
-            surf_cache[key] = make_surfaces(prep, smoothing_mm=a["smoothing_mm"], tumour_smoothing_mm=config.tumour_smoothing_mm,
-                                            step=step, clearance_mm=config.tumour_clearance_mm, tumour_steps=tsteps)
+            _progress(progress, f"surfaces (smoothing {a['smoothing_mm']:.2f} mm, edge {h:.2f} mm)")
+            ts = time.perf_counter()
+            surf_cache[key] = make_surfaces(
+                prep, edge_mm=h, tumour_edges_mm=hts, smoothing_mm=a["smoothing_mm"],
+                tumour_smoothing_mm=config.tumour_smoothing_mm, clearance_mm=config.tumour_clearance_mm,
+                feature_fraction=config.feature_fraction, small_angle_deg=config.min_triangle_angle_deg,
+                step_vox=config.surface_step_vox)
+            surf_cache[key].info["seconds"] = time.perf_counter() - ts
         surfs = surf_cache[key]
+        rec["surfaces"] = {**surfs.info, "tries": surfs.tries, "checks": [c.to_dict() for c in surfs.checks],
+                           "problems": surfs.problems}
+        if surfs.problems:
+            rec["error"] = "surface checks failed: " + "; ".join(surfs.problems)
+            log.warning("meshing attempt %d: %s", i + 1, rec["error"])
+            attempts.append(rec)
+            i += 1
+            continue
         req = MeshRequest(surfs.outer.verts, surfs.outer.faces, [s.verts for s in surfs.tumours],
-                          [s.faces for s in surfs.tumours], size_mm=h,
-                          tumour_sizes_mm=tumour_sizes(surfs.tumour_voxel_mm3, h, config),
+                          [s.faces for s in surfs.tumours], size_mm=h, tumour_sizes_mm=hts,
                           refine_distance_mm=config.refine_distance_mm, algorithm=a["algorithm"],
                           threads=config.threads, optimize_netgen=config.optimize_netgen,
                           feature_angle_deg=a["feature_angle_deg"])
         _progress(progress, f"meshing attempt {i + 1}/{len(plan)}: {a['algorithm']}, h = {h:.2f} mm")
-        rec = {"attempt": i + 1, **a, "size_mm": h, "tumour_sizes_mm": req.tumour_sizes_mm}
         try:
             res = _orient(run_gmsh(req, timeout_s=config.timeout_s))
         except (TimeoutError, RuntimeError) as exc:

@@ -51,7 +51,9 @@ class MeshConfig:
     # surfaces
     smoothing_mm: float = param(1.5, "mm", "Gaussian sigma applied to the breast mask before marching cubes", ge=0.0, le=10.0)
     tumour_smoothing_mm: float = param(0.8, "mm", "Gaussian sigma applied to each tumour mask before marching cubes", ge=0.0, le=10.0)
-    surface_step_vox: int = param(0, "voxels", "marching-cubes step of the outer surface (0: from the element size, round(h / 1.3 voxel))", ge=0, le=8)
+    surface_step_vox: int = param(0, "voxels", "marching-cubes step of the outer surface before remeshing (0: from the element size, round(h / 2.5 voxel))", ge=0, le=8)
+    feature_fraction: float = param(0.4, "-", "crevices and ridges narrower than about twice this fraction of the element size are removed (closing/opening of the breast mask) before remeshing", ge=0.0, le=2.0)
+    min_triangle_angle_deg: float = param(5.0, "degrees", "remeshed boundary triangles must have no smaller angle (else the remeshing is retried)", ge=0.0, lt=60.0)
     feature_angle_deg: float = param(40.0, "degrees", "angle between triangles above which an edge is a sharp feature (gmsh classifySurfaces)", gt=5.0, lt=180.0)
     # gmsh
     algorithm: str = param("delaunay", "-", "first 3-D algorithm to try", choices=("delaunay", "hxt", "netgen"))

@@ -145,6 +145,26 @@ def _fold_cuts(cand: np.ndarray, dist: np.ndarray, sub: LabelVolume,
     return planes, cand
 
 
+def uncut_volumes(tumours: TumourSet, tum_half: np.ndarray, sl: tuple[slice, ...], vv: float) -> list[float]:
+    """Voxel volume (mm^3) of each kept tumour before the chest-wall/fold/midline cuts.
+
+    The whole tumour of kept tumour ``t`` is the union of the 26-connected components of
+    the uncut tumour mask of the chosen half (``tum_half``, full array) that overlap ``t``
+    (``sl``: the crop's position in the full array).
+    """
+    if not tumours.kept:
+        return []
+    lab, _ = ndimage.label(tum_half, structure=np.ones((3, 3, 3), bool))
+    sizes = np.bincount(lab.ravel())
+    sub = lab[sl]
+    out = []
+    for t in tumours.kept:
+        comps = np.unique(sub[tumours.labelled == t.component])
+        comps = comps[comps > 0]
+        out.append(float(sizes[comps].sum() * vv))
+    return out
+
+
 def prepare_breast(labels: LabelVolume, *, scheme: LabelScheme, config: MeshConfig,
                    side: str | None = None) -> PreparedBreast:
     """Select, cut and crop one breast of ``labels`` (see the module docstring)."""
@@ -210,6 +230,13 @@ def prepare_breast(labels: LabelVolume, *, scheme: LabelScheme, config: MeshConf
     smooth_mask = breast | (body_c & ~inside)
     tumours = find_tumours(tum[sl] & breast, crop.data, voxel_volume=vv,
                            min_volume_mm3=config.min_tumour_volume_mm3)
+    uncut = uncut_volumes(tumours, tum & half[:, None, None], sl, vv)
+    kept_info = [{**t.to_dict(), "uncut_volume_mm3": round(u, 3), "cut_fraction": round(1.0 - t.volume_mm3 / u, 4) if u else 0.0}
+                 for t, u in zip(tumours.kept, uncut)]
+    for t, u in zip(tumours.kept, uncut):
+        if u > t.volume_mm3 * 1.001:
+            log.info("tumour %d: %.0f of its %.0f mm^3 lie beyond the cut planes (chest wall, folds, midline); "
+                     "the model keeps %.0f mm^3", t.id, u - t.volume_mm3, u, t.volume_mm3)
     info = {
         "side": side, "side_reason": reason, "bilateral": mid.bilateral,
         "midline_index": mid.index, "breast_prominence_mm": mid.prominence_mm,
@@ -221,7 +248,7 @@ def prepare_breast(labels: LabelVolume, *, scheme: LabelScheme, config: MeshConf
         "voxel_spacing_mm": vol.spacing.tolist(), "voxel_volume_mm3": vv,
         "breast_voxels": int(breast.sum()), "breast_voxel_volume_mm3": float(breast.sum() * vv),
         "detached_body_dropped_mm3": dropped,
-        "tumours_kept": [t.to_dict() for t in tumours.kept],
+        "tumours_kept": kept_info,
         "tumours_removed": [t.to_dict() for t in tumours.removed],
     }
     return PreparedBreast(crop, breast, smooth_mask, inside, tumours, planes, cw, side, reason, mid, info)

@@ -144,15 +144,25 @@ def relax(surf: Surface, *, planes: tuple[Plane, ...] = (), iterations: int = 30
 
 
 def extract_surface(g: np.ndarray, affine: np.ndarray, *, step: int = 1,
-                    planes: tuple[Plane, ...] = (), snap_mm: float = 0.5) -> Surface:
+                    planes: tuple[Plane, ...] = (), snap_mm: float = 0.5,
+                    relax_iterations: int = 30) -> Surface:
     """Marching-cubes surface ``g = 0`` (``g`` positive inside) in LPS mm.
 
-    The array is padded with a negative value so the surface is closed.  Vertices within
+    The array is padded with a negative value so the surface is closed (also with
+    ``step > 1``).  Vertices within
     ``snap_mm`` of a plane are projected onto it.  Faces are oriented with outward normals.
+    ``relax_iterations`` passes of :func:`relax` follow (0: none, when the surface is
+    remeshed afterwards).
     """
     from skimage import measure
 
-    pad = np.pad(g, 1, mode="constant", constant_values=-1.0)
+    # one negative layer before and at least one after, so that (n - 1) is a multiple of
+    # the step: marching cubes with step > 1 skips a last partial layer (open surface)
+    after = [1 + (-(n + 1)) % step for n in g.shape]
+    pad = np.pad(g, [(1, a) for a in after], mode="constant", constant_values=-1.0)
+    # a value exactly at the level puts a vertex on a grid point shared by several cubes;
+    # skimage then drops the degenerate triangles and leaves open/non-manifold edges
+    pad[pad == 0.0] = -1e-6
     verts, faces, _, _ = measure.marching_cubes(pad, level=0.0, step_size=step, allow_degenerate=False)
     verts = verts - 1.0
     xyz = verts @ affine[:3, :3].T + affine[:3, 3]
@@ -164,4 +174,6 @@ def extract_surface(g: np.ndarray, affine: np.ndarray, *, step: int = 1,
         xyz[near] = p.project(xyz[near])
     if surf.volume < 0:
         surf.faces = surf.faces[:, ::-1].copy()
-    return relax(surf, planes=planes)
+    if relax_iterations <= 0:
+        return surf
+    return relax(surf, planes=planes, iterations=relax_iterations)
