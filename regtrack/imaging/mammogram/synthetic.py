@@ -137,5 +137,8 @@ def write_dicom(path: str | os.PathLike, pixels: np.ndarray, *, modality: str = 
     if rle:
         ds.compress(RLELossless)
     path = Path(path)
-    ds.save_as(path, enforce_file_format=True)
+    from regtrack._io import atomic_path
+
+    with atomic_path(path) as tmp:
+        ds.save_as(tmp, enforce_file_format=True)
     return path
