@@ -276,9 +276,9 @@ def solve_step(problem: Problem, u0: np.ndarray, *, gravity: Gravity | None = No
     """
     o = options or problem.config.solver
     stats = StepStats(name=step_name)
-    tstart = time.perf_counter()
+    tstart, cstart = time.perf_counter(), time.process_time()
     ls = linear_solver or _linear_solver(problem, o)
-    nfac0, nkry0, nan0 = ls.n_factorisations, ls.n_krylov_solves, ls.n_analyses
+    nfac0, nkry0, nan0, nkit0 = ls.n_factorisations, ls.n_krylov_solves, ls.n_analyses, ls.krylov_iterations
     newton = _Newton(problem, contributions, o, stats, ls)
     u = np.asarray(u0, float).reshape(-1).copy()
     for c in newton.contribs:
@@ -319,7 +319,9 @@ def solve_step(problem: Problem, u0: np.ndarray, *, gravity: Gravity | None = No
         if progress is not None:
             progress(step_name, t)
     stats.t_total = time.perf_counter() - tstart
+    stats.cpu_total = time.process_time() - cstart
     stats.factorisations = ls.n_factorisations - nfac0
+    stats.krylov_iterations = ls.krylov_iterations - nkit0
     stats.krylov_solves = ls.n_krylov_solves - nkry0
     stats.analyses = ls.n_analyses - nan0
     log.debug("%s: %d increments, %d iterations, %d cut-backs, %.2f s", step_name, stats.increments,

@@ -13,7 +13,10 @@ class StepStats:
 
     Times are wall-clock seconds per phase: ``t_assembly`` (tissue + skin residual and
     tangent), ``t_contrib`` (contributions such as contact), ``t_solve`` (sparse
-    factorisation + solve), ``t_line_search`` (extra residual evaluations), ``t_total``.
+    factorisation + solve), ``t_line_search`` (extra residual evaluations), ``t_total``;
+    ``cpu_total`` is the process CPU time of the step (all threads; s).  ``factorisations``
+    counts sparse factorisations, ``krylov_solves`` the solves done on a re-used one and
+    ``krylov_iterations`` all GMRES iterations (:mod:`.linsolve`).
     """
 
     name: str = ""
@@ -25,18 +28,20 @@ class StepStats:
     factorisations: int = 0
     analyses: int = 0
     krylov_solves: int = 0
+    krylov_iterations: int = 0
     t_assembly: float = 0.0
     t_contrib: float = 0.0
     t_solve: float = 0.0
     t_line_search: float = 0.0
     t_total: float = 0.0
+    cpu_total: float = 0.0
     residual_history: list[list[float]] = field(default_factory=list)
     reports: list[dict] = field(default_factory=list)
 
     def to_dict(self) -> dict:
         keys = ("name", "increments", "iterations", "cutbacks", "augmentations", "line_search_trials",
-                "factorisations", "analyses", "krylov_solves", "t_assembly", "t_contrib", "t_solve",
-                "t_line_search", "t_total")
+                "factorisations", "analyses", "krylov_solves", "krylov_iterations", "t_assembly", "t_contrib",
+                "t_solve", "t_line_search", "t_total", "cpu_total")
         d = {k: getattr(self, k) for k in keys}
         d["reports"] = self.reports[-1:] if self.reports else []
         return d
