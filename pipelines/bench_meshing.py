@@ -16,6 +16,7 @@ import argparse
 import glob
 import json
 import logging
+import os
 import threading
 import time
 from pathlib import Path
@@ -58,16 +59,23 @@ class PeakMemory:
         self._t.join()
 
 
-def bench_one(path: Path, scheme: str) -> dict:
+def cpu_seconds() -> float:
+    """CPU time (s) of this process and its finished children (the gmsh processes)."""
+    t = os.times()
+    return t.user + t.system + t.children_user + t.children_system
+
+
+def bench_one(path: Path, scheme: str, config: MeshConfig | None = None) -> dict:
     t0 = time.perf_counter()
+    c0 = cpu_seconds()
     with PeakMemory() as mem:
         labels = read_label_map(path)
         t_read = time.perf_counter() - t0
         try:
-            m = build_model(labels, scheme=PRESETS[scheme], config=MeshConfig())
+            m = build_model(labels, scheme=PRESETS[scheme], config=config or MeshConfig())
         except RegtrackError as exc:
             return {"file": str(path), "error": str(exc), "seconds": time.perf_counter() - t0,
-                    "peak_gb": mem.peak / 1e9}
+                    "cpu_seconds": cpu_seconds() - c0, "peak_gb": mem.peak / 1e9}
     q = m.meta["quality"]
     prep = m.meta["preparation"]
     return {
@@ -78,7 +86,8 @@ def bench_one(path: Path, scheme: str) -> dict:
         "tumour_volume_error_pct": [round(100 * t["volume_error"], 2) for t in q["tumours"]],
         "tumour_ml": [round(t["voxel_volume_mm3"] / 1000, 2) for t in q["tumours"]],
         "surface_distance_mm": q["surface_distance_mean_mm"], "attempts": len(m.meta["attempts"]),
-        "seconds_read": t_read, "seconds": time.perf_counter() - t0, "peak_gb": mem.peak / 1e9,
+        "seconds_read": t_read, "seconds": time.perf_counter() - t0, "cpu_seconds": cpu_seconds() - c0,
+        "stages": m.meta.get("seconds_stages", {}), "peak_gb": mem.peak / 1e9,
     }
 
 
@@ -98,16 +107,16 @@ def main() -> int:
         r["exam"] = e
         rows.append(r)
         print(json.dumps(r), flush=True)
-    print("\n| exam | side | nodes | tets | tumours kept/removed | min dihedral (deg) | gamma min | gamma p5 | volume err % | tumour vol err % (ml) | mean surf dist (mm) | attempts | time (s) | peak mem (GB) |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+    print("\n| exam | side | nodes | tets | tumours kept/removed | min dihedral (deg) | gamma min | gamma p5 | volume err % | tumour vol err % (ml) | mean surf dist (mm) | attempts | time (s) | CPU (s) | peak mem (GB) |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for r in rows:
         if "error" in r:
-            print(f"| {r['exam']} | failed: {r['error'][:120]} | | | | | | | | | | | {r['seconds']:.0f} | {r['peak_gb']:.2f} |")
+            print(f"| {r['exam']} | failed: {r['error'][:120]} | | | | | | | | | | | {r['seconds']:.0f} | {r['cpu_seconds']:.0f} | {r['peak_gb']:.2f} |")
             continue
         tv = ", ".join(f"{e} ({v})" for e, v in zip(r["tumour_volume_error_pct"], r["tumour_ml"]))
         print(f"| {r['exam']} | {r['side']} | {r['nodes']} | {r['tets']} | {r['tumours_kept']}/{r['tumours_removed']} | "
               f"{r['min_dihedral_deg']:.2f} | {r['gamma_min']:.3f} | {r['gamma_p5']:.3f} | {r['volume_error_pct']:.2f} | {tv} | "
-              f"{r['surface_distance_mm']:.2f} | {r['attempts']} | {r['seconds']:.0f} | {r['peak_gb']:.2f} |")
+              f"{r['surface_distance_mm']:.2f} | {r['attempts']} | {r['seconds']:.0f} | {r['cpu_seconds']:.0f} | {r['peak_gb']:.2f} |")
     if args.json:
         Path(args.json).write_text(json.dumps(rows, indent=1))
     return 0

@@ -13,7 +13,9 @@ Details that the element size forces:
   through itself there.  The breast mask is therefore closed and then opened with a ball
   of radius ``r = feature_fraction * L`` (distance-transform morphology), which removes
   crevices and ridges narrower than about ``2 r``; the level set's iso-value then restores
-  the voxel volume (:func:`~regtrack.model.surfaces.smooth_levelset`).
+  the voxel volume (:func:`~regtrack.model.surfaces.smooth_levelset`).  Each tumour mask
+  gets the same treatment with its own element size (exam 02's 52 ml tumour folded too),
+  with a doubled radius in the later tries.
 * **Tumour clearance**: each tumour level set is intersected with
   ``d_out - c`` (``d_out`` the distance (mm) inside the smoothed outer region, ``c`` the
   clearance), so a tumour touching the skin or a cut plane keeps a gap of ``c`` to the
@@ -22,7 +24,8 @@ Details that the element size forces:
   inside its level set by up to ``L^2 / (8 R)`` (``R`` the radius of curvature, a few mm
   at the rim of a cut face); ``a`` = 0.2, then 0.35 in the later tries.  The trimmed rim
   is rounded over about 1 mm (:func:`smooth_min`).
-* **Tumour volume**: the remeshed tumour is offset along its normals to the volume of its
+* **Volume**: each remeshed surface is offset along its normals (skin vertices only for
+  the outer one, so cut faces stay on their planes) back to the volume of its
   marching-cubes surface (:func:`~regtrack.model.remesh.restore_volume`).
 """
 
@@ -114,18 +117,21 @@ def inner_distance(g: np.ndarray, spacing: np.ndarray) -> np.ndarray:
 
 
 def tumour_fields(prep: PreparedBreast, d_out: np.ndarray, *, smoothing_mm: float,
-                  clearance_mm: float) -> list[tuple[np.ndarray, np.ndarray]]:
+                  clearance_mm: float, feature_mm: list[float] | None = None) -> list[tuple[np.ndarray, np.ndarray]]:
     """(level set, affine of its sub-array) of every kept tumour, kept ``clearance_mm``
-    inside the outer region (``d_out``: :func:`inner_distance` of the outer level set)."""
+    inside the outer region (``d_out``: :func:`inner_distance` of the outer level set);
+    ``feature_mm``: closing/opening radius (mm) of each tumour mask."""
     vol = prep.volume
     sp = vol.spacing
     st = slope_per_mm(smoothing_mm)
     pad = np.ceil(3 * smoothing_mm / sp).astype(int) + 2
     out = []
-    for t in prep.tumours.kept:
-        sl = tuple(slice(max(a.start - p, 0), min(a.stop + p, n)) for a, p, n in zip(t.slices, pad, vol.shape))
+    for i, t in enumerate(prep.tumours.kept):
+        r = feature_mm[i] if feature_mm else 0.0
+        pd = pad + np.ceil(r / sp).astype(int)
+        sl = tuple(slice(max(a.start - p, 0), min(a.stop + p, n)) for a, p, n in zip(t.slices, pd, vol.shape))
         m = prep.tumours.labelled[sl] == t.component
-        ft = smooth_levelset(m, smoothing_mm, sp)
+        ft = smooth_levelset(open_close(m, r, sp), smoothing_mm, sp, target_count=int(m.sum()))
         gt = smooth_min(ft, st * (d_out[sl] - clearance_mm), st * ROUND_MM)
         if gt.max() <= 0:  # a thin tumour right under the skin: halve the deepest gap
             c = 0.5 * float(d_out[sl][ft > 0].max(initial=0.0))
@@ -169,24 +175,30 @@ def make_surfaces(prep: PreparedBreast, *, edge_mm: float, tumour_edges_mm: list
     snap = 0.5 * step * float(np.mean(sp))
     raw_outer = extract_surface(g, vol.affine, step=step, planes=tuple(prep.planes), snap_mm=0.0, relax_iterations=0)
     d_out = inner_distance(g, sp)
-    raw_t: dict[float, list[Surface]] = {}
+    raw_t: dict[tuple[float, float], list[Surface]] = {}
     best = None
-    for k, (iters, fac, allow) in enumerate(REMESH_TRIES[: max(1, tries)]):
+    for k, (iters, fac, allow, tfeat) in enumerate(REMESH_TRIES[: max(1, tries)]):
         clear = clearance_mm + allow * edge_mm
-        if clear not in raw_t:
-            raw_t[clear] = [extract_surface(gt, aff, step=surface_step(e, sp), relax_iterations=0)
-                            for (gt, aff), e in zip(tumour_fields(prep, d_out, smoothing_mm=tumour_smoothing_mm, clearance_mm=clear),
-                                                    tumour_edges_mm)]
+        tkey = (clear, tfeat)
+        if tkey not in raw_t:
+            raw_t[tkey] = [extract_surface(gt, aff, step=surface_step(e, sp), relax_iterations=0)
+                           for (gt, aff), e in zip(tumour_fields(prep, d_out, smoothing_mm=tumour_smoothing_mm, clearance_mm=clear,
+                                                                feature_mm=[tfeat * feature_fraction * x for x in tumour_edges_mm]),
+                                                   tumour_edges_mm)]
         outer = remesh(raw_outer, edge_mm=edge_mm * fac, iterations=iters, planes=tuple(prep.planes), snap_mm=snap)
+        on = np.zeros(len(outer.verts), bool)
+        for p in prep.planes:
+            on |= np.abs(p.distance(outer.verts)) < 1e-6
+        outer = restore_volume(outer, raw_outer.volume, movable=~on)
         tums = [restore_volume(remesh(s, edge_mm=e * fac, iterations=iters), s.volume)
-                for s, e in zip(raw_t[clear], tumour_edges_mm)]
+                for s, e in zip(raw_t[tkey], tumour_edges_mm)]
         chk = check_surfaces([outer] + tums, small_angle_deg=small_angle_deg, planes=tuple(prep.planes))
         problems = [f"{'outer' if i == 0 else f'tumour {i}'} surface: {p}"
                     for i, c in enumerate(chk) for p in c.problems(min_angle_deg=small_angle_deg)]
         res = BreastSurfaces(outer, tums, [t.volume_mm3 for t in prep.tumours.kept], chk, problems, k + 1,
                              {"marching_cubes_step_vox": step, "snap_mm": snap, "iterations": iters,
                               "edge_factor": fac, "feature_radius_mm": feature_fraction * edge_mm,
-                              "tumour_clearance_mm": clear})
+                              "tumour_clearance_mm": clear, "tumour_feature_radius_factor": tfeat * feature_fraction})
         if not problems:
             return res
         log.info("remeshing try %d (%d iterations, edge x %.2f, clearance %.2f mm): %s", k + 1, iters, fac, clear,

@@ -1,7 +1,8 @@
 """``build_model``: label map -> quality tetrahedral :class:`BreastModel` (issue 3).
 
 Pipeline: :func:`~regtrack.model.prepare.prepare_breast` (side, chest wall, crop, tumours)
--> :func:`~regtrack.model.geometry.make_surfaces` (smoothed marching-cubes surfaces) ->
+-> :func:`~regtrack.model.boundary.make_surfaces` (smoothed marching-cubes surfaces,
+isotropically remeshed with pymeshlab and checked for intersections; retried) ->
 gmsh (:mod:`regtrack.model.mesher`, in a child process with a timeout) -> checks
 (:mod:`regtrack.model.checks`), retried with other settings when a check fails ->
 anatomical frame, nipple node, chest-wall nodes, skin triangles.
@@ -153,6 +154,7 @@ def build_model(labels: LabelVolume, *, scheme: LabelScheme, config: MeshConfig,
     t0 = time.perf_counter()
     _progress(progress, "selecting the breast")
     prep = prepare_breast(labels, scheme=scheme, config=config, side=side)
+    stages = {"prepare": time.perf_counter() - t0, "surfaces": 0.0, "gmsh": 0.0, "checks": 0.0}
     sdf_outer = checks.SignedDistance.of_mask(prep.breast, prep.volume.affine)
     sdf_t = [checks.SignedDistance.of_mask(prep.tumours.labelled == t.component, prep.volume.affine)
              for t in prep.tumours.kept]
@@ -176,6 +178,7 @@ def build_model(labels: LabelVolume, *, scheme: LabelScheme, config: MeshConfig,
                 feature_fraction=config.feature_fraction, small_angle_deg=config.min_triangle_angle_deg,
                 step_vox=config.surface_step_vox)
             surf_cache[key].info["seconds"] = time.perf_counter() - ts
+            stages["surfaces"] += surf_cache[key].info["seconds"]
         surfs = surf_cache[key]
         rec["surfaces"] = {**surfs.info, "tries": surfs.tries, "checks": [c.to_dict() for c in surfs.checks],
                            "problems": surfs.problems}
@@ -191,15 +194,19 @@ def build_model(labels: LabelVolume, *, scheme: LabelScheme, config: MeshConfig,
                           threads=config.threads, optimize_netgen=config.optimize_netgen,
                           feature_angle_deg=a["feature_angle_deg"])
         _progress(progress, f"meshing attempt {i + 1}/{len(plan)}: {a['algorithm']}, h = {h:.2f} mm")
+        tg = time.perf_counter()
         try:
             res = _orient(run_gmsh(req, timeout_s=config.timeout_s))
+            stages["gmsh"] += time.perf_counter() - tg
         except (TimeoutError, RuntimeError) as exc:
             rec["error"] = str(exc)
             log.warning("meshing attempt %d failed: %s", i + 1, exc)
             attempts.append(rec)
             i += 1
             continue
+        tc = time.perf_counter()
         fig, fail = evaluate(res, prep, sdf_outer, sdf_t, config)
+        stages["checks"] += time.perf_counter() - tc
         rec.update({"gmsh_seconds": res.seconds, "failed_checks": fail, "figures": fig})
         attempts.append(rec)
         miss = fig["n_nodes"] / config.target_nodes - 1.0
@@ -224,6 +231,7 @@ def build_model(labels: LabelVolume, *, scheme: LabelScheme, config: MeshConfig,
     model.meta.update({
         "settings": to_table(config), "scheme": scheme.to_dict(), "preparation": prep.info,
         "quality": fig, "attempts": attempts, "seconds_total": time.perf_counter() - t0,
+        "seconds_stages": {k: round(v, 3) for k, v in stages.items()},
         "source": str(labels.source) if labels.source is not None else None,
     })
     _progress(progress, f"model: {model.n_nodes} nodes, {model.n_tets} tets, {len(prep.tumours.kept)} tumour(s)")

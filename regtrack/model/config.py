@@ -21,7 +21,7 @@ class MeshConfig:
     Size control: when ``element_size_mm`` is given it wins; otherwise the element size
     ``h`` is chosen so the mesh has about ``target_nodes`` nodes.  For a quasi-uniform
     Delaunay mesh of a volume ``V`` (mm^3) the node count is ``N ~ c V / h^3`` with
-    ``c ~ 1.2`` (measured on gmsh meshes); ``h`` is re-estimated from the measured count
+    ``c ~ 1.0`` (measured on remeshed gmsh meshes); ``h`` is re-estimated from the measured count
     when the first mesh misses the target by more than ``node_tolerance``.
     """
 

@@ -1,7 +1,8 @@
 """Conforming tetrahedral meshing of nested closed surfaces with gmsh.
 
-The outer breast surface and the tumour surfaces (relaxed marching-cubes triangle meshes
-whose edge length already matches the element size) are merged as discrete gmsh surfaces
+The outer breast surface and the tumour surfaces (isotropically remeshed and checked
+triangle meshes whose edge length already matches the element size,
+:mod:`regtrack.model.boundary`) are merged as discrete gmsh surfaces
 and kept as the boundary mesh; the tissue volume is
 the outer surface loop with one hole per tumour and every tumour is its own volume
 bounded by the same surface loop, so tissue and tumours share the interface nodes.

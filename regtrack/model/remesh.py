@@ -35,8 +35,9 @@ from regtrack.model.surfaces import Surface, largest_component, vertex_normals
 log = logging.getLogger(__name__)
 
 # settings of the successive remeshing tries: (iterations, target length factor, chord
-# allowance a: tumours are kept (clearance + a L) inside the outer level set)
-REMESH_TRIES = ((10, 1.0, 0.2), (15, 0.93, 0.2), (10, 1.0, 0.35), (20, 1.07, 0.35))
+# allowance a: tumours are kept (clearance + a L) inside the outer level set, multiplier of
+# the tumours' closing/opening radius)
+REMESH_TRIES = ((10, 1.0, 0.2, 1.0), (15, 0.93, 0.2, 1.0), (10, 1.0, 0.35, 2.0), (12, 0.97, 0.35, 2.0))
 
 
 @dataclass
@@ -200,22 +201,29 @@ def remesh(surf: Surface, *, edge_mm: float, iterations: int = 10,
     return out
 
 
-def restore_volume(surf: Surface, volume_mm3: float, *, iterations: int = 3) -> Surface:
-    r"""Offset every vertex along its normal so the enclosed volume is ``volume_mm3``.
+def restore_volume(surf: Surface, volume_mm3: float, *, iterations: int = 3,
+                   movable: np.ndarray | None = None) -> Surface:
+    r"""Offset vertices along their normals so the enclosed volume is ``volume_mm3``.
 
     Remeshing a curved or irregular surface with long edges loses volume (chords cut the
     curvature; detail finer than the edges is smoothed away: -11 % on the 6 ml tumour of
-    Pelicano exam 11).  First-order correction, repeated ``iterations`` times:
+    Pelicano exam 11, -3 % on a 2,000-node phantom).  First-order correction, repeated
+    ``iterations`` times:
 
-    .. math:: x_i \leftarrow x_i + \delta\, n_i, \qquad \delta = (V^* - V) / A,
+    .. math:: x_i \leftarrow x_i + \delta\, n_i, \qquad \delta = (V^* - V) / A_m,
 
-    with ``A`` the surface area and ``n_i`` the unit vertex normals.
+    with ``n_i`` the unit vertex normals and ``A_m`` the area of the faces whose vertices
+    all move.  ``movable`` (bool per vertex, default all) keeps the cut-face vertices on
+    their planes.
     """
     v = np.array(surf.verts, float)
+    mv = np.ones(len(v), bool) if movable is None else np.asarray(movable, bool)
+    fm = mv[surf.faces].all(axis=1)
     for _ in range(iterations):
-        cur = Surface(v, surf.faces)
-        delta = (volume_mm3 - cur.volume) / max(cur.area, 1e-300)
-        v = v + delta * vertex_normals(v, surf.faces)
+        p = v[surf.faces[fm]]
+        area = 0.5 * float(np.linalg.norm(np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), axis=1).sum())
+        delta = (volume_mm3 - Surface(v, surf.faces).volume) / max(area, 1e-300)
+        v[mv] += delta * vertex_normals(v, surf.faces)[mv]
     return Surface(v, surf.faces)
 
 
