@@ -28,7 +28,9 @@ class SolverOptions:
       where ``u_start`` is the state at the start of the increment.
     """
 
-    force_tol: float = param(1e-6, "-", "relative residual tolerance (vs external force / reaction)", gt=0, lt=1)
+    force_tol: float = param(1e-4, "-", "relative residual tolerance (vs external force / reaction); "
+                             "1e-4 because frictional contact stalls at ~1e-5 (stick/slip switching), "
+                             "while the displacement criterion keeps the solution accurate", gt=0, lt=1)
     disp_tol: float = param(1e-4, "-", "relative displacement-correction tolerance (the error left is "
                             "~ the next, quadratically smaller correction)", gt=0, lt=1)
     force_floor_n: float = param(1e-9, "N", "absolute force floor of the residual reference", gt=0)
