@@ -55,6 +55,7 @@ class BreastSurfaces:
     problems: list[str] = field(default_factory=list)  # empty when every check passed
     tries: int = 1
     info: dict = field(default_factory=dict)
+    raw_outer: Surface | None = None  # marching-cubes outer surface (dense; nipple detection)
 
 
 def surface_step(edge_mm: float, spacing: np.ndarray, configured: int = 0) -> int:
@@ -147,7 +148,7 @@ def tumour_fields(prep: PreparedBreast, d_out: np.ndarray, *, smoothing_mm: floa
 def make_surfaces(prep: PreparedBreast, *, edge_mm: float, tumour_edges_mm: list[float],
                   smoothing_mm: float, tumour_smoothing_mm: float, clearance_mm: float,
                   feature_fraction: float, small_angle_deg: float, step_vox: int = 0,
-                  tries: int = len(REMESH_TRIES)) -> BreastSurfaces:
+                  tries: int = len(REMESH_TRIES), nipple_mm: np.ndarray | None = None) -> BreastSurfaces:
     """Checked, remeshed outer and tumour surfaces of ``prep`` (see the module docstring).
 
     Parameters
@@ -167,6 +168,10 @@ def make_surfaces(prep: PreparedBreast, *, edge_mm: float, tumour_edges_mm: list
         Marching-cubes step (0: automatic, :func:`surface_step`).
     tries : int
         Remeshing settings tried (first ones of ``REMESH_TRIES``) before giving up.
+    nipple_mm : (3,) array, optional
+        Nipple point (LPS mm) on the surface: the nearest skin vertex of the remeshed
+        outer surface is moved onto it, so the model has a node at the nipple however
+        coarse the mesh (at 5,000 nodes the nearest node was 4 mm away).
     """
     vol = prep.volume
     sp = vol.spacing
@@ -190,6 +195,10 @@ def make_surfaces(prep: PreparedBreast, *, edge_mm: float, tumour_edges_mm: list
         for p in prep.planes:
             on |= np.abs(p.distance(outer.verts)) < 1e-6
         outer = restore_volume(outer, raw_outer.volume, movable=~on)
+        if nipple_mm is not None:
+            skin = np.nonzero(~on)[0]
+            j = skin[np.argmin(np.linalg.norm(outer.verts[skin] - nipple_mm, axis=1))]
+            outer.verts[j] = nipple_mm
         tums = [restore_volume(remesh(s, edge_mm=e * fac, iterations=iters), s.volume)
                 for s, e in zip(raw_t[tkey], tumour_edges_mm)]
         chk = check_surfaces([outer] + tums, small_angle_deg=small_angle_deg, planes=tuple(prep.planes))
@@ -198,7 +207,8 @@ def make_surfaces(prep: PreparedBreast, *, edge_mm: float, tumour_edges_mm: list
         res = BreastSurfaces(outer, tums, [t.volume_mm3 for t in prep.tumours.kept], chk, problems, k + 1,
                              {"marching_cubes_step_vox": step, "snap_mm": snap, "iterations": iters,
                               "edge_factor": fac, "feature_radius_mm": feature_fraction * edge_mm,
-                              "tumour_clearance_mm": clear, "tumour_feature_radius_factor": tfeat * feature_fraction})
+                              "tumour_clearance_mm": clear, "tumour_feature_radius_factor": tfeat * feature_fraction},
+                             raw_outer)
         if not problems:
             return res
         log.info("remeshing try %d (%d iterations, edge x %.2f, clearance %.2f mm): %s", k + 1, iters, fac, clear,

@@ -158,6 +158,7 @@ def build_model(labels: LabelVolume, *, scheme: LabelScheme, config: MeshConfig,
     sdf_outer = checks.SignedDistance.of_mask(prep.breast, prep.volume.affine)
     sdf_t = [checks.SignedDistance.of_mask(prep.tumours.labelled == t.component, prep.volume.affine)
              for t in prep.tumours.kept]
+    nipple_target, nipple_src = _nipple_target(prep, config, nipple_lps)
     attempts, best = [], None
     size_scale = 1.0
     surf_cache: dict = {}
@@ -176,7 +177,8 @@ def build_model(labels: LabelVolume, *, scheme: LabelScheme, config: MeshConfig,
                 prep, edge_mm=h, tumour_edges_mm=hts, smoothing_mm=a["smoothing_mm"],
                 tumour_smoothing_mm=config.tumour_smoothing_mm, clearance_mm=config.tumour_clearance_mm,
                 feature_fraction=config.feature_fraction, small_angle_deg=config.min_triangle_angle_deg,
-                step_vox=config.surface_step_vox)
+                step_vox=config.surface_step_vox,
+                nipple_mm=nipple_target if nipple_src == "detected" else None)
             surf_cache[key].info["seconds"] = time.perf_counter() - ts
             stages["surfaces"] += surf_cache[key].info["seconds"]
         surfs = surf_cache[key]
@@ -227,7 +229,7 @@ def build_model(labels: LabelVolume, *, scheme: LabelScheme, config: MeshConfig,
             + ("; ".join(last.get("failed_checks", [])) or last.get("error", "?"))
             + "; try [model] element_size_mm, smoothing_mm or algorithm", figures={"attempts": attempts})
     res, fig = best
-    model = _assemble(res, prep, surf_cache, nipple_lps, config)
+    model = _assemble(res, prep, nipple_target, nipple_src, config)
     model.meta.update({
         "settings": to_table(config), "scheme": scheme.to_dict(), "preparation": prep.info,
         "quality": fig, "attempts": attempts, "seconds_total": time.perf_counter() - t0,
@@ -238,7 +240,20 @@ def build_model(labels: LabelVolume, *, scheme: LabelScheme, config: MeshConfig,
     return model
 
 
-def _assemble(res: MeshResult, prep: PreparedBreast, surf_cache: dict, nipple_lps,
+def _nipple_target(prep: PreparedBreast, config: MeshConfig, nipple_lps) -> tuple[np.ndarray, str]:
+    """Nipple point (LPS mm): the explicit one, else detected on a dense marching-cubes skin."""
+    if nipple_lps is not None:
+        return np.asarray(nipple_lps, float), "explicit"
+    from regtrack.model.boundary import outer_field
+    from regtrack.model.surfaces import extract_surface
+
+    g = outer_field(prep, smoothing_mm=config.smoothing_mm, feature_mm=0.0)
+    dense = extract_surface(g, prep.volume.affine, step=1, relax_iterations=0)
+    sv = skin_vertices(dense, prep.planes, tol_mm=0.5 * float(np.mean(prep.volume.spacing)))
+    return detect_nipple(dense.verts[sv], prep.chest_wall.plane.normal, depth_mm=config.nipple_depth_mm), "detected"
+
+
+def _assemble(res: MeshResult, prep: PreparedBreast, target: np.ndarray, nip_src: str,
               config: MeshConfig) -> BreastModel:
     pts = res.points
     cw = prep.chest_wall.plane
@@ -257,14 +272,6 @@ def _assemble(res: MeshResult, prep: PreparedBreast, surf_cache: dict, nipple_lp
     fixed = np.abs(cw.distance(pts)) < tol
     anterior = cw.normal
     skin_nodes = np.unique(skin)
-    if nipple_lps is not None:
-        target = np.asarray(nipple_lps, float)
-        nip_src = "explicit"
-    else:
-        outer = list(surf_cache.values())[-1].outer
-        sv = skin_vertices(outer, prep.planes)
-        target = detect_nipple(outer.verts[sv], anterior, depth_mm=config.nipple_depth_mm)
-        nip_src = "detected"
     dn = np.linalg.norm(pts[skin_nodes] - target, axis=1)
     nipple = int(skin_nodes[np.argmin(dn)])
     if nip_src == "explicit" and dn.min() > 5.0:
