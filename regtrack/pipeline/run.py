@@ -139,15 +139,24 @@ def _run_case(case_dir, found: Identifiers, ids: Identifiers, *, overrides, view
 
     case = load_case(case_dir)
     all_views = tuple(case.views)
-    views = tuple(v.upper() for v in (views or all_views))
-    missing = [v for v in views if v not in case.views]
-    if missing:
-        raise CaseError(f"{case.toml_path}: view(s) {', '.join(missing)} requested but the case "
-                        f"has {', '.join(all_views) or 'no views'}; add [views.{missing[0]}] or "
-                        "choose --views from those")
-    if not views:
-        raise CaseError(f"{case.toml_path}: the case has no [views.*]; add [views.CC] with a "
-                        "mammogram to run the pipeline")
+    if not all_views:
+        # no mammograms: simulate and project (virtual mammograms only), say so
+        views = tuple(v.upper() for v in (views or ("CC", "MLO")))
+        log.warning("%s: the case has no [views.*] (no real mammograms): running mesh, "
+                    "simulation and virtual mammograms only; registration and metrics need "
+                    "[views.CC]/[views.MLO] with a mammogram", case.toml_path)
+        if progress is not None:
+            progress("no real mammograms in this case: registration and metrics are skipped")
+    else:
+        views = tuple(v.upper() for v in (views or all_views))
+        missing = [v for v in views if v not in case.views]
+        if missing:
+            raise CaseError(f"{case.toml_path}: view(s) {', '.join(missing)} requested but the "
+                            f"case has {', '.join(all_views)}; add [views.{missing[0]}] or "
+                            "choose --views from those")
+    unknown = [v for v in views if v not in ("CC", "MLO")]
+    if unknown:
+        raise CaseError(f"--views: unknown view {unknown[0]!r}; use CC and/or MLO")
     configs, protocol_tables = effective_configs(case, overrides)
     cache = StageCache(Path(cache_dir) if cache_dir else Path(".regtrack-cache"))
     if not keep_identifiers:
@@ -156,13 +165,16 @@ def _run_case(case_dir, found: Identifiers, ids: Identifiers, *, overrides, view
     ctx = RunContext(case, configs, protocol_tables, cache, progress=progress, ids=ids)
     # the real mammograms first: a bad DICOM fails in seconds, before any stage is
     # computed or cached
-    reals = {view: stages.real_stage(ctx, view) for view in views}
+    reals = {view: stages.real_stage(ctx, view) for view in views if view in case.views}
     mesh_out = stages.mesh_stage(ctx)
     results = []
     for view in views:
         sim = stages.simulate_stage(ctx, mesh_out, view)
         virtual = stages.virtual_stage(ctx, mesh_out, sim, view)
-        results.append(stages.align_stage(ctx, mesh_out, sim, virtual, reals[view], view))
+        if view in reals:
+            results.append(stages.align_stage(ctx, mesh_out, sim, virtual, reals[view], view))
+        else:
+            results.append(stages.virtual_only(ctx, sim, virtual, view))
     rows = [r.row for r in results]
     ctx.timings["total"] = time.perf_counter() - t_start
     if out_dir is not None:

@@ -237,6 +237,15 @@ def align_stage(ctx, mesh: MeshOutput, sim: SimOutput, vm, real, view: str) -> V
     return ViewOutcome(view, sim.key, row, real, vm, al, m, sim)
 
 
+def virtual_only(ctx, sim: SimOutput, vm, view: str) -> ViewOutcome:
+    """Outcome of a view without a real mammogram: simulation figures only."""
+    row = {"case_id": ctx.case.id, "view": view, "D": sim.summary.get("D"),
+           "force_N": sim.summary.get("upper_force_N"),
+           "max_penetration_mm": sim.summary.get("max_penetration_mm"),
+           "newton_iterations": sim.summary.get("iterations")}
+    return ViewOutcome(view, sim.key, row, None, vm, None, None, sim)
+
+
 # -- outputs ------------------------------------------------------------------------------
 def report_stage(ctx, mesh: MeshOutput, results: list[ViewOutcome], out: Path, prov: dict) -> Path:
     """Per-view JSON and figures, then the PDF report."""
@@ -248,13 +257,16 @@ def report_stage(ctx, mesh: MeshOutput, results: list[ViewOutcome], out: Path, p
     views = []
     for r in results:
         vdir = out / r.view.lower()
-        _io.write_json(vdir / "real.json", ctx.clean(r.real.to_dict()))
         _io.write_json(vdir / "virtual.json", ctx.clean(r.virtual.view.to_dict()))
-        _io.write_json(vdir / "alignment.json", ctx.clean(r.alignment.to_dict()))
         _io.write_json(vdir / "simulation.json", ctx.clean({"summary": r.sim.summary,
                                                             "steps": r.sim.steps}))
-        F.save_figure(F.overlay_figure(r.real, r.virtual.view, r.alignment), vdir / "overlay.png")
-        F.save_figure(F.images_figure(r.real, r.virtual.view), vdir / "images.png")
+        if r.real is not None:
+            _io.write_json(vdir / "real.json", ctx.clean(r.real.to_dict()))
+            _io.write_json(vdir / "alignment.json", ctx.clean(r.alignment.to_dict()))
+            F.save_figure(F.overlay_figure(r.real, r.virtual.view, r.alignment), vdir / "overlay.png")
+            F.save_figure(F.images_figure(r.real, r.virtual.view), vdir / "images.png")
+        else:
+            F.save_figure(F.virtual_figure(r.virtual.view), vdir / "virtual.png")
         for p in r.sim.pictures:
             _io.write_bytes(vdir / f"compression{p.suffix}", p.read_bytes())
         steps = [{"step": s.get("name"), "D": s.get("D"), "force_N": (s.get("contact") or {})
@@ -275,7 +287,7 @@ def report_stage(ctx, mesh: MeshOutput, results: list[ViewOutcome], out: Path, p
     pics = []
     for p in mesh.pictures:
         pics.append(_io.write_bytes(out / "model" / p.name, p.read_bytes()))
-    tracking = _tracking_section(mesh, results, out)
+    tracking = _tracking_section(mesh, results, out) if all(r.real is not None for r in results) else None
     rep = CaseReport(ctx.case.id, ctx.case.title, views, ms, pics, prov["config"], prov,
                      extra_pages=[tracking] if tracking else [])
     path = write_pdf(rep, out / "report.pdf")

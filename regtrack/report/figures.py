@@ -104,6 +104,27 @@ def images_figure(real: MammogramView, virtual: MammogramView, alignment: Alignm
     return fig
 
 
+def virtual_figure(virtual: MammogramView):
+    """The X-ray-like virtual mammogram with its contours (no real mammogram to compare)."""
+    plt = _plt()
+    fig, ax = plt.subplots(1, 1, figsize=(6, 5))
+    if virtual.image is not None:
+        ax.imshow(virtual.image, cmap="gray", extent=image_extent(virtual), vmin=0, vmax=1)
+    else:
+        ax.invert_yaxis()
+    ax.plot(*virtual.breast_contour.T, color=VIRTUAL, lw=1.2, label="breast contour")
+    for k, t in enumerate(virtual.tumour_contours):
+        ax.plot(*_closed(t).T, color="tab:orange", lw=1.0, label="tumour" if k == 0 else None)
+    ax.plot(*virtual.nipple, "o", color="tab:orange", ms=4, label="nipple")
+    ax.set_title(f"virtual {virtual.view} ({virtual.laterality})", fontsize=10)
+    ax.set_aspect("equal")
+    ax.set_xlabel("x (mm)")
+    ax.set_ylabel("y (mm)")
+    ax.legend(fontsize=7, loc="lower left")
+    fig.tight_layout()
+    return fig
+
+
 def save_figure(fig, path: str | Path, *, dpi: int = 130) -> Path:
     """Save ``fig`` atomically (format from the suffix) and close it."""
     plt = _plt()

@@ -167,6 +167,12 @@ def write_pdf(report: CaseReport, path: str | Path) -> Path:
                 _table(fig.add_axes([0.04, 0.5, 0.92, 0.4]), keys, cells)
                 pdf.savefig(fig)
                 plt.close(fig)
+            if v.real is None and v.virtual is not None:
+                fig = F.virtual_figure(v.virtual)
+                fig.suptitle(f"{v.view}: virtual mammogram (no real mammogram in the case)",
+                             fontsize=11)
+                pdf.savefig(fig)
+                plt.close(fig)
             if v.real is not None and v.virtual is not None and v.alignment is not None:
                 fig = plt.figure(figsize=(8.27, 11.69))
                 axes = [fig.add_axes([0.07, 0.56, 0.4, 0.36]), fig.add_axes([0.55, 0.56, 0.4, 0.36])]
