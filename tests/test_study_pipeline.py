@@ -44,6 +44,10 @@ def test_real_pipeline_local_equals_dask(tmp_path):
     for c in cases:
         if not (c / "case.toml").is_file():
             pytest.skip(f"sample case missing: {c}")
+        if "[views." not in (c / "case.toml").read_text():
+            # Figure 8 plots BS_Av/TS_Av, which need real mammograms; until both cases
+            # carry them this acceptance test cannot say anything (issue 8 stays open)
+            pytest.skip(f"{c.name} has no mammograms ([views.*]) yet: BS_Av/TS_Av cannot be computed")
     p = tmp_path / "s.toml"
     p.write_text(STUDY.format(a=cases[0], b=cases[1]))
     rc_local = main(["-q", "study", str(p), "--out", str(tmp_path / "local"), "--no-progress"])
