@@ -69,3 +69,16 @@ def test_model_io_roundtrip(tmp_path):
     np.testing.assert_array_equal(m2.skin, [[1, 2, 4]])
     assert m2.nipple == 4 and m2.frame.side == "L" and m2.meta == {"k": 1}
     np.testing.assert_allclose(m2.frame.to_patient(m2.frame.to_model([5, 6, 7])), [5, 6, 7])
+
+
+def test_run_set_overrides_parse_into_sections():
+    from regtrack.cli.run import parse_sets
+    from regtrack.errors import ConfigError
+
+    assert parse_sets(["model.target_nodes=3000", "protocol.CC.target_D=0.3",
+                       "contact.method=penalty", "mechanics.skin_enabled=false"]) == {
+        "model": {"target_nodes": 3000}, "protocol": {"CC": {"target_D": 0.3}},
+        "contact": {"method": "penalty"}, "mechanics": {"skin_enabled": False}}
+    for bad in ("target_nodes=3", "model.=3", "model.target_nodes"):
+        with pytest.raises(ConfigError, match="SECTION.KEY=VALUE"):
+            parse_sets([bad])

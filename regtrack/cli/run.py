@@ -15,6 +15,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--cache", default=".regtrack-cache",
                    help="stage cache folder; finished stages are re-used (default: .regtrack-cache)")
     p.add_argument("--no-report", action="store_true", help="metrics only, no figures or PDF")
+    p.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE",
+                   help="override a case.toml setting for this run, e.g. --set model.target_nodes=3000 "
+                        "or --set protocol.CC.target_D=0.3 (VALUE is a TOML literal; repeatable)")
     p.add_argument("--keep-identifiers", action="store_true",
                    help="copy the DICOM patient identifiers into provenance.json (default: none "
                         "reaches any output, log or figure; the case id is checked too)")
@@ -47,8 +50,9 @@ def run(args: argparse.Namespace) -> int:
     # stage messages go to the console; keep library INFO logs for --debug
     if not logging.getLogger().isEnabledFor(logging.DEBUG):
         logging.getLogger("regtrack").setLevel(logging.WARNING)
-    rows = run_case(args.case, views=views, cache_dir=args.cache, out_dir=out, progress=progress,
-                    report=not args.no_report, keep_identifiers=args.keep_identifiers)
+    rows = run_case(args.case, overrides=parse_sets(args.set), views=views, cache_dir=args.cache,
+                    out_dir=out, progress=progress, report=not args.no_report,
+                    keep_identifiers=args.keep_identifiers)
     for r in rows:
         def f(k, fmt):
             v = r.get(k)
@@ -58,3 +62,27 @@ def run(args: argparse.Namespace) -> int:
                       f"d_B {f('d_B', '.2f')} mm")
     console.print(f"report written to {out} ({time.perf_counter() - t0:.1f} s)")
     return 0
+
+
+def parse_sets(items: list[str]) -> dict:
+    """``["model.target_nodes=3000", "protocol.CC.target_D=0.3"]`` -> nested overrides."""
+    import tomllib
+
+    from regtrack.errors import ConfigError
+
+    out: dict = {}
+    for item in items:
+        key, sep, value = item.partition("=")
+        parts = [k.strip() for k in key.split(".")]
+        if not sep or len(parts) < 2 or not all(parts):
+            raise ConfigError(f"--set {item!r}: expected SECTION.KEY=VALUE, e.g. "
+                              "--set model.target_nodes=3000")
+        try:
+            parsed = tomllib.loads(f"v = {value.strip()}")["v"]
+        except tomllib.TOMLDecodeError:
+            parsed = value.strip()  # a bare word is a string
+        node = out
+        for k in parts[:-1]:
+            node = node.setdefault(k, {})
+        node[parts[-1]] = parsed
+    return out
