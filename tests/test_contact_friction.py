@@ -180,3 +180,52 @@ def test_automatic_penalty_rule_and_config_validation():
     assert any("friction" in p and "-0.1" in p for p in problems)
     assert any("method" in p and "augmented-lagrangian" in p for p in problems)
     assert any("did you mean 'method'" in w for w in warnings)
+
+
+def test_slow_uzawa_nodes_get_a_larger_penalty():
+    """Node-wise penalty growth (contact.py docstring): a node whose violation did not fall
+    below ``slow_uzawa_ratio`` of the previous one between two multiplier updates gets
+    ``penalty_growth`` times its penalty; nodes within the tolerance, or converging, keep it.
+    The mock "body" does not move (the stiff-support limit, where plain Uzawa stalls)."""
+    X = np.array([[10.0, 0.0, -0.5],    # penetrating 0.5 mm: too deep, and stays there
+                  [12.0, 0.0, -0.01],   # within penetration_tol (0.02 mm)
+                  [14.0, 0.0, 2.0]])    # off contact
+    c = _contact(X, mu=0.0, method="augmented-lagrangian", eps=2.0)
+    c.set_time(0.0)
+    u = np.zeros(X.size)
+    assert not c.augment(u)                    # first update: no history yet, no growth
+    np.testing.assert_array_equal(c.eps_node, [2.0, 2.0, 2.0])
+    assert not c.augment(u)                    # violation unchanged (ratio 1 > 0.3): grows
+    np.testing.assert_array_equal(c.eps_node, [8.0, 2.0, 2.0])
+    # a node that converges fast keeps its penalty: move it to 0.1 mm (ratio 0.2 < 0.3)
+    u1 = u.reshape(-1, 3).copy()
+    u1[0, 2] = 0.4
+    assert not c.augment(u1)
+    np.testing.assert_array_equal(c.eps_node, [8.0, 2.0, 2.0])
+    # the growth is capped at penalty_growth_max (256) times the automatic penalty
+    for _ in range(10):
+        c.augment(u)
+    assert c.eps_node[0] == pytest.approx(2.0 * 256)
+    # a new increment forgets the violation history, not the grown penalty
+    c.set_time(0.5)
+    assert c._viol_last is None and c.eps_node[0] == pytest.approx(512.0)
+
+
+def test_frozen_state_has_a_hysteresis_band():
+    """A held stick/slip state (chatter control) is kept while the trial force eps_T |g_T|
+    is within [B/2, 2B] of the slip bound B, and given up beyond the band."""
+    from regtrack.mechanics import friction as fr
+
+    n = np.tile([0.0, 0.0, 1.0], (4, 1))
+    anchor = np.zeros((4, 3))
+    B, eps_t = 1.0, 10.0                               # slip at |g_T| > 0.1 mm
+    x = np.array([[0.06, 0, 0], [0.03, 0, 0], [0.15, 0, 0], [0.25, 0, 0]])
+    act = np.ones(4, bool)
+    frozen = np.array([fr.SLIP, fr.SLIP, fr.STICK, fr.STICK], np.int8)
+    tr = fr.return_map(x, anchor, n, act, np.full(4, B), eps_t=eps_t, frozen=frozen)
+    # trial force 0.6 B: held slip kept; 0.3 B: below B/2, sticks; 1.5 B: held stick
+    # kept; 2.5 B: beyond 2 B, slips
+    np.testing.assert_array_equal(tr.slip, [True, False, False, True])
+    np.testing.assert_allclose(np.linalg.norm(tr.t, axis=1), [B, 0.3, 1.5, B])
+    free = fr.return_map(x, anchor, n, act, np.full(4, B), eps_t=eps_t)
+    np.testing.assert_array_equal(free.slip, [False, False, True, True])

@@ -22,10 +22,11 @@ class SolverOptions:
 
     Convergence of an increment requires *both*
 
-    * force: ``||R_free||_2 <= force_tol * F_ref`` with
-      ``F_ref = max(||f_ext||_2, ||reaction||_2, ||f_int||_2 / sqrt(ndof), force_floor_n)``;
-    * displacement: ``||du||_inf <= disp_tol * max(||u - u_start||_inf, disp_floor_mm)``,
-      where ``u_start`` is the state at the start of the increment.
+    * force: ``||R_free||_2 <= force_tol * F_ref`` with ``F_ref = max(||f_ext||_2,
+      ||reaction||_2, ||f_contact||_2, ||f_int||_2 / sqrt(ndof), force_floor_n)``;
+    * displacement: ``||du||_inf <= disp_tol * max(||u - u_start||_inf, disp_floor_mm)`` or
+      ``||du||_inf <= disp_abs_tol_mm``, where ``u_start`` is the state at the start of
+      the increment.
     """
 
     force_tol: float = param(1e-4, "-", "relative residual tolerance (vs external force / reaction); "
@@ -33,9 +34,18 @@ class SolverOptions:
                              "while the displacement criterion keeps the solution accurate", gt=0, lt=1)
     disp_tol: float = param(1e-4, "-", "relative displacement-correction tolerance (the error left is "
                             "~ the next, quadratically smaller correction)", gt=0, lt=1)
+    disp_abs_tol_mm: float = param(0.01, "mm", "a correction this small passes the displacement test "
+                                   "whatever the increment's motion (a tenth of a 0.1 mm mammogram "
+                                   "pixel; the force test must pass as well)", gt=0)
     force_floor_n: float = param(1e-9, "N", "absolute force floor of the residual reference", gt=0)
     disp_floor_mm: float = param(1e-6, "mm", "absolute displacement floor of the correction reference", gt=0)
     max_iterations: int = param(15, "-", "Newton iterations per increment before a cut-back", ge=2, le=200)
+    extra_iterations: int = param(5, "-", "iterations allowed beyond max_iterations while the residual "
+                                  "still falls by 10x per iteration (quadratic convergence about to "
+                                  "finish: cheaper than a cut-back)", ge=0, le=50)
+    stagnation_ratio: float = param(0.5, "-", "after 3 iterations, a residual above this fraction of the "
+                                    "smallest of the 3 before it freezes the contact state (stick/slip "
+                                    "chatter control, checked after convergence)", gt=0, le=1)
     initial_increment: float = param(0.25, "-", "first pseudo-time increment of a step", gt=0, le=1)
     min_increment: float = param(1e-4, "-", "smallest increment before giving up", gt=0, le=1)
     max_increment: float = param(1.0, "-", "largest increment", gt=0, le=1)

@@ -86,6 +86,10 @@ class Traction:
                            ("t", "stick", "slip", "ghat", "gt", "gn", "d", "bound")})
 
 
+#: Width of the band around the slip bound in which a held (frozen) stick/slip state is kept.
+FREEZE_HYSTERESIS = 2.0
+
+
 def return_map(x: np.ndarray, anchor: np.ndarray, normal: np.ndarray, active: np.ndarray,
                bound: np.ndarray, *, eps_t: float, frozen: np.ndarray | None = None) -> Traction:
     """Stick/slip return mapping (see the module docstring).
@@ -109,7 +113,13 @@ def return_map(x: np.ndarray, anchor: np.ndarray, normal: np.ndarray, active: np
     B = np.where(active, np.maximum(bound, 0.0), 0.0)
     stick = eps_t * gn <= B
     if frozen is not None:
-        stick = np.where(frozen == STICK, True, np.where(frozen == SLIP, False, stick))
+        # held state with a hysteresis band: a held node keeps its state while its trial
+        # force eps_T |g_T| stays within [B / h, h B] of the bound (no chatter at the
+        # boundary), and changes state beyond it (a node held as slipping whose g_T
+        # shrinks to ~0 would have a slip direction of round-off and a tangent B / |g_T|)
+        h = FREEZE_HYSTERESIS
+        stick = np.where(frozen == STICK, eps_t * gn <= h * B,
+                         np.where(frozen == SLIP, eps_t * gn <= B / h, stick))
     stick &= active
     slip = active & ~stick & (gn > 0)
     ghat = gt / np.where(gn > 0, gn, 1.0)[:, None]

@@ -12,8 +12,17 @@ the factorisation analysis is re-used; the prescribed increment enters the first
 iteration's right-hand side (``-K_fc du_c``), which is the linear predictor.
 
 Convergence (both, see :class:`.config.SolverOptions`): ``||R_free|| <= force_tol * F_ref``
-with ``F_ref = max(||f_ext||, ||reaction||, ||f_int|| / sqrt(ndof), force_floor)``, and
-``||du||_inf <= disp_tol * max(||u - u_start||_inf, disp_floor)`` (constraints met).
+with ``F_ref = max(||f_ext||, ||reaction||, ||f_c||, ||f_int|| / sqrt(ndof), force_floor)``
+(``f_c``: the contributions' (contact) forces, loads on the body like gravity), and
+``||du||_inf <= max(disp_tol * max(||u - u_start||_inf, disp_floor), disp_abs_tol)``
+(constraints met); ``u_start`` is the state at the start of the increment, also for the
+re-solves after a multiplier update.
+
+Contact-state chatter control: when the residual stops falling (after 3 iterations, above
+``stagnation_ratio`` of the smallest of the 3 before), the contributions are asked to
+``freeze()`` their state (stick/slip) for the rest of the solve; they check it after
+convergence (:meth:`.contact.PlateContact.augment`).  An increment whose residual still
+falls tenfold per iteration at ``max_iterations`` gets up to ``extra_iterations`` more.
 Line search: accept the step length ``a`` when ``du.R(u + a du) <= ratio |du.R(u)|``
 (else secant update, bounded to [0.1, 1] of the current ``a``); elements may not invert.
 An increment that fails (iterations exhausted, divergence, inversion, NaN) is rolled
@@ -97,6 +106,7 @@ class _Newton:
         self.stats = stats
         self.ls = linsolver
         self._cons_cache: dict[bytes, _Constraints] = {}
+        self.first_solve_iterations = 0
 
     def constraints(self, dofs: np.ndarray) -> _Constraints:
         key = dofs.tobytes()
@@ -113,12 +123,16 @@ class _Newton:
         R = ev.f - fext
         ktan = []
         t0 = time.perf_counter()
+        fc2 = 0.0
         for c in self.contribs:
             rc, kc = c.residual_tangent(u.reshape(-1, 3))
-            R = R + np.asarray(rc, float).reshape(-1)
+            rc = np.asarray(rc, float).reshape(-1)
+            fc2 += float(rc @ rc)
+            R = R + rc
             if kc is not None and want_k:
                 ktan.append(kc)
         self.stats.t_contrib += time.perf_counter() - t0
+        ev.contrib_norm = np.sqrt(fc2)  # |contact forces|, part of the force reference
         return R, ev, ktan
 
     def matrix(self, ev, ktan: list):
@@ -145,10 +159,17 @@ class _Newton:
         return K, not extra
 
     def solve_increment(self, u_start: np.ndarray, fext: np.ndarray, dofs: np.ndarray, vals: np.ndarray,
-                        hist: list[float]) -> np.ndarray:
+                        hist: list[float], u_base: np.ndarray | None = None) -> np.ndarray:
+        """Newton solve from ``u_start``; ``u_base`` (default ``u_start``) is the state at the
+        start of the increment, the reference of the displacement test (a re-solve after a
+        multiplier update starts from the converged state, but its corrections are judged
+        against the whole increment's motion, not against the re-solve's own)."""
         o = self.o
         cons = self.constraints(dofs)
         u = u_start.copy()
+        base = u_start if u_base is None else u_base
+        n_hist0 = len(hist)
+        frozen = False
         fnorm_ext = float(np.linalg.norm(fext))
         du_prev = np.inf
 
@@ -156,14 +177,18 @@ class _Newton:
             """(residual norm, converged?) of the state u reached by the correction du_last."""
             ducon = np.zeros_like(u)
             ducon[dofs] = vals - u[dofs]
-            f_ref = max(fnorm_ext, float(np.linalg.norm(R[cons.mask])),
+            f_ref = max(fnorm_ext, float(np.linalg.norm(R[cons.mask])), ev.contrib_norm,
                         float(np.linalg.norm(ev.f)) / np.sqrt(len(u)), o.force_floor_n)
             rn = float(np.linalg.norm(R[cons.free]))
-            u_ref = max(float(np.max(np.abs(u - u_start), initial=0.0)), o.disp_floor_mm)
+            u_ref = max(float(np.max(np.abs(u - base), initial=0.0)), o.disp_floor_mm)
             cons_ok = not np.any(ducon) or float(np.max(np.abs(ducon))) <= o.disp_tol * u_ref
-            return rn, ducon, (rn <= o.force_tol * f_ref and cons_ok and du_last <= o.disp_tol * u_ref)
+            du_ok = du_last <= o.disp_tol * u_ref or du_last <= o.disp_abs_tol_mm
+            return rn, ducon, (rn <= o.force_tol * f_ref and cons_ok and du_ok)
 
-        for it in range(o.max_iterations + 1):
+        limit = o.max_iterations
+        it = -1
+        while True:
+            it += 1
             R, ev, ktan = self.residual(u, fext, want_k=True)
             if R is None:
                 raise _Failed("inverted elements or non-finite forces")
@@ -171,8 +196,24 @@ class _Newton:
             hist.append(rn)
             if ok:
                 return u
-            if it == o.max_iterations:
-                break
+            rs = hist[n_hist0:]
+            if it >= limit:
+                # still converging fast (each of the last two residuals below a tenth of the one
+                # before): a few more iterations finish it, cheaper than a cut-back
+                if (limit < o.max_iterations + o.extra_iterations and len(rs) >= 3
+                        and rs[-1] < 0.1 * rs[-2] and rs[-2] < 0.1 * rs[-3]):
+                    limit += 1
+                    self.stats.extra_iterations += 1
+                else:
+                    break
+            if not frozen and it >= 3 and rn > o.stagnation_ratio * min(rs[-4:-1]):
+                # no progress over the last iterations: contact-state chatter (stick/slip
+                # switching); freeze the contributions' state for the rest of this solve
+                frozen = True
+                for c in self.contribs:
+                    if hasattr(c, "freeze"):
+                        c.freeze()
+                self.stats.freezes += 1
             if it > 2 and rn > 1e8 * max(hist[0], o.force_floor_n):
                 raise _Failed("residual diverged")
             self.stats.iterations += 1
@@ -205,7 +246,7 @@ class _Newton:
                 if ok1:
                     hist.append(rn1)
                     return u
-        raise _Failed(f"no convergence in {o.max_iterations} iterations (|R| = {hist[-1]:.3g} N)")
+        raise _Failed(f"no convergence in {limit} iterations (|R| = {hist[-1]:.3g} N)")
 
     def forcing(self, hist: list[float]) -> float | None:
         """Relative tolerance of the linear solve (inexact Newton, Eisenstat & Walker 1996,
@@ -314,7 +355,7 @@ def solve_step(problem: Problem, u0: np.ndarray, *, gravity: Gravity | None = No
             c.commit(u.reshape(-1, 3))
         if newton.contribs:
             stats.reports.append({"t": t, **{c.name: c.report(u.reshape(-1, 3)) for c in newton.contribs}})
-        if stats.iterations - it0 <= o.easy_iterations:
+        if newton.first_solve_iterations <= o.easy_iterations:  # augmentation re-solves not counted
             dt = min(dt * o.growth, o.max_increment)
         if progress is not None:
             progress(step_name, t)
@@ -346,13 +387,15 @@ def _increment(newton: _Newton, u: np.ndarray, t: float, gravity, dirichlet, his
         c.set_time(t)
     fext = body_force(p, gravity(t)) if gravity is not None else np.zeros(p.n_dofs)
     dofs, vals = _constraint_targets(p, u, dirichlet, t)
+    it0 = newton.stats.iterations
     u_new = newton.solve_increment(u, fext, dofs, vals, hist)
+    newton.first_solve_iterations = newton.stats.iterations - it0
     for _ in range(o.max_augmentations):
         done = [c.augment(u_new.reshape(-1, 3)) for c in newton.contribs]
         if all(done):
             return u_new
         newton.stats.augmentations += 1
-        u_new = newton.solve_increment(u_new, fext, dofs, vals, hist)
+        u_new = newton.solve_increment(u_new, fext, dofs, vals, hist, u_base=u)
     raise _Failed(f"augmented-Lagrangian multipliers not converged after {o.max_augmentations} updates")
 
 

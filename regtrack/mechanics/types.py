@@ -24,6 +24,8 @@ class StepStats:
     iterations: int = 0
     cutbacks: int = 0
     augmentations: int = 0
+    extra_iterations: int = 0
+    freezes: int = 0
     line_search_trials: int = 0
     factorisations: int = 0
     analyses: int = 0
@@ -39,7 +41,8 @@ class StepStats:
     reports: list[dict] = field(default_factory=list)
 
     def to_dict(self) -> dict:
-        keys = ("name", "increments", "iterations", "cutbacks", "augmentations", "line_search_trials",
+        keys = ("name", "increments", "iterations", "cutbacks", "augmentations", "extra_iterations",
+                "freezes", "line_search_trials",
                 "factorisations", "analyses", "krylov_solves", "krylov_iterations", "t_assembly", "t_contrib",
                 "t_solve", "t_line_search", "t_total", "cpu_total")
         d = {k: getattr(self, k) for k in keys}
