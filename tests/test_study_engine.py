@@ -27,6 +27,9 @@ from tests._study_fakes import builds, calls, make_case
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
+# real process pools (one loses a worker on purpose) run in a child pytest: conftest.py
+pytestmark = pytest.mark.isolated
+
 STUDY = """
 [study]
 name = "fake"
