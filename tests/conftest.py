@@ -45,16 +45,20 @@ def pytest_pyfunc_call(pyfuncitem):
     the study files alone): a file descriptor that pytest's capture had re-used was closed
     under it.  In a child process whatever the pools leave behind dies with the child.
     """
+    import re
     import subprocess
     import sys
 
     if pyfuncitem.get_closest_marker("isolated") is None or os.environ.get(_CHILD) == "1":
         return None
     env = {**os.environ, _CHILD: "1"}
-    proc = subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider",
+    proc = subprocess.run([sys.executable, "-m", "pytest", "-q", "-rs", "-p", "no:cacheprovider",
                            pyfuncitem.nodeid], cwd=pyfuncitem.config.rootpath, env=env,
                           stdin=subprocess.DEVNULL, capture_output=True, text=True, timeout=3600)
     if proc.returncode != 0:
         pytest.fail(f"isolated run of {pyfuncitem.nodeid} failed (exit {proc.returncode}):\n"
                     + (proc.stdout + proc.stderr)[-6000:], pytrace=False)
+    skipped = re.search(r"^SKIPPED \[\d+\] [^\n]*?: (.*)$", proc.stdout, re.M)
+    if skipped and " passed" not in proc.stdout.strip().splitlines()[-1]:
+        pytest.skip(skipped.group(1))  # a skip in the child is a skip here, not a pass
     return True

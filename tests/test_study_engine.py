@@ -27,7 +27,8 @@ from tests._study_fakes import builds, calls, make_case
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
-# real process pools (one loses a worker on purpose) run in a child pytest: conftest.py
+# real process pools (one loses a worker on purpose) and a Dask LocalCluster run in a
+# child pytest (tests/conftest.py): what they leave behind dies with the child
 pytestmark = pytest.mark.isolated
 
 STUDY = """
@@ -45,20 +46,6 @@ nu = [0.47]
 """
 
 
-DASK_DRIVER = """
-import sys
-sys.path.insert(0, {repo!r})
-if __name__ == "__main__":
-    from distributed import LocalCluster
-    from regtrack.cli import main
-    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
-                      dashboard_address=None) as cluster:
-        rc = main(["-q", "study", {study!r}, "--out", {out!r}, "--no-progress",
-                   "--scheduler", cluster.scheduler_address])
-    sys.exit(rc)
-"""
-
-
 def _study(tmp_path, *, views=("CC",), workers=2, outputs=("csv",), extra=""):
     p = tmp_path / "s.toml"
     p.write_text(STUDY.format(views=json.dumps(list(views)), workers=workers,
@@ -67,21 +54,16 @@ def _study(tmp_path, *, views=("CC",), workers=2, outputs=("csv",), extra=""):
 
 
 def test_local_and_dask_tables_identical(tmp_path):
-    pytest.importorskip("distributed")
+    distributed = pytest.importorskip("distributed")
     make_case(tmp_path / "cases", "A")
     make_case(tmp_path / "cases", "B", seed=1.5)
     p = _study(tmp_path, views=("CC", "MLO"))
     assert main([ "-q", "study", str(p), "--out", str(tmp_path / "local"), "--no-progress"]) == 0
-    # The cluster and its client run in a child process: a LocalCluster leaves event-loop
-    # threads and sockets behind in the process that made it, and closing them later (at
-    # garbage collection) closed file descriptors that pytest had re-used for its own
-    # output capture; the CI run of 2026-11-22 died of it, with a broken pipe, two tests on.
-    script = tmp_path / "dask_study.py"
-    script.write_text(DASK_DRIVER.format(repo=REPO, study=str(p), out=str(tmp_path / "dask")))
-    env = {**os.environ, "PYTHONPATH": REPO + os.pathsep + os.environ.get("PYTHONPATH", "")}
-    proc = subprocess.run([sys.executable, str(script)], cwd=REPO, env=env, capture_output=True,
-                          text=True, timeout=900)
-    assert proc.returncode == 0, proc.stdout + proc.stderr
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
+                                  dashboard_address=None) as cluster:
+        rc = main(["-q", "study", str(p), "--out", str(tmp_path / "dask"), "--no-progress",
+                   "--scheduler", cluster.scheduler_address])
+    assert rc == 0
     local = (tmp_path / "local" / "table.csv").read_text()
     dask = (tmp_path / "dask" / "table.csv").read_text()
     assert local == dask

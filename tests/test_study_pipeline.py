@@ -12,9 +12,6 @@ anything physical is not).
 from __future__ import annotations
 
 import math
-import os
-import subprocess
-import sys
 import tomllib
 
 import pytest
@@ -22,7 +19,6 @@ import pytest
 from regtrack.cli import main
 from regtrack.study.results import read_csv
 from tests.conftest import SAMPLE_CASES
-from tests.test_study_engine import DASK_DRIVER, REPO
 
 pytestmark = pytest.mark.slow
 
@@ -42,9 +38,10 @@ target_nodes = 1500
 """
 
 
+@pytest.mark.isolated  # a LocalCluster and real pools: in a child pytest (conftest.py)
 def test_real_pipeline_local_equals_dask(tmp_path):
     pytest.importorskip("regtrack.pipeline.run", reason="regtrack.pipeline.run.run_case not built yet")
-    pytest.importorskip("distributed")
+    distributed = pytest.importorskip("distributed")
     cases = [SAMPLE_CASES / "phantom01", SAMPLE_CASES / "pelicano_exam03"]
     for c in cases:
         if not (c / "case.toml").is_file():
@@ -56,13 +53,10 @@ def test_real_pipeline_local_equals_dask(tmp_path):
     p = tmp_path / "s.toml"
     p.write_text(STUDY.format(a=cases[0], b=cases[1]))
     rc_local = main(["-q", "study", str(p), "--out", str(tmp_path / "local"), "--no-progress"])
-    # cluster and client in a child process (see tests/test_study_engine.py: a LocalCluster
-    # left in the pytest process closed pytest's capture descriptors later)
-    script = tmp_path / "dask_study.py"
-    script.write_text(DASK_DRIVER.format(repo=REPO, study=str(p), out=str(tmp_path / "dask")))
-    env = {**os.environ, "PYTHONPATH": REPO + os.pathsep + os.environ.get("PYTHONPATH", "")}
-    rc_dask = subprocess.run([sys.executable, str(script)], cwd=REPO, env=env,
-                             timeout=3000).returncode
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
+                                  dashboard_address=None) as cluster:
+        rc_dask = main(["-q", "study", str(p), "--out", str(tmp_path / "dask"), "--no-progress",
+                        "--scheduler", cluster.scheduler_address])
     local = read_csv(tmp_path / "local" / "table.csv")
     dask = read_csv(tmp_path / "dask" / "table.csv")
     assert rc_local == 0, [r["error"] for r in local if r["status"] != "ok"]

@@ -234,7 +234,7 @@ class PlateContact:
         self._plate0 = plate
         self._n_slip = 0
         self.motion: tuple[np.ndarray, np.ndarray] | None = None
-        self.counters = {"friction_resolves": 0, "freezes": 0}
+        self.counters = {"friction_resolves": 0, "freezes": 0, "penalty_growths": 0}
 
     # -- state snapshots (protocol engine: retry a plate move) ---------------------------
     def get_state(self) -> dict:
@@ -450,8 +450,7 @@ class PlateContact:
                             & (v > c.slow_uzawa_ratio * self._viol_last))
                     self.eps_node[slow] = np.minimum(self.eps_node[slow] * c.penalty_growth,
                                                      c.penalty_growth_max * self.eps_n)
-                    self.counters["penalty_growths"] = (self.counters.get("penalty_growths", 0)
-                                                        + int(slow.sum()))
+                    self.counters["penalty_growths"] += int(slow.sum())
                 self._viol_last = v
                 self.lam = p
                 done = False

@@ -22,6 +22,10 @@ A load step runs a pseudo-time ``t`` from 0 to 1; the solver calls, in this orde
   ask the solver to re-solve the increment with the updated multipliers;
 * ``report(u) -> dict`` after each converged increment: plain figures (force on the
   plate in N, maximum penetration in mm, number of active nodes, contact area mm^2).
+
+Optional: ``freeze()``, called when Newton stagnates, asks the contribution to hold its
+discrete state (stick/slip) for the rest of the solve and to check it in ``augment``;
+a contribution without it is left alone.
 """
 
 from __future__ import annotations
