@@ -7,6 +7,8 @@ small systems (<= ~1e3) times the residual tolerance with margin.
 
 from __future__ import annotations
 
+import os
+
 import numpy as np
 import pytest
 import scipy.sparse as sp
@@ -156,3 +158,27 @@ def test_inexact_newton_reaches_the_exact_newton_solution():
     free = np.ones(len(X), bool)
     free[bottom] = free[top] = False
     assert np.linalg.norm(R[free]) <= 1e-9 * np.linalg.norm(R[~free])
+
+
+def test_reuse_decisions_do_not_depend_on_measured_times(monkeypatch):
+    """The factorisation re-use (GMRES budget, staleness) follows the factor size, not the
+    clock: with a random CPU clock the counters and the solutions are the same, so a
+    Newton path (and a contact run) is reproducible on a loaded machine."""
+    import regtrack.mechanics.linsolve as L
+
+    mats = [anp_system(s, seed=k)[0] for k, s in enumerate((0.0, 0.002, 0.005, 0.01, 0.03))]
+    _, b = anp_system(0.0)
+
+    def run():
+        ls = LinearSolver()
+        xs = [ls.solve(A, b, symmetric=True, rtol=1e-8) for A in mats]
+        return xs, (ls.n_factorisations, ls.n_krylov_solves, ls.krylov_iterations)
+
+    x1, c1 = run()
+    rng = np.random.default_rng(7)
+    monkeypatch.setattr(L, "_cpu", lambda: float(rng.uniform(0, 100)))
+    x2, c2 = run()
+    assert c1 == c2 and c1[1] >= 1  # some solves re-used a factorisation
+    for a, b_ in zip(x1, x2):
+        assert np.array_equal(a, b_)
+    assert os.environ.get("MKL_CBWR")  # MKL's reproducible mode is requested
