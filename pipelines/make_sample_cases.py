@@ -76,7 +76,8 @@ nipple_px = [{e["nipple_px"][0]:.2f}, {e["nipple_px"][1]:.2f}]  # [row, col], DI
     return "".join(out)
 
 
-def make_phantom01(out: Path, *, case_id: str = "phantom01", mammograms: bool = True) -> Path:
+def make_phantom01(out: Path, *, case_id: str = "phantom01", mammograms: bool = True,
+                   truth_params=None) -> Path:
     """Write the phantom case folder; returns it.
 
     The MRI part (labels, DICOM series, phantom truth) does not depend on the mammograms,
@@ -96,7 +97,7 @@ def make_phantom01(out: Path, *, case_id: str = "phantom01", mammograms: bool = 
         from regtrack.phantom.mammo_params import MammoTruthParams
 
         with _solver_progress() as progress:
-            made = make_case_mammograms(case, labels, truth, params=MammoTruthParams(),
+            made = make_case_mammograms(case, labels, truth, params=truth_params or MammoTruthParams(),
                                         case_id=case_id, progress=progress)
         views, mammo_truth = made["views"], made["truth"]
     _io.write_text(case / "case.toml", phantom_case_toml(case_id, truth, views))
@@ -374,11 +375,20 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--only", choices=("phantom01", "pelicano_exam03"))
     ap.add_argument("--no-mammograms", action="store_true",
                     help="phantom01 without the simulated mammograms (MRI part only, fast)")
+    ap.add_argument("--truth-element-mm", type=float, default=None,
+                    help="element size of the truth simulation's mesh (default: MammoTruthParams)")
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
     made = []
     if args.only in (None, "phantom01"):
-        made.append(make_phantom01(args.out, mammograms=not args.no_mammograms))
+        tp = None
+        if args.truth_element_mm is not None:
+            from dataclasses import replace
+
+            from regtrack.phantom.mammo_params import MammoTruthParams
+
+            tp = replace(MammoTruthParams(), element_size_mm=args.truth_element_mm)
+        made.append(make_phantom01(args.out, mammograms=not args.no_mammograms, truth_params=tp))
     if args.only in (None, "pelicano_exam03"):
         made.append(make_pelicano_case(args.out, args.shared_data, exam="03"))
     for case in made:
