@@ -30,6 +30,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
+from tests._gmsh_shapes import half_ellipsoid_with_tumour
 from regtrack.errors import ConfigError
 from regtrack.imaging.mammogram import extract_view, read_mammogram
 from regtrack.model.types import AnatomicalFrame, BreastModel
@@ -48,35 +49,7 @@ FAST = dict(pixel_mm=0.1, render_mm=0.2, compression_ratio=None, margin_mm=6.0)
 
 
 def _half_ellipsoid(h=4.0, ht=2.0):
-    gmsh = pytest.importorskip("gmsh")
-    gmsh.initialize()
-    try:
-        gmsh.option.setNumber("General.Terminal", 0)
-        occ = gmsh.model.occ
-        s = occ.addSphere(0, 0, 0, 1.0)
-        occ.dilate([(3, s)], 0, 0, 0, A, B, C)
-        occ.translate([(3, s)], -A, 0, 0)
-        box = occ.addBox(-A, -2 * B, -2 * C, 2 * A, 4 * B, 4 * C)
-        body, _ = occ.intersect([(3, s)], [(3, box)])
-        occ.fragment(body, [(3, occ.addSphere(*TC, TR))])
-        occ.synchronize()
-        vols = [e[1] for e in gmsh.model.getEntities(3)]
-        tv = min(vols, key=lambda v: occ.getMass(3, v))
-        gmsh.option.setNumber("Mesh.MeshSizeMax", h)
-        gmsh.model.mesh.setSize(gmsh.model.getBoundary([(3, tv)], recursive=True), ht)
-        gmsh.model.mesh.generate(3)
-        tags, xyz, _ = gmsh.model.mesh.getNodes()
-        lookup = np.zeros(int(tags.max()) + 1, np.int64)
-        lookup[tags.astype(np.int64)] = np.arange(len(tags))
-        tets, reg = [], []
-        for v in vols:
-            _, _, en = gmsh.model.mesh.getElements(3, v)
-            t = lookup[en[0].astype(np.int64)].reshape(-1, 4)
-            tets.append(t)
-            reg.append(np.full(len(t), 2 if v == tv else 1))
-    finally:
-        gmsh.finalize()
-    pts, tets, region = xyz.reshape(-1, 3), np.concatenate(tets), np.concatenate(reg)
+    pts, tets, region = half_ellipsoid_with_tumour((A, B, C), TC, TR, h=h, ht=ht)
     p = pts[tets]
     vol = np.einsum("ij,ij->i", np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), p[:, 3] - p[:, 0])
     tets[vol < 0, 2], tets[vol < 0, 3] = tets[vol < 0, 3], tets[vol < 0, 2].copy()

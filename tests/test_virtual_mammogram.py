@@ -19,6 +19,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from tests._gmsh_shapes import half_ellipsoid_with_tumour
 from regtrack.errors import ResultCheckError
 from regtrack.model.types import AnatomicalFrame, BreastModel
 from regtrack.virtual import project_model, xray
@@ -34,35 +35,8 @@ PIX = 0.25
 
 
 def _half_ellipsoid(h=3.0, ht=1.5):
-    gmsh = pytest.importorskip("gmsh")
-    gmsh.initialize()
-    try:
-        gmsh.option.setNumber("General.Terminal", 0)
-        occ = gmsh.model.occ
-        s = occ.addSphere(0, 0, 0, 1.0)
-        occ.dilate([(3, s)], 0, 0, 0, A, B, C)
-        occ.translate([(3, s)], -A, 0, 0)
-        box = occ.addBox(-A, -2 * B, -2 * C, 2 * A, 4 * B, 4 * C)
-        body, _ = occ.intersect([(3, s)], [(3, box)])
-        occ.fragment(body, [(3, occ.addSphere(*TC, TR))])
-        occ.synchronize()
-        vols = [e[1] for e in gmsh.model.getEntities(3)]
-        tv = min(vols, key=lambda v: occ.getMass(3, v))
-        gmsh.option.setNumber("Mesh.MeshSizeMax", h)
-        gmsh.model.mesh.setSize(gmsh.model.getBoundary([(3, tv)], recursive=True), ht)
-        gmsh.model.mesh.generate(3)
-        tags, xyz, _ = gmsh.model.mesh.getNodes()
-        lookup = np.zeros(int(tags.max()) + 1, np.int64)
-        lookup[tags.astype(np.int64)] = np.arange(len(tags))
-        tets, reg = [], []
-        for v in vols:
-            _, _, en = gmsh.model.mesh.getElements(3, v)
-            t = lookup[en[0].astype(np.int64)].reshape(-1, 4)
-            tets.append(t)
-            reg.append(np.full(len(t), 2 if v == tv else 1))
-    finally:
-        gmsh.finalize()
-    return xyz.reshape(-1, 3), np.concatenate(tets), np.concatenate(reg)
+    pts, tets, region = half_ellipsoid_with_tumour((A, B, C), TC, TR, h=h, ht=ht)
+    return pts, tets, region
 
 
 def _model(points, tets, region, side="R"):
