@@ -145,3 +145,56 @@ def test_stalled_newton_accepts_its_best_iterate_below_the_stall_tolerance():
     strict = SolverOptions(initial_increment=1.0, min_increment=0.5, stall_force_tol=0.0)
     with pytest.raises(SolverDidNotConvergeError):
         S.solve_step(pr, np.zeros_like(pr.X), gravity=g, options=strict, contributions=[ch])
+
+
+def test_stalled_newton_stops_early_once_it_stagnates_below_the_stall_tolerance():
+    """The stalled increment is accepted as soon as the residual stops falling (after 5
+    iterations, not after max_iterations): the chattering residual above is flat from
+    the second iteration, so the step takes at most 8 iterations instead of 15+."""
+    cfg = MechanicsConfig(formulation="p1", nu=0.45, skin_enabled=False)
+    m = box_model((2.0, 2.0, 2.0), (2, 2, 2))
+    m.fixed = m.points[:, 2] < 1e-9
+    pr = S.build_problem(m, cfg)
+    g = lambda t: t * np.array([0.0, 0.0, -1000.0])  # noqa: E731
+    opts = SolverOptions(initial_increment=1.0, min_increment=0.5)
+    u_ref, _ = S.solve_step(pr, np.zeros_like(pr.X), gravity=g, options=opts)
+    node = int(np.argmax(pr.X @ [0.0, 0.0, 1.0] + 1e-3 * (pr.X @ [1.0, 1.0, 0.0])))
+    dof = 3 * node + 2
+    f_ref = float(np.linalg.norm(P.body_force(pr, g(1.0))))
+    ch = _Chatter(pr.n_dofs, dof, u_ref.reshape(-1)[dof], 5e-4 * f_ref)
+    _, st = S.solve_step(pr, np.zeros_like(pr.X), gravity=g, options=opts, contributions=[ch])
+    assert st.stalled_accepts == 1 and st.increments == 1
+    assert st.iterations <= 8 < opts.max_iterations
+
+
+class _Scalar:
+    """Stub of the solver state for ``_Newton.line_search``: one dof, ``R(u) = atan(u)``."""
+
+    def __init__(self, merit):
+        self.o = SolverOptions(line_search_merit=merit)
+        self.stats = S.StepStats()
+
+    def residual(self, u, fext, want_k):
+        return np.arctan(u), None, None
+
+
+class _Free:
+    free = np.array([True])
+
+
+@pytest.mark.parametrize("merit", ["residual", "directional"])
+def test_line_search_cuts_the_overshooting_newton_step_of_atan(merit):
+    """Newton on atan(u) from u = 2 overshoots to u = -3.54 (|R| grows from 1.107 to
+    1.296).  The residual merit accepts a step with Armijo decrease
+    |R(a)| <= (1 - 1e-4 a) |R(0)|; the directional one a step where |du.R(a)| fell."""
+    st = _Scalar(merit)
+    u0 = np.array([2.0])
+    R0 = np.arctan(u0)
+    du = -(1.0 + u0 ** 2) * R0  # K du = -R
+    alpha, R1, _ = S._Newton.line_search(st, u0, du, R0, None, _Free())
+    assert 0.0 < alpha < 1.0
+    r1 = abs(np.arctan(u0 + alpha * du))[0]
+    if merit == "residual":
+        assert r1 <= (1.0 - 1e-4 * alpha) * abs(R0[0])
+    else:
+        assert abs(du[0] * np.arctan(u0 + alpha * du)[0]) <= 0.8 * abs(du[0] * R0[0])
