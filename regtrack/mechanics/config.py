@@ -61,10 +61,12 @@ class SolverOptions:
     easy_iterations: int = param(5, "-", "an increment converging in at most this many iterations grows the next", ge=1)
     line_search: bool = param(True, "", "backtracking line search on the directional residual")
     line_search_ratio: float = param(0.8, "-", "accept a step when |du.R(a)| <= ratio |du.R(0)|", gt=0, lt=1)
-    line_search_merit: str = param("directional", "", "line-search acceptance: 'residual' (Armijo on "
+    line_search_merit: str = param("auto", "", "line-search acceptance: 'residual' (Armijo on "
                                    "|R|: |R(u + a du)| <= (1 - 1e-4 a) |R(u)|, backtracking by "
-                                   "quadratic interpolation) or 'directional' (|du.R(a)| <= ratio "
-                                   "|du.R(0)|, secant)", choices=("residual", "directional"))
+                                   "quadratic interpolation), 'directional' (|du.R(a)| <= ratio "
+                                   "|du.R(0)|, secant) or 'auto' (directional; a failed increment "
+                                   "is retried once with 'residual' before a cut-back)",
+                                   choices=("auto", "residual", "directional"))
     line_search_max: int = param(6, "-", "line-search trials per iteration", ge=1, le=30)
     max_augmentations: int = param(20, "-", "augmented-Lagrangian updates per increment", ge=1)
     linear_solver: str = param("auto", "", "sparse solver", choices=("auto", "pardiso", "splu"))
