@@ -19,10 +19,6 @@ from tests.conftest import SAMPLE_CASES
 pytestmark = pytest.mark.slow
 
 
-# Known defect (issue 5, open): the compression step of this coarse real-geometry model
-# does not converge reliably yet (clean-clone run of 2026-11-22); an XPASS shows the fix.
-@pytest.mark.xfail(reason="issue 5: compression on real geometry does not converge robustly yet",
-                   strict=False)
 
 def test_run_without_mammograms_simulates_and_reports(tmp_path):
     msgs: list[str] = []

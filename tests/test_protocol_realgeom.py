@@ -48,12 +48,6 @@ def _balance(model, rec):
 
 
 @pytest.mark.slow
-# Known defect (issue 5, open): after the mesher's pymeshlab surfaces and the new linear
-# solver landed, the compression step of this coarse real-geometry model stalls near the
-# end in the clean-clone run of 2026-11-22 (it passed earlier in the session). Kept as a
-# visible expected failure, not skipped: an XPASS shows when the contact fix lands.
-@pytest.mark.xfail(reason="issue 5: compression on real geometry does not converge robustly yet",
-                   strict=False)
 @pytest.mark.parametrize("view, target", [("cc", 0.38), ("mlo", 0.28)])
 def test_shipped_protocol_on_real_breast(model, view, target):
     res, timing = run_protocol_on_model(model, shipped_protocol(view), mechanics=MechanicsConfig())
