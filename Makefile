@@ -15,7 +15,7 @@ $(STAMP): pyproject.toml
 venv: $(STAMP)
 
 demo: $(STAMP)
-	$(PY) -m regtrack.cli run sample_cases/phantom01 --set model.target_nodes=1500 --out reports/phantom01
+	$(PY) -m regtrack.cli run sample_cases/phantom01 --out reports/phantom01
 
 test: $(STAMP)
 	$(PY) -m pytest -q

@@ -60,6 +60,11 @@ scheme = "pelicano-detailed"
 side = "R"
 # the generator's exact nipple (LPS, mm) is in truth/; uncomment to override detection:
 # nipple_lps_mm = [{nip}]
+
+[model]
+# a coarse patient model keeps `make demo` and CI to minutes (both compressions converge
+# at this size); --set model.target_nodes=10000 for the paper's resolution
+target_nodes = 1500
 '''
     if not views:
         return head + '''
@@ -96,8 +101,13 @@ def make_phantom01(out: Path, *, case_id: str = "phantom01", mammograms: bool = 
         from regtrack.phantom.case_mammo import make_case_mammograms
         from regtrack.phantom.mammo_params import MammoTruthParams
 
+        from regtrack.imaging.readers import read_label_map
+
+        # simulate from the label map as bundled (float32 geometry of the NIfTI), so that a
+        # re-simulation from the case's files follows the same path
+        bundled = read_label_map(case / "mri" / "labels.nii.gz")
         with _solver_progress() as progress:
-            made = make_case_mammograms(case, labels, truth, params=truth_params or MammoTruthParams(),
+            made = make_case_mammograms(case, bundled, truth, params=truth_params or MammoTruthParams(),
                                         case_id=case_id, progress=progress)
         views, mammo_truth = made["views"], made["truth"]
     _io.write_text(case / "case.toml", phantom_case_toml(case_id, truth, views))

@@ -25,6 +25,7 @@ import numpy as np
 
 from regtrack import _io
 from regtrack.imaging.volume import LabelVolume
+from regtrack.mechanics.config import SolverOptions
 from regtrack.phantom.dicom_mg import write_mg_dicom
 from regtrack.phantom.mammo_params import MammoTruthParams
 from regtrack.phantom.mammograms import SimulatedMammogram, simulate_mammogram
@@ -50,7 +51,8 @@ def mismatch_statement(p: MammoTruthParams, sim: TruthSimulation) -> dict:
             " (frictionless truth: with 0.15 the standing-gravity step stalled, Newton residual "
             "stagnating near 1e-3 N)" if p.friction == 0 else ""),
         "mesh": f"{sim.model.n_nodes} nodes (element size {p.element_size_mm} mm) vs about 10000",
-        "solver": f"Newton relative tolerance {p.force_tol:g} on force and displacement (pipeline default 1e-6)",
+        "solver": (f"Newton relative tolerance {p.force_tol:g} on force and displacement "
+                   f"(pipeline default {SolverOptions().force_tol:g})"),
         "in_plane_rotation_deg": {"CC": p.rotation_cc_deg, "MLO": p.rotation_mlo_deg},
         "in_plane_shift_mm": {"CC": list(p.shift_cc_mm), "MLO": list(p.shift_mlo_mm)},
         "detector": (f"quantum noise (I0 = {p.quanta_per_pixel:g} quanta/pixel), fat/gland texture, "

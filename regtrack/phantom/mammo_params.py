@@ -27,8 +27,9 @@ class MammoTruthParams:
 
     seed: int = param(1, "-", "seed of the detector noise", ge=0)
     # --- truth mechanics (differs from the pipeline defaults on purpose)
-    element_size_mm: float = param(4.4, "mm", "element size of the truth mesh (about 11,500 nodes; the "
-                                   "pipeline default aims at 10,000)", gt=0.5, le=20)
+    element_size_mm: float = param(7.5, "mm", "element size of the truth mesh (1,802 nodes: the bundled "
+                                   "case; 4.4 mm, about 11,500 nodes, did not finish its CC compression "
+                                   "in 3 min, issue 5)", gt=0.5, le=20)
     surface_step_vox: int = param(4, "voxels", "marching-cubes step of the truth mesh's outer surface", ge=1, le=8)
     fat_c1_kpa: float = param(0.45, "kPa", "neo-Hookean c1 of fat (labels 5-7 and skin)", gt=0, le=100)
     gland_c1_kpa: float = param(1.10, "kPa", "neo-Hookean c1 of fibroglandular tissue (labels 1-3)", gt=0, le=100)
@@ -36,6 +37,9 @@ class MammoTruthParams:
     nu: float = param(0.495, "-", "Poisson's ratio of all tissues (pipeline default 0.49)", ge=0.3, lt=0.5)
     force_tol: float = param(1e-4, "-", "Newton relative residual tolerance of the truth run (the stick-slip "
                              "contact stalls near 1e-5 relative, i.e. 0.1 mN on a 6 N breast)", gt=0, lt=0.01)
+    initial_increment: float = param(0.1, "-", "first pseudo-time increment of each truth step (the "
+                                     "solver default 0.25 stopped the CC compression at t = 0.96 on the "
+                                     "bundled label map, 0.1 completes)", gt=0, le=1)
     skin_membrane: bool = param(True, "", "add the skin membrane (as the pipeline does)")
     friction: float = param(0.0, "-", "skin-plate Coulomb friction (pipeline default 0.1; with 0.15 the "
                             "standing-gravity step stalled on the phantom, see the case README)", ge=0, le=1)
