@@ -125,21 +125,29 @@ class _Chatter:
         return r, None
 
 
-def test_stalled_newton_accepts_its_best_iterate_below_the_stall_tolerance():
-    """A residual that cannot fall below a = 5e-4 F_ref (no root: a force jump at the
-    equilibrium) is accepted at its best iterate with stall_force_tol = 2e-3 (counted in
-    stalled_accepts, its relative residual reported), and is a failure with 0."""
-    cfg = MechanicsConfig(formulation="p1-anp", nu=0.45, skin_enabled=False)
+def _sagging_box_with_chatter(formulation: str):
+    """A 2 mm box sagging under 1000 m/s^2 (a force of ~0.08 N) plus a :class:`_Chatter`
+    of a = 5e-4 F_ref at the top node's vertical dof, placed at the smooth equilibrium.
+    Returns (problem, gravity, options, chatter, smooth solution, node)."""
+    cfg = MechanicsConfig(formulation=formulation, nu=0.45, skin_enabled=False)
     m = box_model((2.0, 2.0, 2.0), (2, 2, 2))
     m.fixed = m.points[:, 2] < 1e-9
     pr = S.build_problem(m, cfg)
-    g = lambda t: t * np.array([0.0, 0.0, -1000.0])  # noqa: E731  (m/s^2: a force of ~0.08 N)
+    g = lambda t: t * np.array([0.0, 0.0, -1000.0])  # noqa: E731  (m/s^2)
     opts = SolverOptions(initial_increment=1.0, min_increment=0.5)
     u_ref, _ = S.solve_step(pr, np.zeros_like(pr.X), gravity=g, options=opts)
     node = int(np.argmax(pr.X @ [0.0, 0.0, 1.0] + 1e-3 * (pr.X @ [1.0, 1.0, 0.0])))
     dof = 3 * node + 2
     f_ref = float(np.linalg.norm(P.body_force(pr, g(1.0))))
     ch = _Chatter(pr.n_dofs, dof, u_ref.reshape(-1)[dof], 5e-4 * f_ref)
+    return pr, g, opts, ch, u_ref, node
+
+
+def test_stalled_newton_accepts_its_best_iterate_below_the_stall_tolerance():
+    """A residual that cannot fall below a = 5e-4 F_ref (no root: a force jump at the
+    equilibrium) is accepted at its best iterate with the default stall_force_tol (5e-3;
+    counted in stalled_accepts, its relative residual reported), and is a failure with 0."""
+    pr, g, opts, ch, u_ref, node = _sagging_box_with_chatter("p1-anp")
     u, st = S.solve_step(pr, np.zeros_like(pr.X), gravity=g, options=opts, contributions=[ch])
     assert st.stalled_accepts >= 1
     assert opts.force_tol < st.stalled_residual_max <= opts.stall_force_tol
@@ -155,17 +163,7 @@ def test_stalled_newton_stops_early_once_it_stagnates_below_the_stall_tolerance(
     """The stalled increment is accepted as soon as the residual stops falling (after 5
     iterations, not after max_iterations): the chattering residual above is flat from
     the second iteration, so the step takes at most 8 iterations instead of 15+."""
-    cfg = MechanicsConfig(formulation="p1", nu=0.45, skin_enabled=False)
-    m = box_model((2.0, 2.0, 2.0), (2, 2, 2))
-    m.fixed = m.points[:, 2] < 1e-9
-    pr = S.build_problem(m, cfg)
-    g = lambda t: t * np.array([0.0, 0.0, -1000.0])  # noqa: E731
-    opts = SolverOptions(initial_increment=1.0, min_increment=0.5)
-    u_ref, _ = S.solve_step(pr, np.zeros_like(pr.X), gravity=g, options=opts)
-    node = int(np.argmax(pr.X @ [0.0, 0.0, 1.0] + 1e-3 * (pr.X @ [1.0, 1.0, 0.0])))
-    dof = 3 * node + 2
-    f_ref = float(np.linalg.norm(P.body_force(pr, g(1.0))))
-    ch = _Chatter(pr.n_dofs, dof, u_ref.reshape(-1)[dof], 5e-4 * f_ref)
+    pr, g, opts, ch, _, _ = _sagging_box_with_chatter("p1")
     _, st = S.solve_step(pr, np.zeros_like(pr.X), gravity=g, options=opts, contributions=[ch])
     assert st.stalled_accepts == 1 and st.increments == 1
     assert st.iterations <= 8 < opts.max_iterations
