@@ -170,7 +170,7 @@ class Evaluation:
     energy: float
     n_inverted: int
     bvals: np.ndarray | None = None
-    contrib_norm: float = 0.0  # |sum of the contributions' (contact) forces|, set by the solver
+    contrib_norm: float = 0.0  # largest resultant force of a contribution (plate force), set by the solver
 
 
 def evaluate(problem: Problem, u: np.ndarray, *, want_k: bool = True) -> Evaluation:

@@ -53,8 +53,8 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import replace
 from collections.abc import Callable, Sequence
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -308,11 +308,12 @@ class _Newton:
         smallest residual is taken.  (Measured on the phantom CC compression: the
         tangent turns indefinite away from equilibrium, a third of the Newton directions
         ascend the energy, and the directional test accepted full steps that raised
-        ``|R|`` a hundredfold.  Neither test is the more robust: on that run, with the same
-stall rule, the residual merit stopped at t = 0.998 where the directional test
-completed, and on Pelicano exam 03 CC (1,667 nodes) the reverse, directional stopping at
-t = 0.9976.  The default ``"auto"`` therefore tries the directional test and retries a
-failed increment once with the residual merit before cutting it back.)
+        ``|R|`` a hundredfold.  Neither test is the more robust: on that run, with the
+        same stall rule, the residual merit stopped at t = 0.998 where the directional test
+        completed, and on Pelicano exam 03 CC (1,667 nodes) the reverse, directional
+        stopping at t = 0.9976.  The default ``"auto"`` therefore tries the directional
+        test and retries a failed increment once with the residual merit before cutting
+        it back.)
 
         ``"directional"``: accept when ``du.R(u + a du) <= ratio |du.R(u)|`` (secant update
         bounded to ``[0.1, 1] a``); only for descent directions (``du.R(u) < 0``).
