@@ -45,7 +45,9 @@ class SolverOptions:
                                   "finish: cheaper than a cut-back)", ge=0, le=50)
     stagnation_ratio: float = param(0.5, "-", "after 3 iterations, a residual above this fraction of the "
                                     "smallest of the 3 before it freezes the contact state (stick/slip "
-                                    "chatter control, checked after convergence)", gt=0, le=1)
+                                    "chatter control, checked after convergence); from the 5th, three "
+                                    "residuals none below this fraction of the one before them end a "
+                                    "stalled increment (see stall_force_tol)", gt=0, le=1)
     stall_force_tol: float = param(5e-3, "-", "an increment whose Newton iterations stagnate or run "
                                    "out accepts its best iterate if that one's residual is below this "
                                    "fraction of F_ref (and the constraints are met), instead of cutting "
@@ -61,7 +63,7 @@ class SolverOptions:
     growth: float = param(1.5, "-", "increment growth factor after an easy increment", ge=1, le=4)
     cutback: float = param(0.5, "-", "increment cut-back factor after a failure", gt=0, lt=1)
     easy_iterations: int = param(5, "-", "an increment converging in at most this many iterations grows the next", ge=1)
-    line_search: bool = param(True, "", "backtracking line search on the directional residual")
+    line_search: bool = param(True, "", "backtracking line search (acceptance test: line_search_merit)")
     line_search_ratio: float = param(0.8, "-", "accept a step when |du.R(a)| <= ratio |du.R(0)|", gt=0, lt=1)
     line_search_merit: str = param("auto", "", "line-search acceptance: 'residual' (Armijo on "
                                    "|R|: |R(u + a du)| <= (1 - 1e-4 a) |R(u)|, backtracking by "
