@@ -95,6 +95,24 @@ def test_model_volumes_quality_and_frame(model):
     assert model.meta["preparation"]["tumours_removed"][0]["n_voxels"] == 1
 
 
+def test_explicit_nipple_is_a_node_on_the_skin_however_coarse_the_mesh():
+    """An explicit nipple is projected onto the skin and pinned as a node: the model's nipple
+    node is that skin point (within the 1-mm voxelisation and smoothing of the surface), not
+    the nearest node of a coarse mesh (elements about 7 mm here)."""
+    a = np.radians(30.0)  # a point of the ellipsoid's surface, off the apex, in the k = 60 plane
+    i, j = 60 + 45 * np.sin(a), 60 - 40 * np.cos(a)
+    on_skin = np.array([-120.0 + i, -40.0 + j, 0.0])
+    n = np.array([(i - 60) / 45**2, (j - 60) / 40**2, 0.0])
+    given = on_skin + 1.0 * n / np.linalg.norm(n)  # 1 mm outside the skin
+    m = build_model(phantom(), scheme=SIMPLE, config=MeshConfig(target_nodes=500),
+                    nipple_lps=given)
+    nip = m.frame.to_patient(m.points[m.nipple])
+    assert np.linalg.norm(nip - on_skin) < 1.5, nip
+    assert m.meta["nipple"]["source"] == "explicit"
+    assert m.meta["nipple"]["given_lps_mm"] == pytest.approx(given.tolist())
+    assert m.meta["nipple"]["distance_to_target_mm"] < 1e-6  # pinned exactly
+
+
 def test_no_breast_label_is_an_error():
     v = phantom()
     v.data[:] = 0
