@@ -164,3 +164,20 @@ def test_two_tumours():
     al = align(real, virt)
     assert al.theta_p_t == pytest.approx(-7.5, abs=0.1)
     assert compute_metrics(al, real, virt).dice_tumour > 0.99
+
+
+def test_virtual_skin_line_reaching_past_the_real_one_does_not_bias_the_rotation():
+    """The real skin line stops at the image edge (here 25 mm of its chest-wall end are cut
+    off); the virtual one, the full outline turned by 6 deg, reaches further.  Its extra
+    points all match the real end point: with the ICP boundary rule (default 1 mm) they are
+    left out and theta_p,b is exact to 0.1 deg (as above); with the paper's plain sum
+    (reject_ends_mm = 0) they pull it by more than 0.5 deg (measured: 14.7 instead of 6.0), so the test
+    can tell the two apart."""
+    full = _breast(800)
+    cut = full[full[:, 1] > full[0, 1] + 25.0]  # bottom end lost past the "detector edge"
+    nip = full[np.argmax(full[:, 0])]
+    real = MammogramView("CC", "L", cut, nip, [_ellipse((45.0, 25.0), 8.0, 5.0)], source="real.dcm")
+    _, virt = _views(6.0, np.array([3.0, -4.0]), breast=full, nipple=nip)
+    assert align(real, virt).theta_p_b == pytest.approx(6.0, abs=0.1)
+    plain = align(real, virt, config=RegistrationConfig(reject_ends_mm=0.0)).theta_p_b
+    assert abs(plain - 6.0) > 0.5, plain

@@ -10,6 +10,8 @@
    .. math:: F_b(\\theta) = \\sum_i \\lVert v_i(\\theta) - r_{c(i)} \\rVert^2
 
    for the breast (open skin line) and :math:`F_t` likewise for the tumour contour(s).
+   Virtual breast points matched to an end of the real skin line are left out of
+   :math:`F_b` (``reject_ends_mm``, see :class:`Objective`).
 4. *Golden-section search* of :math:`F_b` and :math:`F_t` separately on
    :math:`[\\theta_0 - w, \\theta_0 + w]` (``w = bracket_deg``, default 30 deg; nominal
    :math:`\\theta_0 = 0` for both views because the MLO 45 deg pre-rotation is in the
@@ -35,24 +37,52 @@ log = logging.getLogger(__name__)
 
 @dataclass
 class Objective:
-    """Closest-point objective of one contour pair (virtual -> real), in mm."""
+    r"""Closest-point objective of one contour pair (virtual -> real), in mm.
+
+    With ``ends`` (the two end points of an open real contour) and ``reject_mm > 0``, a
+    virtual point whose closest real point lies within ``reject_mm`` of an end is left out
+    (the boundary rule of ICP, Turk & Levoy 1994): the real skin line stops at the image
+    edge or the pectoral line while the projected model may reach further, and those
+    points, all matched to the end, would pull the rotation.  With ``k`` of the ``K``
+    points kept, :math:`F = (K / k) \sum_{kept} d_i^2`, which is the paper's plain sum
+    when nothing is left out.  :meth:`distances` always returns all ``K`` points (the
+    paper's metrics use them).
+    """
 
     virtual: np.ndarray          # (K, 2) resampled virtual points, nipple-centred (v - n_v)
     closest: G.ClosestPoints     # on the resampled real contour
     nipple: np.ndarray           # real nipple n_p
+    ends: np.ndarray | None = None   # (2, 2) end points of an open real contour
+    reject_mm: float = 0.0
 
     def points(self, theta_deg: float) -> np.ndarray:
         """Virtual points after superposition and rotation by ``theta_deg``."""
         return self.virtual @ G.rotation(theta_deg).T + self.nipple
 
-    def distances(self, theta_deg: float) -> np.ndarray:
-        """Per-point closest distances (mm) at ``theta_deg``."""
+    def _pairs(self, theta_deg: float) -> tuple[np.ndarray, np.ndarray]:
         p = self.points(theta_deg)
-        return np.linalg.norm(p - self.closest(p), axis=1)
+        c = self.closest(p)
+        d = np.linalg.norm(p - c, axis=1)
+        if self.ends is None or self.reject_mm <= 0.0:
+            return d, np.ones(len(d), bool)
+        to_end = np.linalg.norm(c[:, None, :] - self.ends[None], axis=2).min(axis=1)
+        return d, to_end > self.reject_mm
+
+    def distances(self, theta_deg: float) -> np.ndarray:
+        """Per-point closest distances (mm) at ``theta_deg`` (every point)."""
+        return self._pairs(theta_deg)[0]
+
+    def kept(self, theta_deg: float) -> np.ndarray:
+        """(K,) bool: the points that enter F at ``theta_deg``."""
+        return self._pairs(theta_deg)[1]
 
     def __call__(self, theta_deg: float) -> float:
-        """F(theta): sum of squared closest distances (mm^2)."""
-        return float(np.sum(self.distances(theta_deg) ** 2))
+        """F(theta): sum of squared closest distances (mm^2), scaled as above."""
+        d, keep = self._pairs(theta_deg)
+        k = int(keep.sum())
+        if k == 0:  # every point beyond the real contour's ends: no information
+            return float(np.sum(d**2))
+        return float(np.sum(d[keep] ** 2) * len(d) / k)
 
 
 @dataclass
@@ -186,7 +216,9 @@ def _objective(virtual: list[np.ndarray], real: list[np.ndarray], *, closed: boo
         cp = G.ClosestPoints(np.vstack(rs), closed=False, segment=False)
     else:
         cp = G.ClosestPoints(rs[0], closed=closed, segment=cfg.match == "segment")
-    return Objective(np.vstack(vs) - nv, cp, npr)
+    if closed:
+        return Objective(np.vstack(vs) - nv, cp, npr)
+    return Objective(np.vstack(vs) - nv, cp, npr, ends=rs[0][[0, -1]], reject_mm=cfg.reject_ends_mm)
 
 
 def _search(obj: Objective, lo: float, hi: float, cfg: RegistrationConfig) -> GoldenResult:

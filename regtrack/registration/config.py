@@ -32,6 +32,11 @@ class RegistrationConfig:
                                   ge=-180.0, le=180.0)
     nominal_mlo_deg: float = param(0.0, "deg", "nominal rotation of the MLO virtual view",
                                    ge=-180.0, le=180.0)
+    reject_ends_mm: float = param(1.0, "mm", "virtual breast points whose closest real point "
+                                  "lies within this distance of an end of the real skin line "
+                                  "are left out of F_b (ICP boundary rule: the real line stops "
+                                  "at the image edge, the model may reach further); 0 = the "
+                                  "paper's plain sum over every point", ge=0.0, le=50.0)
     use_tumour: bool = param(True, "-", "search theta_p,t on the tumour contours (required by "
                              "the paper's method; false: theta_p = theta_p,b)")
     min_breast_points: int = param(10, "-", "fewest points accepted in a breast contour", ge=3)
