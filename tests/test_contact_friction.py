@@ -20,10 +20,11 @@ from regtrack.mechanics.contributions import Contribution
 from regtrack.mechanics.plates import RigidPlate
 
 
-def _contact(X, *, mu=0.3, method="penalty", eps=2.0, areas=None, plate=None, bound="multiplier"):
+def _contact(X, *, mu=0.3, method="penalty", eps=2.0, areas=None, plate=None, bound="multiplier",
+             curvature=True):
     plate = plate or RigidPlate(name="upper", origin=(0, 0, 0), normal=(0, 0, 1), e1=(1, 0, 0),
                                 s_range=(0.0, np.inf), edge_radius=3.0)
-    cfg = ContactConfig(friction=mu, method=method, friction_bound=bound)
+    cfg = ContactConfig(friction=mu, method=method, friction_bound=bound, curvature_tangent=curvature)
     nodes = np.arange(len(X))
     a = np.full(len(X), 2.0) if areas is None else areas
     return PlateContact(plate, X, nodes, a, config=cfg, penalty=eps)
@@ -229,3 +230,26 @@ def test_frozen_state_has_a_hysteresis_band():
     np.testing.assert_allclose(np.linalg.norm(tr.t, axis=1), [B, 0.3, 1.5, B])
     free = fr.return_map(x, anchor, n, act, np.full(4, B), eps_t=eps_t)
     np.testing.assert_array_equal(free.slip, [False, False, True, True])
+
+
+def test_default_tangent_leaves_out_the_edge_curvature_and_stays_semidefinite():
+    """A frictionless node pressed onto the rounded edge (R = 3 mm): the exact tangent has
+    the eigenvalue -A p / (R + g) across the edge (indefinite: what stalls Newton where skin is
+    pinched at the plate edge); the default tangent is A eps n n^T, positive semi-definite,
+    with the same residual.  On the flat face the two are identical."""
+    X = np.array([[-1.0, 0.0, -1.0],     # on the rounded edge (s < 0), penetrating
+                  [5.0, 0.0, -0.5]])     # on the flat face, penetrating
+    exact = _contact(X, mu=0.0, curvature=True)
+    default = _contact(X, mu=0.0, curvature=False)
+    u = np.zeros(X.size)
+    r1, K1 = exact.residual_tangent(u)
+    r0, K0 = default.residual_tangent(u)
+    np.testing.assert_array_equal(r0, r1)
+    K1, K0 = K1.toarray(), K0.toarray()
+    np.testing.assert_allclose(K0[3:, 3:], K1[3:, 3:], rtol=0, atol=1e-15)  # flat face
+    e1, e0 = np.linalg.eigvalsh(0.5 * (K1[:3, :3] + K1[:3, :3].T)), np.linalg.eigvalsh(K0[:3, :3])
+    q = exact.plate.query(X[:1])
+    p = -exact.eps_n * q.gap[0]
+    dist = 3.0 + q.gap[0]  # distance to the edge's axis: _contact's R = 3 mm plus the gap
+    assert e1.min() == pytest.approx(-2.0 * p / dist, rel=1e-9)  # A = 2 mm^2
+    assert e0.min() >= -1e-12 and e0.max() == pytest.approx(2.0 * exact.eps_n)

@@ -232,3 +232,59 @@ def test_auto_merit_retries_a_failed_increment_with_the_residual_line_search(mon
         S.solve_step(pr, np.zeros_like(pr.X), gravity=g,
                      options=SolverOptions(initial_increment=0.5, min_increment=0.1,
                                            line_search_merit="directional"))
+
+
+class _Swappable:
+    """A do-nothing contribution with two tangents (the contact interface's swap_tangent)."""
+
+    name = "swappable"
+
+    def __init__(self):
+        self.alternative, self.swaps = False, 0
+
+    def swap_tangent(self) -> bool:
+        self.alternative, self.swaps = not self.alternative, self.swaps + 1
+        return True
+
+    def begin_step(self, step): ...
+    def set_time(self, t): ...
+    def residual_tangent(self, u): return np.zeros(np.size(u)), None  # noqa: E704
+    def commit(self, u): ...
+    def rollback(self): ...
+    def augment(self, u): return True  # noqa: E704
+    def report(self, u): return {}  # noqa: E704
+
+
+def test_a_failed_increment_is_retried_with_the_other_tangent_before_a_cut_back(monkeypatch):
+    """After the merit retry, an increment that still fails is solved again with the
+    contributions' other tangent (tangent_retries), which is switched back afterwards; a
+    failure with both is a cut-back as before."""
+    cfg = MechanicsConfig(formulation="p1", nu=0.45, skin_enabled=False)
+    m = box_model((2.0, 2.0, 2.0), (2, 2, 2))
+    m.fixed = m.points[:, 2] < 1e-9
+    pr = S.build_problem(m, cfg)
+    g = lambda t: t * np.array([0.0, 0.0, -1000.0])  # noqa: E731
+    real = S._increment
+    c = _Swappable()
+    seen = []
+
+    def only_alternative(newton, *a, **k):
+        seen.append((newton.o.line_search_merit, c.alternative))
+        if not c.alternative:
+            raise S._Failed("default tangent refused (test)")
+        return real(newton, *a, **k)
+
+    monkeypatch.setattr(S, "_increment", only_alternative)
+    u, st = S.solve_step(pr, np.zeros_like(pr.X), gravity=g, contributions=[c],
+                         options=SolverOptions(initial_increment=0.5, min_increment=0.1))
+    assert st.cutbacks == 0 and st.tangent_retries == st.merit_retries == st.increments >= 2
+    assert seen[:3] == [("auto", False), ("residual", False), ("auto", True)]
+    assert not c.alternative and c.swaps == 2 * st.increments  # switched back every time
+    monkeypatch.setattr(S, "_increment", real)
+    u_ref, _ = S.solve_step(pr, np.zeros_like(pr.X), gravity=g,
+                            options=SolverOptions(initial_increment=0.5))
+    assert np.allclose(u, u_ref, atol=1e-9)
+    monkeypatch.setattr(S, "_increment", lambda *a, **k: (_ for _ in ()).throw(S._Failed("no (test)")))
+    with pytest.raises(SolverDidNotConvergeError):
+        S.solve_step(pr, np.zeros_like(pr.X), gravity=g, contributions=[_Swappable()],
+                     options=SolverOptions(initial_increment=0.5, min_increment=0.1))

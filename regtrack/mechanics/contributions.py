@@ -26,6 +26,11 @@ A load step runs a pseudo-time ``t`` from 0 to 1; the solver calls, in this orde
 Optional: ``freeze()``, called when Newton stagnates, asks the contribution to hold its
 discrete state (stick/slip) for the rest of the solve and to check it in ``augment``;
 a contribution without it is left alone.
+
+Optional: ``swap_tangent() -> bool`` switches the contribution to its alternative tangent
+(plate contact: with or without the rounded-edge curvature term) and returns True, or
+returns False when it has none; the solver calls it to retry a failed increment with the
+other tangent before cutting back, and calls it again afterwards to switch back.
 """
 
 from __future__ import annotations

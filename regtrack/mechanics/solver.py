@@ -42,7 +42,8 @@ Line search (:meth:`_Newton.line_search`): by default accept the step length ``a
 current ``a``); ``line_search_merit = "residual"`` backtracks on ``|R|`` instead (Armijo),
 which is a descent test for any tangent, indefinite ones included; the default ``"auto"``
 retries an increment that failed with the first on the second before cutting it back
-(``merit_retries``); elements may not invert.
+(``merit_retries``), and then with the contributions' other tangent (plate contact: with
+or without the rounded-edge curvature term, ``tangent_retries``); elements may not invert.
 An increment that fails (iterations exhausted, divergence, inversion, NaN) is rolled
 back and cut (``cutback``); easy increments grow the next one (``growth``).  Below
 ``min_increment`` the step stops with :class:`SolverDidNotConvergeError`, which keeps
@@ -406,20 +407,7 @@ def solve_step(problem: Problem, u0: np.ndarray, *, gravity: Gravity | None = No
         hist: list[float] = []
         it0 = stats.iterations
         try:
-            try:
-                u_new = _increment(newton, u, t_new, gravity, dirichlet, hist)
-            except _Failed:
-                if o.line_search_merit != "auto":
-                    raise
-                # retry the same increment with the residual (Armijo) line search first
-                for c in newton.contribs:
-                    c.rollback()
-                stats.merit_retries += 1
-                newton.o = replace(o, line_search_merit="residual")
-                try:
-                    u_new = _increment(newton, u, t_new, gravity, dirichlet, hist)
-                finally:
-                    newton.o = o
+            u_new = _increment_with_retries(newton, u, t_new, gravity, dirichlet, hist, o, stats)
         except _Failed as why:
             for c in newton.contribs:
                 c.rollback()
@@ -465,6 +453,40 @@ def _linear_solver(problem: Problem, o: SolverOptions) -> LinearSolver:
                                     precision=o.precision, krylov_rtol=o.krylov_rtol, krylov_max=o.krylov_max))
         problem._linear_solver = cached  # type: ignore[attr-defined]
     return cached[1]
+
+
+def _increment_with_retries(newton: _Newton, u, t_new, gravity, dirichlet, hist, o: SolverOptions,
+                            stats: StepStats) -> np.ndarray:
+    """One increment; before the caller cuts back, a failed increment is solved again
+    (from the same start) with, in turn: the residual (Armijo) line search
+    (``line_search_merit = "auto"``, ``merit_retries``), then the contributions' other
+    tangent (``swap_tangent``, ``tangent_retries``).  Raises the last ``_Failed``."""
+    try:
+        return _increment(newton, u, t_new, gravity, dirichlet, hist)
+    except _Failed as first:
+        why = first
+    if o.line_search_merit == "auto":
+        for c in newton.contribs:
+            c.rollback()
+        stats.merit_retries += 1
+        newton.o = replace(o, line_search_merit="residual")
+        try:
+            return _increment(newton, u, t_new, gravity, dirichlet, hist)
+        except _Failed as again:
+            why = again
+        finally:
+            newton.o = o
+    swapped = [c for c in newton.contribs if getattr(c, "swap_tangent", None) is not None and c.swap_tangent()]
+    if not swapped:
+        raise why
+    try:
+        for c in newton.contribs:
+            c.rollback()
+        stats.tangent_retries += 1
+        return _increment(newton, u, t_new, gravity, dirichlet, hist)
+    finally:
+        for c in swapped:
+            c.swap_tangent()
 
 
 def _increment(newton: _Newton, u: np.ndarray, t: float, gravity, dirichlet, hist) -> np.ndarray:

@@ -29,6 +29,7 @@ class StepStats:
     stalled_accepts: int = 0
     stalled_residual_max: float = 0.0
     merit_retries: int = 0
+    tangent_retries: int = 0
     line_search_trials: int = 0
     factorisations: int = 0
     analyses: int = 0
@@ -45,7 +46,8 @@ class StepStats:
 
     def to_dict(self) -> dict:
         keys = ("name", "increments", "iterations", "cutbacks", "augmentations", "extra_iterations",
-                "freezes", "stalled_accepts", "stalled_residual_max", "merit_retries", "line_search_trials",
+                "freezes", "stalled_accepts", "stalled_residual_max", "merit_retries", "tangent_retries",
+                "line_search_trials",
                 "factorisations", "analyses", "krylov_solves", "krylov_iterations", "t_assembly", "t_contrib",
                 "t_solve", "t_line_search", "t_total", "cpu_total")
         d = {k: getattr(self, k) for k in keys}
