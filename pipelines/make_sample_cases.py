@@ -1,8 +1,8 @@
-"""Build the bundled sample cases: ``sample_cases/phantom01`` and ``sample_cases/pelicano_exam03``.
+"""Build the bundled sample cases: ``sample_cases/phantom01``, ``phantom02`` and ``pelicano_exam03``.
 
 Usage::
 
-    .venv/bin/python pipelines/make_sample_cases.py [--only phantom01|pelicano_exam03]
+    .venv/bin/python pipelines/make_sample_cases.py [--only phantom01|phantom02|pelicano_exam03]
         [--out sample_cases] [--shared-data ../shared/data]
 
 * ``phantom01``: the default :class:`regtrack.phantom.PhantomParams` (seed 1): a DICOM MR
@@ -10,15 +10,20 @@ Usage::
   CC and MLO DICOM MG mammograms with tumour polygons and nipple pixels
   (:mod:`regtrack.phantom.case_mammo`, minutes: a mesh and two protocol simulations), and
   the ground truth in ``truth/`` (never read by the pipeline).
+* ``phantom02``: :data:`PHANTOM02` (seed 2, a *left* breast, a smaller medial-inferior
+  tumour; mammogram noise seed 2, truth mesh 7.0 mm), made the same way but without the
+  DICOM MR series (label map, mammograms, annotations and truth only) to keep the
+  repository small.
 * ``pelicano_exam03``: the right breast of Pelicano exam 03 (simple labels), cropped with
   its real-world geometry intact, int8 NIfTI, with the citation.  Needs ../shared/data.
 
-Both are deterministic: re-running gives identical label maps and DICOM files.
+All are deterministic: re-running gives identical label maps and DICOM files.
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import logging
 import sys
 from pathlib import Path
@@ -30,6 +35,7 @@ from regtrack import _io
 from regtrack.imaging.readers import read_label_map, write_dicom_series, write_label_map
 from regtrack.imaging.volume import LabelVolume
 from regtrack.phantom import PhantomParams, make_phantom
+from regtrack.phantom.dicom_mg import IHE_ORIENTATION
 
 log = logging.getLogger("make_sample_cases")
 REPO = Path(__file__).resolve().parents[1]
@@ -42,22 +48,33 @@ PELICANO_CITATION = """\
 """
 
 
-# ----------------------------------------------------------------------------- phantom01
+# ----------------------------------------------------------------------------- phantoms
+
+#: phantom02: a left breast with another texture (seed 2) and a smaller tumour, medial and
+#: inferior of the nipple axis and deeper than phantom01's (35 mm from the chest wall)
+PHANTOM02 = PhantomParams(seed=2, side="L", tumour_size_mm=(18.0, 16.0, 18.0),
+                          tumour_offset_mm=(-12.0, 35.0, -15.0))
 
 
-def phantom_case_toml(case_id: str, truth: dict, views: dict | None = None) -> str:
+def _side_word(side: str) -> str:
+    return "right" if side == "R" else "left"
+
+
+def phantom_case_toml(case_id: str, truth: dict, views: dict | None = None, *, series: bool = True) -> str:
     nip = ", ".join(f"{v:.2f}" for v in truth["nipple_lps_mm"])
+    prm = truth["params"]
+    size = "x".join(f"{v:g}" for v in prm["tumour_size_mm"])
+    series_line = 'series = "mri/dicom"\n' if series else ""
     head = f'''# Synthetic prone breast phantom made by pipelines/make_sample_cases.py
-# (regtrack.phantom, seed {truth["params"]["seed"]}).  Ground truth: truth/ (never read by the pipeline).
+# (regtrack.phantom, seed {prm["seed"]}).  Ground truth: truth/ (never read by the pipeline).
 [case]
 id = "{case_id}"
-title = "Synthetic prone breast phantom (right breast, 25x22x25 mm tumour)"
+title = "Synthetic prone breast phantom ({_side_word(prm["side"])} breast, {size} mm tumour)"
 
 [mri]
 labels = "mri/labels.nii.gz"
-series = "mri/dicom"
-scheme = "pelicano-detailed"
-side = "R"
+{series_line}scheme = "pelicano-detailed"
+side = "{prm["side"]}"
 # the generator's exact nipple (LPS, mm) is in truth/; uncomment to override detection:
 # nipple_lps_mm = [{nip}]
 
@@ -81,27 +98,25 @@ nipple_px = [{e["nipple_px"][0]:.2f}, {e["nipple_px"][1]:.2f}]  # [row, col], DI
     return "".join(out)
 
 
-def make_phantom01(out: Path, *, case_id: str = "phantom01", mammograms: bool = True,
-                   truth_params=None) -> Path:
-    """Write the phantom case folder; returns it.
+def make_phantom_case(out: Path, case_id: str, params: PhantomParams, *, series: bool = True,
+                      mammograms: bool = True, truth_params=None, readme_note: str = "") -> Path:
+    """Write a phantom case folder; returns it.
 
-    The MRI part (labels, DICOM series, phantom truth) does not depend on the mammograms,
-    so it is byte-identical with or without them.
+    The MRI part (labels, DICOM series when ``series``, phantom truth) does not depend on
+    the mammograms, so it is byte-identical with or without them.
     """
     case = out / case_id
-    params = PhantomParams()
     mri, labels, truth = make_phantom(params)
     write_label_map(labels, case / "mri" / "labels.nii.gz")
-    write_dicom_series(mri, case / "mri" / "dicom", patient=case_id,
-                       series_description="synthetic T1 prone breast (regtrack.phantom)",
-                       uid_seed=f"regtrack-{case_id}", progress=True)
+    if series:
+        write_dicom_series(mri, case / "mri" / "dicom", patient=case_id,
+                           series_description="synthetic T1 prone breast (regtrack.phantom)",
+                           uid_seed=f"regtrack-{case_id}", progress=True)
     _io.write_json(case / "truth" / "phantom_truth.json", truth)
     views, mammo_truth = None, None
     if mammograms:
         from regtrack.phantom.case_mammo import make_case_mammograms
         from regtrack.phantom.mammo_params import MammoTruthParams
-
-        from regtrack.imaging.readers import read_label_map
 
         # simulate from the label map as bundled (float32 geometry of the NIfTI), so that a
         # re-simulation from the case's files follows the same path
@@ -110,12 +125,48 @@ def make_phantom01(out: Path, *, case_id: str = "phantom01", mammograms: bool = 
             made = make_case_mammograms(case, bundled, truth, params=truth_params or MammoTruthParams(),
                                         case_id=case_id, progress=progress)
         views, mammo_truth = made["views"], made["truth"]
-    _io.write_text(case / "case.toml", phantom_case_toml(case_id, truth, views))
-    readme = PHANTOM_README.format(case_id=case_id, **_fmt_truth(truth))
+    _io.write_text(case / "case.toml", phantom_case_toml(case_id, truth, views, series=series))
+    readme = phantom_readme(case_id, truth, series=series)
     if mammo_truth is not None:
-        readme += mammo_readme(mammo_truth)
+        readme += mammo_readme(mammo_truth) + readme_note
     _io.write_text(case / "README.md", readme)
     return case
+
+
+def make_phantom01(out: Path, *, case_id: str = "phantom01", mammograms: bool = True,
+                   truth_params=None) -> Path:
+    """``phantom01``: the default :class:`PhantomParams`, with its DICOM MR series."""
+    return make_phantom_case(out, case_id, PhantomParams(), series=True, mammograms=mammograms,
+                             truth_params=truth_params)
+
+
+def make_phantom02(out: Path, *, case_id: str = "phantom02", mammograms: bool = True,
+                   truth_params=None) -> Path:
+    """``phantom02``: :data:`PHANTOM02` (left breast, seed 2), without a DICOM MR series.
+
+    Truth simulation: :func:`phantom02_truth_params` unless ``truth_params`` is given.
+    """
+    return make_phantom_case(out, case_id, PHANTOM02, series=False, mammograms=mammograms,
+                             truth_params=truth_params or phantom02_truth_params(), readme_note=PHANTOM02_NOTE)
+
+
+def phantom02_truth_params(**changes):
+    """phantom02's truth settings: the defaults with the detector-noise seed 2 and a 7.0 mm mesh.
+
+    At the default 7.5 mm (1,671 nodes) the MLO compression of this phantom did not
+    converge (first increment 0.1, and 0.05; the CC did); at 7.0 mm (1,968 nodes) both
+    views converge.
+    """
+    from regtrack.phantom.mammo_params import MammoTruthParams
+
+    return dataclasses.replace(MammoTruthParams(), **{"seed": PHANTOM02.seed, "element_size_mm": 7.0, **changes})
+
+
+PHANTOM02_NOTE = """
+The truth mesh is finer than phantom01's (element size 7.0 mm instead of 7.5 mm): at 7.5 mm
+(1,671 nodes) the MLO truth compression of this phantom did not converge, with a first
+increment of 0.1 and of 0.05.
+"""
 
 
 class _solver_progress:
@@ -147,12 +198,15 @@ def mammo_readme(t: dict) -> str:
                     f"| {sim['D']:.3f} | {sim['upper_force_N']:.1f} | {d['image_shape'][0]}x{d['image_shape'][1]} "
                     f"| {d['dicom_bytes'] / 1e3:.0f} kB ({d['compression_ratio_measured']:.1f}:1) |")
     p = t["params"]
+    side = next(iter(t["views"].values()))["laterality"]
+    word = _side_word(side)
+    cc, mlo = ("\\".join(IHE_ORIENTATION[(side, v)]) for v in ("CC", "MLO"))
     return f"""
 ## Mammograms (`mammo/`) and their hidden truth (`truth/mammo_truth.json`)
 
 `mammo/cc.dcm` and `mammo/mlo.dcm` are simulated DICOM MG "for presentation" images of
-the right breast (ImageLaterality R, ViewPosition CC / MLO, PatientOrientation `P\\L` /
-`P\\FL` as the IHE hanging stores a right breast, ImagerPixelSpacing = PixelSpacing =
+the {word} breast (ImageLaterality {side}, ViewPosition CC / MLO, PatientOrientation `{cc}` /
+`{mlo}` as the IHE hanging stores a {word} breast, ImagerPixelSpacing = PixelSpacing =
 {p['pixel_mm']} mm, {p['bits_stored']}-bit MONOCHROME2, JPEG 2000).  `mammo/*_tumour.json` hold
 the true projected tumour outline and case.toml the true projected nipple (`nipple_px`),
 both in the DICOM's own pixel grid.
@@ -198,13 +252,10 @@ def _fmt_truth(t: dict) -> dict:
 PHANTOM_README = """\
 # {case_id}: synthetic prone breast phantom
 
-Made by `pipelines/make_sample_cases.py` with `regtrack.phantom.make_phantom(PhantomParams())`
-(seed 1).  Nothing here comes from a patient.
+Made by `pipelines/make_sample_cases.py` with `regtrack.phantom.make_phantom({call})`
+({what}).  Nothing here comes from a patient.
 
-* `mri/dicom/`: T1-like MR series, one file per axial slice (MR Image Storage, JPEG 2000
-  lossless), {shape} voxels of 0.66 x 0.66 x 1.4 mm, head-first prone, LPS geometry in
-  ImagePositionPatient / ImageOrientationPatient / PixelSpacing / SliceThickness.
-* `mri/labels.nii.gz`: label map on the same grid, detailed Pelicano convention: -3 tumour,
+{mri}* `mri/labels.nii.gz`: label map on {grid}, detailed Pelicano convention: -3 tumour,
   -2 skin (with the nipple), -1 pectoral muscle, 0 background, 1-3 fibroglandular,
   4 transition, 5-7 fat.
 * `truth/phantom_truth.json`: ground truth (the pipeline never reads it): nipple {nipple} mm,
@@ -212,6 +263,33 @@ Made by `pipelines/make_sample_cases.py` with `regtrack.phantom.make_phantom(Pha
   breast mound volume {bvol} cm^3, and every generator parameter.
 * `case.toml`: the case description.
 """
+
+PHANTOM_README_SERIES = """\
+* `mri/dicom/`: T1-like MR series, one file per axial slice (MR Image Storage, JPEG 2000
+  lossless), {shape} voxels of 0.66 x 0.66 x 1.4 mm, head-first prone, LPS geometry in
+  ImagePositionPatient / ImageOrientationPatient / PixelSpacing / SliceThickness.
+"""
+
+
+def phantom_readme(case_id: str, truth: dict, *, series: bool = True) -> str:
+    """The case README's phantom part (the mammogram part is :func:`mammo_readme`)."""
+    f = _fmt_truth(truth)
+    norm = lambda v: tuple(v) if isinstance(v, (list, tuple)) else v  # noqa: E731  (JSON gives lists)
+    prm = {k: norm(v) for k, v in truth["params"].items()}
+    default = {k: norm(v) for k, v in dataclasses.asdict(PhantomParams()).items()}
+    if prm == default:
+        call, what = "PhantomParams()", "seed 1"
+    else:
+        changed = ", ".join(f"{k}={v!r}" for k, v in prm.items() if v != default[k])
+        call, what = f"PhantomParams({changed})", f"seed {prm['seed']}, {_side_word(prm['side'])} breast"
+    if series:
+        mri, grid = PHANTOM_README_SERIES.format(shape=f["shape"]), "the same grid"
+    else:
+        mri = ("* No MR series (`[mri] series`), to keep the repository small: the pipeline needs only\n"
+               "  the label map, and the same call regenerates the T1-like MRI on its grid.\n")
+        grid = (f"a grid of {f['shape']} voxels of 0.66 x 0.66 x 1.4 mm\n  (axial, LPS geometry in "
+                "the NIfTI header)")
+    return PHANTOM_README.format(case_id=case_id, call=call, what=what, mri=mri, grid=grid, **f)
 
 
 # ----------------------------------------------------------------------------- pelicano
@@ -382,23 +460,26 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", type=Path, default=REPO / "sample_cases")
     ap.add_argument("--shared-data", type=Path, default=REPO.parent / "shared" / "data")
-    ap.add_argument("--only", choices=("phantom01", "pelicano_exam03"))
+    ap.add_argument("--only", choices=("phantom01", "phantom02", "pelicano_exam03"),
+                    help="build one case (default: all three)")
     ap.add_argument("--no-mammograms", action="store_true",
-                    help="phantom01 without the simulated mammograms (MRI part only, fast)")
+                    help="the phantoms without their simulated mammograms (MRI part only, fast)")
     ap.add_argument("--truth-element-mm", type=float, default=None,
-                    help="element size of the truth simulation's mesh (default: MammoTruthParams)")
+                    help="element size of the truth simulation's mesh (default: MammoTruthParams; "
+                         "phantom02: 7.0)")
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
     made = []
-    if args.only in (None, "phantom01"):
-        tp = None
-        if args.truth_element_mm is not None:
-            from dataclasses import replace
+    for name, make, default_truth in (("phantom01", make_phantom01, None),
+                                      ("phantom02", make_phantom02, phantom02_truth_params)):
+        if args.only in (None, name):
+            tp = None
+            if args.truth_element_mm is not None:
+                from regtrack.phantom.mammo_params import MammoTruthParams
 
-            from regtrack.phantom.mammo_params import MammoTruthParams
-
-            tp = replace(MammoTruthParams(), element_size_mm=args.truth_element_mm)
-        made.append(make_phantom01(args.out, mammograms=not args.no_mammograms, truth_params=tp))
+                base = default_truth() if default_truth else MammoTruthParams()
+                tp = dataclasses.replace(base, element_size_mm=args.truth_element_mm)
+            made.append(make(args.out, mammograms=not args.no_mammograms, truth_params=tp))
     if args.only in (None, "pelicano_exam03"):
         made.append(make_pelicano_case(args.out, args.shared_data, exam="03"))
     for case in made:

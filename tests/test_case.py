@@ -4,7 +4,7 @@ Every test builds a small synthetic case in ``tmp_path``: a 14 x 12 x 10 NIfTI l
 in the Pelicano *detailed* convention, two 40 x 30 DICOM MG headers+pixels, a tumour
 polygon JSON and a ``case.toml``.  The broken-case table applies one mutation to that
 valid case and checks the single resulting one-line problem.  Real sample cases
-(``sample_cases/phantom01``, ``sample_cases/pelicano_exam03``) are validated when they
+(``sample_cases/phantom01``, ``phantom02``, ``pelicano_exam03``) are validated when they
 exist; the Pelicano label map is from Pelicano et al., *Sensors* 2021 / *PLoS One* 2024.
 """
 
@@ -502,7 +502,7 @@ def test_validating_an_invalid_case_writes_nothing(case_dir: Path, tmp_path: Pat
 
 
 # ----------------------------------------------------------------------------- sample cases
-@pytest.mark.parametrize("name", ["phantom01", "pelicano_exam03"])
+@pytest.mark.parametrize("name", ["phantom01", "phantom02", "pelicano_exam03"])
 def test_bundled_sample_cases_validate(name: str) -> None:
     folder = SAMPLE_CASES / name
     if not (folder / "case.toml").exists():

@@ -327,7 +327,7 @@ def test_empty_dicom_folder(tmp_path):
 # ----------------------------------------------------------------------------- sample cases
 
 
-@pytest.mark.parametrize("case", ["phantom01", "pelicano_exam03"])
+@pytest.mark.parametrize("case", ["phantom01", "phantom02", "pelicano_exam03"])
 def test_sample_case_sizes(case):
     folder = SAMPLE_CASES / case
     size = sum(p.stat().st_size for p in folder.rglob("*") if p.is_file())
