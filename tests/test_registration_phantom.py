@@ -2,16 +2,21 @@
 tumour-centroid distance against the hidden truth of ``sample_cases/phantom01``.
 
 The case's mammograms come from a different model on purpose (heterogeneous fat/gland
-tissue, nu 0.495, no friction, its own 1,802-node mesh; see the case README) and were turned
+tissue, nu 0.495, no friction, its own 1,803-node mesh; see the case README) and were turned
 in the image plane by a known angle (CC +5 deg, MLO -4 deg) about the nipple, in the sense
 of :mod:`regtrack.registration`.  Acceptance: the recovered theta_p within 1 deg of that
 angle and d_T under 3 mm in both views.
 
-Known shortfall (issue 7, open), measured 2026-11-22 with the case's 1,500-node model:
-theta_p = 1.07 deg (CC) and -9.50 deg (MLO), d_T = 2.64 / 3.89 mm.  Misses of the acceptance
-are collected and end the test as an expected failure that names them; the D values and
-regression bounds (theta_p within 10 deg, d_T under 5 mm, the contours overlapping with a
-breast Dice above 0.9) still assert.
+Known shortfall (issue 7, open), measured 2026-11-22 with the case's 1,500-node model
+(1,841 nodes) after the truth's nipple was fixed (it had been a coarse-mesh node 4.7 mm from
+the anatomical nipple, which turned both views by 2-3 deg) and with the ICP boundary rule of
+the breast objective: CC theta_p = 4.29 deg (0.71 deg off), d_T = 0.18 mm; MLO theta_p =
+-6.74 deg (2.74 deg off), d_T = 0.37 mm.  The MLO miss is the stiffness mismatch: with the
+truth's volume-weighted mean c1 (0.671 kPa instead of the default 0.54) MLO gives -4.41 deg
+and d_T = 0.08 mm, i.e. what the paper's per-patient calibration of c1 is for.  Misses of
+the acceptance are collected and end the test as an expected failure that names them; the
+D values and regression bounds (theta_p within 4 deg, d_T under 1 mm, the contours
+overlapping with a breast Dice above 0.95) still assert.
 """
 
 from __future__ import annotations
@@ -47,6 +52,6 @@ def test_phantom_rotation_and_tumour_distance_against_the_truth():
             misses.append(f"{v}: theta_p {r['theta_p']:.2f} deg vs true {t['rotation_deg']:+.1f}")
         if r["d_T"] >= DT_TOL_MM:
             misses.append(f"{v}: d_T {r['d_T']:.2f} mm")
-        assert err < 10.0 and r["d_T"] < 5.0 and r["dice_breast"] > 0.9, (v, r)
+        assert err < 4.0 and r["d_T"] < 1.0 and r["dice_breast"] > 0.95, (v, r)
     if misses:
         pytest.xfail("issue 7: phantom acceptance not met: " + "; ".join(misses))
