@@ -202,15 +202,19 @@ def test_line_search_cuts_the_overshooting_newton_step_of_atan(merit):
         assert abs(du[0] * np.arctan(u0 + alpha * du)[0]) <= 0.8 * abs(du[0] * R0[0])
 
 
+def _hanging_box():
+    """A 2 mm P1 box fixed at z = 0 under a strong gravity ramp: the problem and g(t)."""
+    cfg = MechanicsConfig(formulation="p1", nu=0.45, skin_enabled=False)
+    m = box_model((2.0, 2.0, 2.0), (2, 2, 2))
+    m.fixed = m.points[:, 2] < 1e-9
+    return S.build_problem(m, cfg), (lambda t: t * np.array([0.0, 0.0, -1000.0]))
+
+
 def test_auto_merit_retries_a_failed_increment_with_the_residual_line_search(monkeypatch):
     """line_search_merit = "auto": an increment that fails with the directional line search
     is solved again with the residual one before any cut-back (counted in merit_retries);
     with "directional" the same failure is a cut-back, and every increment fails."""
-    cfg = MechanicsConfig(formulation="p1", nu=0.45, skin_enabled=False)
-    m = box_model((2.0, 2.0, 2.0), (2, 2, 2))
-    m.fixed = m.points[:, 2] < 1e-9
-    pr = S.build_problem(m, cfg)
-    g = lambda t: t * np.array([0.0, 0.0, -1000.0])  # noqa: E731
+    pr, g = _hanging_box()
     real = S._increment
     used = []
 
@@ -259,11 +263,7 @@ def test_a_failed_increment_is_retried_with_the_other_tangent_before_a_cut_back(
     """After the merit retry, an increment that still fails is solved again with the
     contributions' other tangent (tangent_retries), which is switched back afterwards; a
     failure with both is a cut-back as before."""
-    cfg = MechanicsConfig(formulation="p1", nu=0.45, skin_enabled=False)
-    m = box_model((2.0, 2.0, 2.0), (2, 2, 2))
-    m.fixed = m.points[:, 2] < 1e-9
-    pr = S.build_problem(m, cfg)
-    g = lambda t: t * np.array([0.0, 0.0, -1000.0])  # noqa: E731
+    pr, g = _hanging_box()
     real = S._increment
     c = _Swappable()
     seen = []
