@@ -316,3 +316,18 @@ def test_collect_identifiers_reads_the_case_headers(tmp_path: Path) -> None:
     assert ids.by_keyword["PatientName"] == ["Zubrowka^Jadwiga"]
     assert ids.by_keyword["AccessionNumber"] == ["ACC55102"]
     assert ids.paths[str((tmp_path / "c").resolve())] == "<case>"
+
+
+def test_study_and_calibration_name_an_identifying_case_by_its_pseudonym(tmp_path: Path) -> None:
+    """Studies and calibration name cases by ``case_id_of`` (table rows, figure file names,
+    calibration.json): a case id holding the DICOM PatientID becomes the same pseudonym as
+    in ``regtrack run``; a harmless id is kept."""
+    from regtrack.privacy import identifiers_of_case_folder, pseudonymous_id
+    from regtrack.study.spec import case_id_of
+
+    bad = write_e2e_case(tmp_path / "a", case_id=CASE_ID, identifiers=PLANTED)
+    cid = case_id_of(bad)
+    assert cid.startswith("anon-") and "PID7731902" not in cid
+    assert cid == pseudonymous_id(CASE_ID, identifiers_of_case_folder(bad))
+    ok = write_e2e_case(tmp_path / "b", case_id="rt01", identifiers=PLANTED)
+    assert case_id_of(ok) == "rt01"

@@ -205,13 +205,19 @@ def _parse_parameters(table: Any, *, where: str) -> tuple[dict[str, tuple], list
 
 
 def case_id_of(case_dir: Path) -> str:
-    """``[case] id`` of a case folder's ``case.toml``, else the folder name."""
+    """``[case] id`` of a case folder's ``case.toml``, else the folder name; replaced by
+    the pipeline's pseudonym (:func:`regtrack.privacy.pseudonymous_id`) when it contains a
+    patient identifier of the case's DICOM files, so study and calibration outputs (tables,
+    figure names, JSON) name the case as ``regtrack run`` does."""
     try:
         doc = tomllib.loads((case_dir / "case.toml").read_text(encoding="utf-8"))
     except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError):
         return case_dir.name  # the runner reports the bad case.toml as a failed run
     cid = doc.get("case", {}).get("id") if isinstance(doc.get("case"), dict) else None
-    return cid if isinstance(cid, str) and cid else case_dir.name
+    cid = cid if isinstance(cid, str) and cid else case_dir.name
+    from regtrack.privacy import identifiers_of_case_folder, pseudonymous_id
+
+    return pseudonymous_id(cid, identifiers_of_case_folder(case_dir))
 
 
 def _parse_cases(spec: Any, *, root: Path, where: str) -> tuple[list[CaseRef], list[str]]:
