@@ -22,6 +22,7 @@ import pytest
 
 from regtrack.cli import main
 from regtrack.study.results import read_csv
+from regtrack.study.spec import case_id_of
 from tests.conftest import SAMPLE_CASES
 
 pytestmark = pytest.mark.slow
@@ -71,6 +72,10 @@ def test_real_pipeline_local_equals_dask(tmp_path):
     for r in local:
         for m in ("BS_Av", "D"):
             assert r.get(m) is not None and math.isfinite(r[m]), (r["case_id"], m)
-    assert {r["case_id"] for r in local} == {"phantom01", "phantom02"}
-    for c in ("phantom01", "phantom02"):
+    # the phantoms' DICOM PatientID is their case id, so the study names them by the
+    # pipeline's pseudonym (regtrack.privacy), as regtrack run does
+    ids = [case_id_of(c) for c in cases]
+    assert all(i.startswith("anon-") for i in ids) and len(set(ids)) == 2
+    assert {r["case_id"] for r in local} == set(ids)
+    for c in ids:
         assert (tmp_path / "local" / f"figure8_{c}_CC.png").is_file()
