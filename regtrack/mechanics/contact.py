@@ -72,13 +72,14 @@ tissue), the tangent turns indefinite, and Newton corrections of 10-250 mm on th
 stall the compression.  By default (``curvature_tangent = false``) the term is left out of
 the tangent (of the normal and the friction force): the tangent stays positive
 semi-definite there, the residual is unchanged and exact, so a converged state is the same
-equilibrium; convergence on edge nodes is linear instead of quadratic.  Measured on the
-phantom at 1,841 nodes: MLO frictionless stopped at t = 0.58 with the term and completes
-in 512 iterations without; CC at c1 = 0.671 kPa stopped at t = 0.13 (inverted elements)
-and completes in 530 iterations.  ``curvature_tangent = true`` gives the exact tangent (the
-finite-difference tests use it).  A failed increment is retried with the other tangent
-before a cut-back (``swap_tangent``, counted in ``tangent_retries``): neither tangent
-completes every case (the phantom's MLO at the defaults completes only with the term).
+equilibrium; convergence on edge nodes is linear instead of quadratic.
+``curvature_tangent = true`` gives the exact tangent (the finite-difference tests use it).
+Neither tangent alone completes every case (phantom, 1,841 nodes: MLO frictionless
+completes only without the term, MLO at the defaults only with it), so a failed increment
+is retried with the other tangent before a cut-back (``swap_tangent``, counted in
+``tangent_retries``).  With that retry, CC at c1 = 0.671 kPa (which stopped at t = 0.13
+with the term alone) completes in 537 iterations, both default views in 569 / 611 (729 /
+1,039 before); MLO frictionless still stops at t = 0.575 (issue 5).
 """
 
 from __future__ import annotations
