@@ -98,3 +98,58 @@ def test_membrane_tangent_finite_difference():
     assert np.linalg.norm(fd - an) / np.linalg.norm(an) < 1e-6
     # the forces are the gradient of the energy
     assert (ep - em) / (2 * h) == pytest.approx(np.sum(fe * d[tris]), rel=1e-6)
+
+
+# -- wrinkling (tension-field theory) ------------------------------------------------------
+
+PLAIN = skin_material(MechanicsConfig(skin_wrinkling=False))
+
+
+@pytest.mark.parametrize("lam", [1.1, 1.5])
+@pytest.mark.parametrize("l2", [0.5, 0.8])
+def test_wrinkled_membrane_carries_the_uniaxial_tension(lam, l2):
+    # laterally squeezed below its natural width, the membrane wrinkles: its force is that
+    # of the uniaxial state at the same l1 (the natural width l2* from the closed form) and
+    # the lateral edge carries nothing; round-off bound 1e-6 (the states are homogeneous)
+    assert MAT.wrinkling
+    l2n = brentq(lambda s: analytic_sigma(lam, s)[0][1], 0.3, 1.0)
+    assert l2 < l2n
+    fx, fy, _ = edge_force(lam, l2, rot=ROT)
+    sig, l3 = analytic_sigma(lam, l2n)
+    assert fx == pytest.approx(sig[0] * MAT.thickness * l3 * l2n * 6.0, rel=1e-6)
+    assert abs(fy) < 1e-9 * abs(fx)
+
+
+def test_slack_membrane_carries_nothing_and_the_plain_one_compression():
+    P2, tris = patch()
+    X = np.c_[P2, np.zeros(len(P2))] @ ROT.T
+    x = np.c_[0.9 * P2[:, :1], 0.8 * P2[:, 1:], np.zeros(len(P2))] @ ROT.T
+    G, A0 = reference_geometry(X, tris)
+    fe, Ke, e = membrane_forces(x, tris, G, A0, MAT, want_k=True)
+    assert e == 0.0 and not fe.any() and not Ke.any()
+    fe, _, e = membrane_forces(x, tris, G, A0, PLAIN, want_k=False)
+    assert e > 0 and np.abs(fe).max() > 0  # the plain polynomial energy resists compression
+
+
+@pytest.mark.parametrize("theta", [0.0, 0.4, 1.2])
+def test_wrinkled_tangent_finite_difference(theta):
+    # wrinkle direction rotated by theta in the plane: the tangent carries the rotation of
+    # the principal direction (Hessian of the eigenvalue); relative error < 1e-6 as above
+    P2, tris = patch(2)
+    X = np.c_[P2, np.zeros(len(P2))] @ ROT.T
+    c, s = np.cos(theta), np.sin(theta)
+    R = np.array([[c, -s], [s, c]])
+    U = R @ np.diag([1.3, 0.7]) @ R.T
+    rng = np.random.default_rng(5)
+    x = np.c_[P2 @ U.T, np.zeros(len(P2))] @ ROT.T + 0.01 * rng.standard_normal(X.shape)
+    G, A0 = reference_geometry(X, tris)
+    fe, Ke, e = membrane_forces(x, tris, G, A0, MAT, want_k=True)
+    assert e < membrane_forces(x, tris, G, A0, PLAIN, want_k=False)[2]  # relaxed: wrinkled
+    d = rng.standard_normal(x.shape)
+    h = 1e-6
+    fp, _, ep = membrane_forces(x + h * d, tris, G, A0, MAT, want_k=False)
+    fm, _, em = membrane_forces(x - h * d, tris, G, A0, MAT, want_k=False)
+    fd = ((fp - fm) / (2 * h)).reshape(len(tris), 9)
+    an = np.einsum("tab,tb->ta", Ke, d[tris].reshape(len(tris), 9))
+    assert np.linalg.norm(fd - an) / np.linalg.norm(an) < 1e-6
+    assert (ep - em) / (2 * h) == pytest.approx(np.sum(fe * d[tris]), rel=1e-6)

@@ -52,11 +52,16 @@ def test_override_mapping():
                             "target_D": 0.4, "mesh_nodes": 3000,
                             "registration.bracket_deg": 20.0}, views=("CC", "MLO"))
     assert ov == {"model": {"target_nodes": 3000},
-                  "mechanics": {"tissue_c1_kpa": 0.8, "nu": 0.47, "tumour_c1_kpa": 8.0},
+                  "mechanics": {"tissue_c1_kpa": 0.8, "nu": 0.47, "tumour_c1_kpa": 8.0,
+                                "tissue_model": "homogeneous"},
                   "contact": {"friction": 0.3},
                   "protocol": {"CC": {"target_D": 0.4}, "MLO": {"target_D": 0.4}},
                   "registration": {"bracket_deg": 20.0}}
     assert base == {"model": {"target_nodes": 2000}}  # not mutated
+    # a study that names the tissue model keeps it; one without c1 leaves the case's
+    assert apply_point({"mechanics": {"tissue_model": "composition"}}, {"c1": 0.8}, views=("CC",)) \
+        == {"mechanics": {"tissue_model": "composition", "tissue_c1_kpa": 0.8}}
+    assert apply_point({}, {"nu": 0.45}, views=("CC",)) == {"mechanics": {"nu": 0.45}}
 
 
 def test_run_key_depends_on_case_content(tmp_path):

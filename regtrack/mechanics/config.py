@@ -14,6 +14,7 @@ from dataclasses import dataclass, field
 from regtrack.config import param
 
 FORMULATIONS = ("p1-anp", "p1", "p2")
+TISSUE_MODELS = ("homogeneous", "composition", "heterogeneous")
 
 
 @dataclass(frozen=True)
@@ -104,6 +105,21 @@ class MechanicsConfig:
     """
 
     tissue_c1_kpa: float = param(0.54, "kPa", "neo-Hookean c1 of the tissue (paper: 0.54)", gt=0, le=1e4)
+    tissue_model: str = param("homogeneous", "", "tissue stiffness: 'homogeneous' (tissue_c1_kpa "
+                              "everywhere, the paper's model), 'composition' (one c1 for all tissue: the "
+                              "volume-weighted mean of fat_c1_kpa / gland_c1_kpa over the model's "
+                              "MRI labels) or 'heterogeneous' (c1 per element from its label)",
+                              choices=TISSUE_MODELS)
+    fat_c1_kpa: float | None = param(None, "kPa", "neo-Hookean c1 of fat (fat_labels, and tissue "
+                                     "labels of no class, e.g. skin voxels); tissue_model != homogeneous",
+                                     gt=0, le=1e4)
+    gland_c1_kpa: float | None = param(None, "kPa", "neo-Hookean c1 of fibroglandular tissue "
+                                       "(gland_labels); tissue_model != homogeneous", gt=0, le=1e4)
+    fat_labels: tuple[int, ...] = param((5, 6, 7), "", "MRI label values of fat (default: the "
+                                        "pelicano-detailed scheme)")
+    gland_labels: tuple[int, ...] = param((1, 2, 3), "", "MRI label values of fibroglandular tissue")
+    transition_labels: tuple[int, ...] = param((4,), "", "MRI label values between fat and gland "
+                                               "(c1 = mean of fat and gland)")
     tumour_c1_kpa: float = param(5.44, "kPa", "neo-Hookean c1 of the tumour (paper: 5.44)", gt=0, le=1e5)
     nu: float = param(0.49, "-", "Poisson's ratio of the tissue", ge=0.0, lt=0.5)
     tumour_nu: float | None = param(None, "-", "Poisson's ratio of the tumour (default: nu)", ge=0.0, lt=0.5)
@@ -113,6 +129,9 @@ class MechanicsConfig:
                              "plain displacement, no skin)", choices=FORMULATIONS)
     skin_enabled: bool = param(True, "", "add the skin membrane on the outer surface")
     skin_thickness_mm: float = param(1.0, "mm", "skin membrane thickness", gt=0, le=10)
+    skin_wrinkling: bool = param(True, "", "the skin membrane wrinkles instead of carrying "
+                                 "compression (tension-field theory, Pipkin's relaxed energy; "
+                                 "false: the plain polynomial energy in compression too)")
     skin_c10_pa: float = param(31.0, "Pa", "skin c10", ge=0)
     skin_c01_pa: float = param(30.0, "Pa", "skin c01", ge=0)
     skin_c11_pa: float = param(22.5, "Pa", "skin c11", ge=0)
@@ -131,6 +150,14 @@ class MechanicsConfig:
         if s.initial_increment > s.max_increment:
             out.append(f"solver.initial_increment = {s.initial_increment} exceeds max_increment = "
                        f"{s.max_increment}: raise max_increment")
+        if self.tissue_model != "homogeneous":
+            missing = [k for k in ("fat_c1_kpa", "gland_c1_kpa") if getattr(self, k) is None]
+            if missing:
+                out.append(f"tissue_model = '{self.tissue_model}' needs {' and '.join(missing)} (kPa): "
+                           "give them, or use tissue_model = 'homogeneous' with tissue_c1_kpa")
+            both = set(self.fat_labels) & set(self.gland_labels)
+            if both:
+                out.append(f"label value(s) {sorted(both)} are in both fat_labels and gland_labels")
         if self.formulation == "p2" and self.skin_enabled:
             out.append("formulation = 'p2' has no skin membrane: set skin_enabled = false")
         if self.skin_enabled and self.skin_c10_pa + self.skin_c01_pa <= 0:

@@ -35,8 +35,9 @@ from numba import njit
 from regtrack.errors import ConfigError, InputFileError
 from regtrack.mechanics import assembly, membrane, p2, tissue
 from regtrack.mechanics.config import MechanicsConfig
-from regtrack.mechanics.materials import (G_SCALE, ElementMaterials, SkinMaterial, element_materials,
-                                          skin_material)
+from regtrack.mechanics.materials import (G_SCALE, ElementMaterials, SkinMaterial, TissueStiffness,
+                                          element_materials,
+                                          skin_material, tissue_stiffness)
 from regtrack.model.types import BreastModel
 
 log = logging.getLogger(__name__)
@@ -65,6 +66,7 @@ class Problem:
     fixed_dofs: np.ndarray
     layout: assembly.SystemLayout
     t_setup: float = 0.0
+    tissue_c1: TissueStiffness | None = None  # c1 of the tissue elements (tissue_model), summary
 
     @property
     def n_nodes(self) -> int:
@@ -116,7 +118,8 @@ def build_problem(model: BreastModel, config: MechanicsConfig | None = None) -> 
         bad = int(np.argmin(V))
         raise InputFileError(f"model: {int(np.sum(V <= 0))} tetrahedra with non-positive volume "
                              f"(e.g. element {bad}, V = {V[bad]:.3g} mm^3); re-mesh or fix the orientation")
-    mats = element_materials(model.region, config)
+    tissue_k = tissue_stiffness(model.region, model.tissue_label, V, config)
+    mats = element_materials(model.region, config, tissue_k)
     use_skin = config.skin_enabled and len(model.skin) > 0
     skin = np.ascontiguousarray(model.skin if use_skin else np.zeros((0, 3), np.int64), np.int64)
     sG, sA = membrane.reference_geometry(X, skin) if use_skin else (np.zeros((0, 3, 2)), np.zeros(0))
@@ -138,6 +141,7 @@ def build_problem(model: BreastModel, config: MechanicsConfig | None = None) -> 
                    skin_material(config) if use_skin else None, pattern, tet_base, skin_pos, groups, w,
                    fixed_dofs, layout)
     prob.t_setup = time.perf_counter() - t0
+    prob.tissue_c1 = tissue_k
     log.debug("problem: %d nodes, %d tets, %d skin triangles, %s, nnz %d, setup %.2f s",
               len(X), len(tets), len(skin), config.formulation, pattern.nnz, prob.t_setup)
     return prob

@@ -104,6 +104,7 @@ class ProtocolResult:
     steps: list[StepRecord]
     plate_frame: dict
     error: str | None = None
+    materials: dict = field(default_factory=dict)  # tissue stiffness summary (tissue_model)
 
     @property
     def complete(self) -> bool:

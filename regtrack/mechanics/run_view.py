@@ -46,13 +46,15 @@ class ViewResult:
     summary: dict = field(default_factory=dict)
 
 
-def body_from_model(model: BreastModel, mechanics: Any) -> BodySetup:
-    """:class:`BodySetup` of a model; ``E = 4 c1 (1 + nu)`` of the tissue (MPa)."""
-    from regtrack.mechanics.materials import KPA, young_modulus
+def body_from_model(model: BreastModel, mechanics: Any, c1_kpa: float | None = None) -> BodySetup:
+    """:class:`BodySetup` of a model; ``E = 4 c1 (1 + nu)`` of the tissue (MPa), with ``c1``
+    the tissue's (mean) c1: ``c1_kpa``, or that of ``mechanics`` (``tissue_model``)."""
+    from regtrack.mechanics.materials import KPA, tissue_stiffness, young_modulus
 
+    if c1_kpa is None:
+        c1_kpa = tissue_stiffness(model.region, model.tissue_label, model.tet_volumes(), mechanics).mean_kpa
     return BodySetup(points=model.points, tets=model.tets, skin=model.skin, fixed=model.fixed,
-                     side=model.frame.side,
-                     young_mpa=young_modulus(mechanics.tissue_c1_kpa * KPA, mechanics.nu))
+                     side=model.frame.side, young_mpa=young_modulus(c1_kpa * KPA, mechanics.nu))
 
 
 def run_protocol_on_model(model: BreastModel, protocol: Protocol, *, mechanics: Any = None,
@@ -66,10 +68,11 @@ def run_protocol_on_model(model: BreastModel, protocol: Protocol, *, mechanics: 
     t0 = time.perf_counter()
     problem = build_problem(model, mechanics)
     t1 = time.perf_counter()
-    runner = ProtocolRunner(body_from_model(model, mechanics), protocol,
+    runner = ProtocolRunner(body_from_model(model, mechanics, problem.tissue_c1.mean_kpa), protocol,
                             solver_from_problem(problem, progress=progress),
                             config=contact or ContactConfig())
     result = runner.run()
+    result.materials = problem.tissue_c1.info
     t2 = time.perf_counter()
     return result, {"setup_s": t1 - t0, "protocol_s": t2 - t1, "total_s": t2 - t0}
 
@@ -124,7 +127,7 @@ def summarise(result: ProtocolResult, timing: dict | None = None) -> dict:
             "increments": sum(s.solver.get("increments", 0) for s in result.steps),
             "iterations": sum(s.solver.get("iterations", 0) for s in result.steps),
             "cutbacks": sum(s.solver.get("cutbacks", 0) for s in result.steps),
-            "timing_s": timing or {}}
+            "tissue": result.materials, "timing_s": timing or {}}
 
 
 def write_outputs(result: ProtocolResult, model: BreastModel, out_dir: Path, *, stem: str,

@@ -154,7 +154,10 @@ def _get(overrides: dict, section: str, key: str) -> Any:
 def apply_point(base: dict, point: dict[str, Any], *, views: tuple[str, ...]) -> dict:
     """Overrides of one run: ``base`` (the study's fixed overrides) plus a parameter point.
 
-    ``tumour_ratio`` multiplies the run's tissue c1 (from ``c1`` or the fixed overrides).
+    ``tumour_ratio`` multiplies the run's tissue c1 (from ``c1`` or the fixed overrides).  A
+    run that sets the tissue c1 also sets ``tissue_model = "homogeneous"`` unless the study
+    names one, so a case with a fat/gland model (case.toml) is varied as the paper's
+    homogeneous model rather than silently keeping its own stiffness.
 
     Raises
     ------
@@ -174,6 +177,9 @@ def apply_point(base: dict, point: dict[str, Any], *, views: tuple[str, ...]) ->
         else:
             section, key = split_dotted(name)  # type: ignore[misc]
             _set(out, section, key, value)
+    if _get(out, "mechanics", "tissue_c1_kpa") is not None and _get(out, "mechanics", "tissue_model") is None:
+        # a study's c1 is the homogeneous tissue's: a case's fat/gland tissue_model would ignore it
+        _set(out, "mechanics", "tissue_model", "homogeneous")
     if "tumour_ratio" in point:
         c1 = _get(out, "mechanics", "tissue_c1_kpa")
         if c1 is None:
