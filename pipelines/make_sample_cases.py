@@ -60,7 +60,10 @@ def _side_word(side: str) -> str:
     return "right" if side == "R" else "left"
 
 
-def phantom_case_toml(case_id: str, truth: dict, views: dict | None = None, *, series: bool = True) -> str:
+def phantom_case_toml(case_id: str, truth: dict, views: dict | None = None, *, series: bool = True,
+                      tissue_c1_kpa: tuple[float, float] | None = None) -> str:
+    """case.toml of a phantom; ``tissue_c1_kpa`` = the truth's (fat, gland) c1, written as
+    the case's ``[mechanics]`` fat/gland composition (with the mammograms only)."""
     nip = ", ".join(f"{v:.2f}" for v in truth["nipple_lps_mm"])
     prm = truth["params"]
     size = "x".join(f"{v:g}" for v in prm["tumour_size_mm"])
@@ -88,6 +91,18 @@ target_nodes = 1500
 # Mammograms: run pipelines/make_sample_cases.py without --no-mammograms.
 '''
     out = [head]
+    if tissue_c1_kpa is not None:
+        fat, gland = tissue_c1_kpa
+        out.append(f'''
+[mechanics]
+# The phantom's tissue is heterogeneous, fat and gland with the c1 below (truth/).  The model
+# stays the paper's homogenised one: one c1 for all tissue, the volume-weighted mean of these
+# over the case's MRI labels (tissue_model = "composition").  Delete this section for the
+# paper's c1 = 0.54 kPa; a study or calibration that sets c1 uses that c1 instead.
+tissue_model = "composition"
+fat_c1_kpa = {fat:g}
+gland_c1_kpa = {gland:g}
+''')
     for v, e in views.items():
         out.append(f'''
 [views.{v}]  # simulated DICOM MG; tumour outline and nipple are the true projections
@@ -113,7 +128,7 @@ def make_phantom_case(out: Path, case_id: str, params: PhantomParams, *, series:
                            series_description="synthetic T1 prone breast (regtrack.phantom)",
                            uid_seed=f"regtrack-{case_id}", progress=True)
     _io.write_json(case / "truth" / "phantom_truth.json", truth)
-    views, mammo_truth = None, None
+    views, mammo_truth, tissue = None, None, None
     if mammograms:
         from regtrack.phantom.case_mammo import make_case_mammograms
         from regtrack.phantom.mammo_params import MammoTruthParams
@@ -125,7 +140,10 @@ def make_phantom_case(out: Path, case_id: str, params: PhantomParams, *, series:
             made = make_case_mammograms(case, bundled, truth, params=truth_params or MammoTruthParams(),
                                         case_id=case_id, progress=progress)
         views, mammo_truth = made["views"], made["truth"]
-    _io.write_text(case / "case.toml", phantom_case_toml(case_id, truth, views, series=series))
+        tp = truth_params or MammoTruthParams()
+        tissue = (tp.fat_c1_kpa, tp.gland_c1_kpa)
+    _io.write_text(case / "case.toml", phantom_case_toml(case_id, truth, views, series=series,
+                                                         tissue_c1_kpa=tissue))
     readme = phantom_readme(case_id, truth, series=series)
     if mammo_truth is not None:
         readme += mammo_readme(mammo_truth) + readme_note

@@ -7,16 +7,18 @@ in the image plane by a known angle (CC +5 deg, MLO -4 deg) about the nipple, in
 of :mod:`regtrack.registration`.  Acceptance: the recovered theta_p within 1 deg of that
 angle and d_T under 3 mm in both views.
 
-Known shortfall (issue 7, open), measured 2026-11-22 with the case's 1,500-node model
-(1,841 nodes) after the truth's nipple was fixed (it had been a coarse-mesh node 4.7 mm from
-the anatomical nipple, which turned both views by 2-3 deg) and with the ICP boundary rule of
-the breast objective: CC theta_p = 4.29 deg (0.71 deg off), d_T = 0.18 mm; MLO theta_p =
--6.74 deg (2.74 deg off), d_T = 0.37 mm.  The MLO miss is the stiffness mismatch: with the
-truth's volume-weighted mean c1 (0.671 kPa instead of the default 0.54) MLO gives -4.41 deg
-and d_T = 0.08 mm, i.e. what the paper's per-patient calibration of c1 is for.  Misses of
-the acceptance are collected and end the test as an expected failure that names them; the
-D values and regression bounds (theta_p within 4 deg, d_T under 1 mm, the contours
-overlapping with a breast Dice above 0.95) still assert.
+The pipeline runs the case as bundled: its case.toml gives the phantom's fat and gland c1
+(0.45 / 1.10 kPa) and the model is homogenised with their volume-weighted mean over the
+pipeline's own MRI labels and mesh (``tissue_model = "composition"``, 0.670 kPa).  So the
+mismatch left is: the spatial fat/gland pattern (the truth is heterogeneous, the model is
+not), nu 0.495 vs 0.49, friction 0 vs 0.1, the truth's 1,803-node mesh vs the pipeline's
+1,841 nodes, the truth's skin membrane carrying compression vs the pipeline's wrinkling one,
+and the simulated X-ray image (noise, JPEG 2000) that the contours are read from.
+
+Measured 2026-11-22 (1,841 nodes): CC theta_p = 4.35 deg (0.65 deg off), d_T = 0.26 mm; MLO
+theta_p = -4.43 deg (0.43 deg off), d_T = 0.09 mm.  With the paper's homogeneous default
+(c1 = 0.54 kPa, ``tissue_model = "homogeneous"``) the MLO missed by 2.74 deg (session 5,
+before the wrinkling skin): this case's make-up is stiffer than the default.
 """
 
 from __future__ import annotations
@@ -43,15 +45,12 @@ def test_phantom_rotation_and_tumour_distance_against_the_truth():
     truth = json.loads(TRUTH.read_text())
     rows = {r["view"]: r for r in run_case(CASE, cache_dir=CACHE, report=False)}
     assert set(rows) == {"CC", "MLO"}
-    misses = []
     for v, r in rows.items():
         t = truth["views"][v]
         assert r["D"] == pytest.approx(t["simulation"]["D"], abs=1e-6)
         err = abs(r["theta_p"] - t["rotation_deg"])
-        if err > ANGLE_TOL_DEG:
-            misses.append(f"{v}: theta_p {r['theta_p']:.2f} deg vs true {t['rotation_deg']:+.1f}")
-        if r["d_T"] >= DT_TOL_MM:
-            misses.append(f"{v}: d_T {r['d_T']:.2f} mm")
-        assert err < 4.0 and r["d_T"] < 1.0 and r["dice_breast"] > 0.95, (v, r)
-    if misses:
-        pytest.xfail("issue 7: phantom acceptance not met: " + "; ".join(misses))
+        print(f"{v}: theta_p {r['theta_p']:.2f} deg (true {t['rotation_deg']:+.1f}, {err:.2f} off), "
+              f"d_T {r['d_T']:.2f} mm, Dice breast {r['dice_breast']:.3f}")
+        assert err < ANGLE_TOL_DEG, (v, r["theta_p"], t["rotation_deg"])
+        assert r["d_T"] < DT_TOL_MM, (v, r["d_T"])
+        assert r["dice_breast"] > 0.95, (v, r["dice_breast"])
