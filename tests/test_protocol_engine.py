@@ -171,3 +171,25 @@ def test_case_overrides_validation():
         protocol_for_view("MLO", {"target_D": 1.5})
     p = protocol_for_view("mlo", {"target_D": 0.3, "angle_deg": 50.0})
     assert p.steps[-1].target_D == 0.3 and p.angle_deg == 50.0
+
+
+def test_plates_start_clear_of_a_thick_base_behind_their_edge():
+    """The block's chest-wall base (x < -30, behind the plates' edge at -40 + 10) is made
+    8 mm taller than the part over the plates: placed from the nodes over the plates only,
+    the rounded edges would start inside it; every free skin node must start clearance_mm
+    (2 mm) or more from both plates (the closest exactly 2 mm), so the plates back off."""
+    from regtrack.mechanics.protocol_run import make_plates
+
+    b = _body()
+    X = b.points.copy()
+    base = X[:, 0] < -30.0
+    X[base, 1] *= 1.0 + 8.0 / 15.0  # y in [-23, 23] behind the edge, [-15, 15] over the plates
+    body = BodySetup(points=X, tets=b.tets, skin=b.skin, fixed=b.fixed, side="R", young_mpa=1e-3)
+    proto = apply_overrides(shipped_protocol("cc"), ProtocolOverrides(posterior_edge_mm=10.0))
+    plates, _ = make_plates(body, proto, config=ContactConfig())
+    free = np.unique(body.skin)
+    free = free[~body.fixed[free]]
+    for pc in plates.values():
+        assert pc.plate.query(X[free]).gap.min() == pytest.approx(2.0, abs=1e-6)
+    over = free[X[free, 0] >= -30.0 + 10.0]  # beyond the edge's rounding: only the face counts
+    assert plates["upper"].plate.query(X[over]).gap.min() > 2.0 + 1.0  # backed off for the base

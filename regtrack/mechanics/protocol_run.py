@@ -14,7 +14,9 @@ Plate placement (plate frame ``n, e_x`` of :func:`regtrack.virtual.frames.plate_
 both plates have their chest-wall (posterior) edge rounded with ``edge_radius_mm``, at
 ``x_cw + posterior_edge_mm`` where ``x_cw`` is the mean ``x`` of the chest-wall nodes, and
 are unbounded elsewhere.  The lower plate faces ``+n``, the upper one ``-n``; both start
-``clearance_mm`` away from the breast.
+``clearance_mm`` away from every free skin node, measured against the whole plate surface
+(rounded edge included: a thick chest-wall base behind the edge would otherwise start
+inside the plate, 6.5 mm deep on the phantom's MLO with ``posterior_edge_mm = 10``).
 
 Targets of an upper-plate move: the plate is first brought to touch the breast (no
 force), which measures the uncompressed thickness ``T_0`` (plate gap at first touch);
@@ -143,6 +145,11 @@ def make_plates(body: BodySetup, protocol: Protocol, *, config: ContactConfig
     for name, normal, height in (("lower", n, lo), ("upper", -n, hi)):
         pl = RigidPlate(name=name, origin=height * n, normal=normal, e1=frame.e_x,
                         s_range=(s_edge, np.inf), edge_radius=geo.edge_radius_mm)
+        for _ in range(50):  # back off until the rounded edge clears the base behind it too
+            short = geo.clearance_mm - float(pl.query(X[nodes]).gap.min())
+            if short <= 1e-9:
+                break
+            pl = pl.translated(-(short + 1e-9) * pl.normal)
         plates[name] = PlateContact(pl, X, nodes, areas, config=config, penalty=eps)
     log.info("plates: normal %s, chest-wall edge x = %.1f mm, eps_N = %.3g MPa/mm",
              np.round(n, 3).tolist(), s_edge, eps)
