@@ -12,11 +12,11 @@ The pipeline runs the case as bundled: its case.toml gives the phantom's fat and
 pipeline's own MRI labels and mesh (``tissue_model = "composition"``, 0.670 kPa).  So the
 mismatch left is: the spatial fat/gland pattern (the truth is heterogeneous, the model is
 not), nu 0.495 vs 0.49, friction 0 vs 0.1, the truth's 1,803-node mesh vs the pipeline's
-1,841 nodes, the truth's skin membrane carrying compression vs the pipeline's wrinkling one,
-and the simulated X-ray image (noise, JPEG 2000) that the contours are read from.
+1,841 nodes, and the simulated X-ray image (noise, JPEG 2000) that the contours are read
+from.
 
-Measured 2026-11-22 (1,841 nodes): CC theta_p = 4.35 deg (0.65 deg off), d_T = 0.26 mm; MLO
-theta_p = -4.43 deg (0.43 deg off), d_T = 0.09 mm.  With the paper's homogeneous default
+Measured 2026-11-22 (1,841 nodes, phantom regenerated with the wrinkling skin): CC theta_p =
+4.60 deg (0.40 deg off), d_T = 0.28 mm; MLO theta_p = -4.43 deg (0.43 deg off), d_T = 0.13 mm.  With the paper's homogeneous default
 (c1 = 0.54 kPa, ``tissue_model = "homogeneous"``) the MLO missed by 2.74 deg (session 5,
 before the wrinkling skin): this case's make-up is stiffer than the default.
 """

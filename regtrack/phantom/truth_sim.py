@@ -122,9 +122,6 @@ def simulate_view(model: BreastModel, view: str, p: MammoTruthParams, *, progres
     mats = material_summary(model, c1, p)
     cfg = MechanicsConfig(tissue_c1_kpa=mats["tissue_c1_mean_kpa"], tumour_c1_kpa=p.tumour_c1_kpa, nu=p.nu,
                           skin_enabled=p.skin_membrane,
-                          # the bundled phantoms were simulated before the skin wrinkled
-                          # (tension-field membrane); kept so that they regenerate identically
-                          skin_wrinkling=False,
                           solver=SolverOptions(force_tol=p.force_tol, disp_tol=p.force_tol,
                                                initial_increment=p.initial_increment))
     t0 = time.perf_counter()
