@@ -72,3 +72,21 @@ def test_bad_calibration_requests(tmp_path, kw, match):
     with pytest.raises(ConfigError, match=match):
         calibrate(case, runner=FAKE, cache_dir=tmp_path / "c", progress=False, **kw)
     assert not (tmp_path / "c").exists()
+
+
+def test_sensitivity_survives_failed_neighbour_runs():
+    from regtrack.study.calibrate import Evaluation, slope
+
+    def ev(c1, score):
+        return Evaluation(params={"c1": c1}, score=score, violation=0.0, f=-score)
+
+    nan = math.nan
+    central = slope(ev(0.9, 70.0), ev(1.0, 80.0), ev(1.1, 74.0), "c1")
+    assert central["dS_dparam"] == pytest.approx(20.0) and central["method"] == "central"
+    up = slope(ev(0.9, nan), ev(1.0, 80.0), ev(1.1, 74.0), "c1")
+    assert up["dS_dparam"] == pytest.approx(-60.0) and "c1 = 0.9 failed" in up["method"]
+    down = slope(ev(0.9, 70.0), ev(1.0, 80.0), ev(1.1, nan), "c1")
+    assert down["dS_dparam"] == pytest.approx(100.0) and "c1 = 1.1 failed" in down["method"]
+    none = slope(ev(0.9, nan), ev(1.0, 80.0), ev(1.1, nan), "c1")
+    assert math.isnan(none["dS_dparam"]) and none["method"].startswith("not available")
+    assert "0.9, 1.1" in none["method"]

@@ -79,7 +79,7 @@ def run(args: argparse.Namespace) -> int:
              ", ".join(f"{r.get('view')}: {r.get('D'):.3f}" for r in opt.rows if r.get("D") is not None),
              "feasible" if res.feasible else f"D outside range by {opt.violation:.3f}")
     for name, s in res.sensitivity.items():
-        log.info("sensitivity %s: dS/d%s = %.3g %% per unit, grid spread %.2f %%", name, name,
-                 s["dS_dparam"], s["grid_spread"])
+        log.info("sensitivity %s: dS/d%s = %.3g %% per unit (%s), grid spread %.2f %%", name, name,
+                 s["dS_dparam"], s["method"], s["grid_spread"])
     log.info("%d runs computed, %d cached; results in %s", res.computed, res.cached, out)
     return 0 if res.feasible else 5

@@ -13,7 +13,8 @@ module automates that choice:
   grid point inside its neighbouring cells: :func:`scipy.optimize.minimize_scalar`
   (``method="bounded"``) for one parameter, Nelder-Mead with bounds for more, in
   coordinates normalised to one grid step;
-* sensitivity at the optimum: central differences ``dS/dp`` with a step of 5 % of a grid
+* sensitivity at the optimum: central differences ``dS/dp`` (one-sided when a neighbour run
+  failed, and said so) with a step of 5 % of a grid
   step, and the spread ``max S - min S`` along each parameter's grid line through the best
   grid point.
 
@@ -217,14 +218,31 @@ def _sensitivity(prob: _Problem, best: Evaluation, best_grid: Evaluation,
         pts += [{**best.params, n: a}, {**best.params, n: b}]
     evs = prob.run(pts, label="calibrate: sensitivity")
     for i, n in enumerate(bounds):
-        ea, eb = evs[2 * i], evs[2 * i + 1]
-        da = eb.params[n] - ea.params[n]
         line = [e.score for e in grid_evals
                 if all(e.params[m] == best_grid.params[m] for m in bounds if m != n)
                 and math.isfinite(e.score)]
-        out[n] = {"dS_dparam": (eb.score - ea.score) / da if da else math.nan,
-                  "step": da, "grid_spread": (max(line) - min(line)) if line else math.nan}
+        out[n] = {**slope(evs[2 * i], best, evs[2 * i + 1], n),
+                  "grid_spread": (max(line) - min(line)) if line else math.nan}
     return out
+
+
+def slope(ea: Evaluation, best: Evaluation, eb: Evaluation, name: str) -> dict:
+    """``dS/d(name)`` from the runs below (``ea``) and above (``eb``) the optimum: central
+    difference; one-sided against the optimum when one of them failed; NaN with the reason
+    when both did (or the optimum did).  Returns ``dS_dparam``, ``step`` and ``method``."""
+    ok_a, ok_b, ok_0 = (math.isfinite(e.score) for e in (ea, eb, best))
+    if ok_a and ok_b and eb.params[name] != ea.params[name]:
+        lo, hi, how = ea, eb, "central"
+    elif ok_0 and (ok_a or ok_b):
+        lo, hi = (ea, best) if ok_a else (best, eb)
+        bad = eb if ok_a else ea
+        how = f"one-sided: the run at {name} = {bad.params[name]:.4g} failed"
+    else:
+        bad = [f"{e.params[name]:.4g}" for e in (ea, eb) if not math.isfinite(e.score)]
+        return {"dS_dparam": math.nan, "step": eb.params[name] - ea.params[name],
+                "method": f"not available: the runs at {name} = {', '.join(bad) or 'the optimum'} failed"}
+    step = hi.params[name] - lo.params[name]
+    return {"dS_dparam": (hi.score - lo.score) / step, "step": step, "method": how}
 
 
 def calibrate(case_dir: str | Path, *, bounds: dict[str, tuple[float, float]],
