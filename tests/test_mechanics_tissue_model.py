@@ -103,9 +103,10 @@ def test_fat_gland_model_needs_labels_and_stiffnesses():
     assert any("needs fat_c1_kpa and gland_c1_kpa" in p for p in problems)
 
 
-def test_heterogeneous_model_is_the_phantom_truth_material_map():
-    """With the truth's fat/gland c1, the pipeline's per-element c1 and mean are the phantom
-    generator's (regtrack.phantom.truth_sim), on every phantom label."""
+def test_phantom_truth_material_map():
+    """The phantom generator's per-element c1 (regtrack.phantom.truth_sim, which uses the
+    heterogeneous map on the phantom's own label constants): gland 1-3, transition 4 (the
+    mean), fat 5-7 and skin voxels, tumour; and its volume mean equals the map's."""
     from regtrack.phantom.mammo_params import MammoTruthParams
     from regtrack.phantom.truth_sim import element_c1_kpa, material_summary
 
@@ -113,11 +114,13 @@ def test_heterogeneous_model_is_the_phantom_truth_material_map():
     m = box_model((L, L, L), (3, 3, 3))
     rng = np.random.default_rng(0)
     region = np.where(rng.random(m.n_tets) < 0.1, TUMOUR, 1)
-    m = dataclasses.replace(m, region=region, tissue_label=rng.choice([-2, 1, 2, 3, 4, 5, 6, 7], m.n_tets))
+    lab = rng.choice([-2, 1, 2, 3, 4, 5, 6, 7], m.n_tets)
+    m = dataclasses.replace(m, region=region, tissue_label=lab)
+    truth = element_c1_kpa(m, p)
+    expect = np.select([region == TUMOUR, np.isin(lab, (1, 2, 3)), lab == 4],
+                       [p.tumour_c1_kpa, p.gland_c1_kpa, 0.5 * (p.fat_c1_kpa + p.gland_c1_kpa)], p.fat_c1_kpa)
+    np.testing.assert_array_equal(truth, expect)
     mine = tissue_stiffness(m.region, m.tissue_label, m.tet_volumes(),
                             MechanicsConfig(tissue_model="heterogeneous", fat_c1_kpa=p.fat_c1_kpa,
                                             gland_c1_kpa=p.gland_c1_kpa))
-    truth = element_c1_kpa(m, p)
-    tissue = region != TUMOUR
-    np.testing.assert_array_equal(mine.c1_kpa[tissue], truth[tissue])
     assert mine.mean_kpa == pytest.approx(material_summary(m, truth, p)["tissue_c1_mean_kpa"], rel=1e-12)

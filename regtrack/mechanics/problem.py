@@ -36,8 +36,7 @@ from regtrack.errors import ConfigError, InputFileError
 from regtrack.mechanics import assembly, membrane, p2, tissue
 from regtrack.mechanics.config import MechanicsConfig
 from regtrack.mechanics.materials import (G_SCALE, ElementMaterials, SkinMaterial, TissueStiffness,
-                                          element_materials,
-                                          skin_material, tissue_stiffness)
+                                          element_materials, skin_material, tissue_stiffness)
 from regtrack.model.types import BreastModel
 
 log = logging.getLogger(__name__)

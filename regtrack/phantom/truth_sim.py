@@ -59,13 +59,17 @@ class TruthSimulation:
 
 
 def element_c1_kpa(model: BreastModel, p: MammoTruthParams) -> np.ndarray:
-    """c1 (kPa) of every tetrahedron from its phantom label (see the module docstring)."""
-    lab = model.tissue_label
-    if lab is None:
+    """c1 (kPa) of every tetrahedron from its phantom label (see the module docstring): the
+    mechanics core's fat/gland map (``tissue_model = "heterogeneous"``) on the phantom's
+    labels, and the tumour's c1 on the tumour."""
+    from regtrack.mechanics.config import MechanicsConfig
+    from regtrack.mechanics.materials import tissue_stiffness
+
+    if model.tissue_label is None:
         raise ValueError("truth model has no tissue_label: mesh it with regtrack.model.build.build_model")
-    c1 = np.full(model.n_tets, p.fat_c1_kpa)
-    c1[np.isin(lab, GLAND_LABELS)] = p.gland_c1_kpa
-    c1[lab == TRANSITION] = 0.5 * (p.fat_c1_kpa + p.gland_c1_kpa)
+    cfg = MechanicsConfig(tissue_model="heterogeneous", fat_c1_kpa=p.fat_c1_kpa, gland_c1_kpa=p.gland_c1_kpa,
+                          fat_labels=FAT_LABELS, gland_labels=GLAND_LABELS, transition_labels=(TRANSITION,))
+    c1 = tissue_stiffness(model.region, model.tissue_label, model.tet_volumes(), cfg).c1_kpa.copy()
     c1[model.region == TUMOUR] = p.tumour_c1_kpa
     return c1
 
