@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -154,7 +156,8 @@ def test_stalled_newton_accepts_its_best_iterate_below_the_stall_tolerance():
     # the accepted state is the smooth equilibrium up to the jump's own effect (a / k)
     sag = abs(u_ref[node, 2])
     assert abs(u[node, 2] - u_ref[node, 2]) < 0.02 * sag
-    strict = SolverOptions(initial_increment=1.0, min_increment=0.5, stall_force_tol=0.0)
+    # (without the stabilised retry, which settles this one at the jump within force_tol)
+    strict = SolverOptions(initial_increment=1.0, min_increment=0.5, stall_force_tol=0.0, stabilisation="off")
     with pytest.raises(SolverDidNotConvergeError):
         S.solve_step(pr, np.zeros_like(pr.X), gravity=g, options=strict, contributions=[ch])
 
@@ -211,7 +214,7 @@ def _hanging_box():
 
 
 def test_auto_merit_retries_a_failed_increment_with_the_residual_line_search(monkeypatch):
-    """line_search_merit = "auto": an increment that fails with the directional line search
+    """(stabilisation off) line_search_merit = "auto": an increment that fails with the directional line search
     is solved again with the residual one before any cut-back (counted in merit_retries);
     with "directional" the same failure is a cut-back, and every increment fails."""
     pr, g = _hanging_box()
@@ -225,7 +228,7 @@ def test_auto_merit_retries_a_failed_increment_with_the_residual_line_search(mon
         return real(newton, *a, **k)
 
     monkeypatch.setattr(S, "_increment", only_residual)
-    opts = SolverOptions(initial_increment=0.5, min_increment=0.1)
+    opts = SolverOptions(initial_increment=0.5, min_increment=0.1, stabilisation="off")
     u, st = S.solve_step(pr, np.zeros_like(pr.X), gravity=g, options=opts)
     assert st.cutbacks == 0 and st.merit_retries == st.increments >= 2
     assert used[:2] == ["auto", "residual"]
@@ -235,7 +238,7 @@ def test_auto_merit_retries_a_failed_increment_with_the_residual_line_search(mon
     with pytest.raises(SolverDidNotConvergeError):
         S.solve_step(pr, np.zeros_like(pr.X), gravity=g,
                      options=SolverOptions(initial_increment=0.5, min_increment=0.1,
-                                           line_search_merit="directional"))
+                                           line_search_merit="directional", stabilisation="off"))
 
 
 class _Swappable:
@@ -260,7 +263,7 @@ class _Swappable:
 
 
 def test_a_failed_increment_is_retried_with_the_other_tangent_before_a_cut_back(monkeypatch):
-    """After the merit retry, an increment that still fails is solved again with the
+    """(stabilisation off) After the merit retry, an increment that still fails is solved again with the
     contributions' other tangent (tangent_retries), which is switched back afterwards; a
     failure with both is a cut-back as before."""
     pr, g = _hanging_box()
@@ -276,7 +279,7 @@ def test_a_failed_increment_is_retried_with_the_other_tangent_before_a_cut_back(
 
     monkeypatch.setattr(S, "_increment", only_alternative)
     u, st = S.solve_step(pr, np.zeros_like(pr.X), gravity=g, contributions=[c],
-                         options=SolverOptions(initial_increment=0.5, min_increment=0.1))
+                         options=SolverOptions(initial_increment=0.5, min_increment=0.1, stabilisation="off"))
     assert st.cutbacks == 0 and st.tangent_retries == st.merit_retries == st.increments >= 2
     assert seen[:3] == [("auto", False), ("residual", False), ("auto", True)]
     assert not c.alternative and c.swaps == 2 * st.increments  # switched back every time
@@ -288,3 +291,75 @@ def test_a_failed_increment_is_retried_with_the_other_tangent_before_a_cut_back(
     with pytest.raises(SolverDidNotConvergeError):
         S.solve_step(pr, np.zeros_like(pr.X), gravity=g, contributions=[_Swappable()],
                      options=SolverOptions(initial_increment=0.5, min_increment=0.1))
+
+
+def test_stabilised_solve_is_the_proximal_problem_with_a_consistent_tangent():
+    """A stabilised solve about u0 converges (quadratically: consistent tangent) to the
+    root of R(u) + c (u - u0) with c = alpha max(diag K(u0), 1 % of its median): checked
+    to the solver tolerance, and the damping restrains the sag (|u| below the undamped
+    solution's) without changing its direction."""
+    pr, g = _hanging_box()
+    opts = SolverOptions(stabilisation_factor=0.5, force_tol=1e-10, disp_tol=1e-10)
+    newton = S._Newton(pr, [], opts, S.StepStats(), S._linear_solver(pr, opts))
+    u0 = np.zeros(pr.n_dofs)
+    newton.stabilise(u0)
+    c, ref = newton.damping
+    kd = P.evaluate(pr, u0).data[pr.pattern.diagonal_positions()]
+    assert np.allclose(c, 0.5 * np.maximum(kd, 0.01 * np.median(kd[kd > 0])))
+    fext = P.body_force(pr, g(1.0))
+    dofs = pr.fixed_dofs
+    hist: list[float] = []
+    u = newton.solve_increment(u0, fext, dofs, u0[dofs], hist)
+    r = hist[1:]
+    assert r[-1] < 1e-8 * r[0] and len(r) <= 8, r
+    free = np.ones(pr.n_dofs, bool)
+    free[dofs] = False
+    R = S.reaction_forces(pr, u.reshape(-1, 3), gravity_ms2=g(1.0)).reshape(-1)
+    damp = c * (u - u0)
+    assert np.linalg.norm((R + damp)[free]) < 1e-8 * np.linalg.norm(fext)
+    u_ref, _ = S.solve_step(pr, np.zeros_like(pr.X), gravity=g, options=SolverOptions(initial_increment=1.0))
+    z = int(np.argmax(pr.X[:, 2]))  # a top node
+    assert 0.0 < u[3 * z + 2] / u_ref[z, 2] < 1.0
+
+
+def test_stabilised_increments_end_in_an_undamped_equilibrium(monkeypatch):
+    """stabilisation = "auto": increments that fail undamped (forced here) are
+    solved stabilised instead of cut back (counted), and the step ends with undamped
+    equilibrium iterations at t = 1 (polish_solves): the result equals the plain solution
+    to 1e-8 mm (both solved to 1e-10).  If even the stabilised solves fail, the error keeps the last undamped
+    equilibrium (here the initial state, t = 0), not a damped state."""
+    pr, g = _hanging_box()
+    real = S._increment
+
+    seen = set()
+
+    def first_undamped_try_fails(newton, u, t, *a, **k):  # every increment; the polish passes
+        if newton.damping is None and t not in seen:
+            seen.add(t)
+            raise S._Failed("undamped increment refused (test)")
+        return real(newton, u, t, *a, **k)
+
+    monkeypatch.setattr(S, "_increment", first_undamped_try_fails)
+    opts = SolverOptions(initial_increment=0.25, min_increment=0.01, force_tol=1e-10, disp_tol=1e-10)
+    u, st = S.solve_step(pr, np.zeros_like(pr.X), gravity=g, options=opts)
+    assert st.cutbacks == 0 and st.stabilised_increments == st.increments >= 2
+    assert st.polish_solves == 1
+    monkeypatch.setattr(S, "_increment", real)
+    u_ref, _ = S.solve_step(pr, np.zeros_like(pr.X), gravity=g,
+                            options=replace(opts, stabilisation="off"))
+    assert np.abs(u - u_ref).max() < 1e-8  # both converged to 1e-10 (the sag is 0.3 mm)
+    free = np.ones(pr.n_nodes, bool)
+    free[pr.fixed_dofs // 3] = False
+    R = S.reaction_forces(pr, u, gravity_ms2=g(1.0))
+    assert np.linalg.norm(R[free]) <= opts.force_tol * np.linalg.norm(P.body_force(pr, g(1.0)))
+
+    def never_undamped(newton, u, t, *a, **k):
+        if newton.damping is None:
+            raise S._Failed("undamped increment refused (test)")
+        return real(newton, u, t, *a, **k)
+
+    monkeypatch.setattr(S, "_increment", never_undamped)
+    with pytest.raises(SolverDidNotConvergeError) as exc:
+        S.solve_step(pr, np.zeros_like(pr.X), gravity=g, options=opts, step_name="sag")
+    assert exc.value.load_fraction == 0.0 and np.all(exc.value.last_converged == 0.0)
+    assert "undamped equilibrium" in str(exc.value) and "stabilisation" in str(exc.value)

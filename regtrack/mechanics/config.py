@@ -74,6 +74,19 @@ class SolverOptions:
                                    choices=("auto", "residual", "directional"))
     line_search_max: int = param(6, "-", "line-search trials per iteration", ge=1, le=30)
     max_augmentations: int = param(20, "-", "augmented-Lagrangian updates per increment", ge=1)
+    stabilisation: str = param("auto", "", "'auto': an increment that fails is solved again with "
+                               "proximal (viscous-like) stabilisation before it is cut back, and a step "
+                               "whose last increment needed it ends with undamped equilibrium "
+                               "iterations at t = 1 (the returned state is a true equilibrium); 'off': "
+                               "line-search merit and contact-tangent retries instead (see solver.py)",
+                               choices=("auto", "off"))
+    stabilisation_factor: float = param(0.05, "-", "proximal weight alpha: the damping force of a "
+                                        "stabilised increment is alpha diag(K) (u - u_start), with "
+                                        "diag(K) the tissue and skin tangent's diagonal at the "
+                                        "increment's start", gt=0, le=10)
+    stabilisation_polish: int = param(8, "-", "proximal solves at t = 1 before a step whose last "
+                                      "increment was stabilised gives up its undamped equilibrium",
+                                      ge=1, le=100)
     linear_solver: str = param("auto", "", "sparse solver", choices=("auto", "pardiso", "splu"))
     reuse_factorisation: bool = param(True, "", "re-use the last factorisation as the preconditioner of "
                                       "GMRES while that is cheaper than refactorising (inexact Newton; "

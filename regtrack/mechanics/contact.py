@@ -140,6 +140,19 @@ class ContactConfig:
                                             "first increment of a plate move (the first "
                                             "contact of a plate is the hardest increment)",
                                             gt=0.0)
+    max_plate_increment_mm: float = param(0.0, "mm", "protocols: largest plate travel per "
+                                          "increment of a plate move (0, the default: the "
+                                          "solver's own max_increment only).  Friction is "
+                                          "integrated by a return mapping per increment, so the "
+                                          "slip path, and with it the plate force, depends on "
+                                          "the increment.  Phantom CC (1.8k nodes), upper-plate "
+                                          "force: 39.4 N uncapped (up to 12 mm increments), "
+                                          "43.59 N at 5 mm, 43.45 N at 2.5 mm; Pelicano exam 03 "
+                                          "CC (1.5k nodes): 20.8 to 25.5 N whatever the cap "
+                                          "(the chest-wall pinch), and 196 Newton iterations at "
+                                          "5 mm instead of 344.  Not the default: with 5 mm the "
+                                          "phantom's recovered CC rotation moved by 0.9 deg, "
+                                          "friction on or off (see the session-7 note)", ge=0.0)
     predictor: bool = param(False, "", "extrapolate multipliers and friction bound from the "
                             "last two increments of a step")
     curvature_tangent: bool = param(False, "", "include the rounded-edge curvature term "

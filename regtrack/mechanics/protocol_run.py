@@ -195,15 +195,18 @@ class ProtocolRunner:
         self._tmean0: float | None = None
 
     # -- one solve ------------------------------------------------------------------
-    def _solve(self, g_end: np.ndarray, name: str, *, single: bool = False) -> dict:
+    def _solve(self, g_end: np.ndarray, name: str, *, single: bool = False,
+               max_increment: float | None = None) -> dict:
         contribs = list(self.plates.values())
         for c in contribs:
             c.begin_step(name)
-        if single and getattr(self.solve, "takes_increment", False):
-            # one increment first (the solver cuts it back if it fails)
-            u, stats = self.solve(self.u, self.g, g_end, contribs, name, initial_increment=1.0)
-        else:
-            u, stats = self.solve(self.u, self.g, g_end, contribs, name)
+        kw = {}
+        if getattr(self.solve, "takes_increment", False):
+            if single:  # one increment first (the solver cuts it back if it fails)
+                kw["initial_increment"] = 1.0
+            elif max_increment is not None and max_increment < 1.0:
+                kw["max_increment"] = max_increment
+        u, stats = self.solve(self.u, self.g, g_end, contribs, name, **kw)
         self.u = np.asarray(u, float).reshape(-1, 3)
         self.g = np.asarray(g_end, float)
         for c in contribs:
@@ -221,16 +224,19 @@ class ProtocolRunner:
 
         A move longer than ``first_plate_increment_mm`` is solved in two parts: that first
         travel on its own (where contact spreads from a few nodes to many: DESIGN.md,
-        "first-contact blow-up"), then the rest with the solver's own load stepping.
+        "first-contact blow-up"), then the rest with the solver's own load stepping, in
+        increments of at most ``max_plate_increment_mm`` of travel (friction accuracy).
         """
         first = self.config.first_plate_increment_mm
         parts = [distance] if abs(distance) <= 1.5 * first else [np.sign(distance) * first,
                                                                  distance - np.sign(distance) * first]
         stats: dict = {}
+        cap = self.config.max_plate_increment_mm
         for k, d in enumerate(parts):
             start = pc.plate.origin.copy()
             pc.set_motion(start, start + d * pc.plate.normal)
-            stats = _merge_stats(stats, self._solve(self.g, name, single=len(parts) > 1 and k == 0))
+            stats = _merge_stats(stats, self._solve(self.g, name, single=len(parts) > 1 and k == 0,
+                                                    max_increment=cap / abs(d) if cap > 0 else None))
         return stats
 
     def _snapshot(self):
@@ -371,14 +377,17 @@ def solver_from_problem(problem: Any, *, options: Any = None, progress: Any = No
 
     from dataclasses import replace
 
-    def solve(u0, g0, g1, contribs, name, initial_increment=None):
+    def solve(u0, g0, g1, contribs, name, initial_increment=None, max_increment=None):
         g0 = np.asarray(g0, float)
         g1 = np.asarray(g1, float)
         opts = options
+        o = options or problem.config.solver
         if initial_increment is not None:
-            o = options or problem.config.solver
             opts = replace(o, initial_increment=initial_increment,
                            max_increment=max(o.max_increment, initial_increment))
+        elif max_increment is not None:
+            cap = min(o.max_increment, max_increment)
+            opts = replace(o, max_increment=cap, initial_increment=min(o.initial_increment, cap))
         u, st = solve_step(problem, u0, gravity=lambda t: g0 + t * (g1 - g0), dirichlet=dirichlet,
                            contributions=contribs, options=opts, progress=progress,
                            step_name=name, step=name)

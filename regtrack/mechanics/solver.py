@@ -44,6 +44,22 @@ which is a descent test for any tangent, indefinite ones included; the default `
 retries an increment that failed with the first on the second before cutting it back
 (``merit_retries``), and then with the contributions' other tangent (plate contact: with
 or without the rounded-edge curvature term, ``tangent_retries``); elements may not invert.
+Stabilisation (``stabilisation = "auto"``, the default; after Abaqus's *STATIC, STABILIZE
+and the proximal-point method): an increment that fails is solved once more, from the same
+start ``u_n``, with the damping force ``c (u - u_n)`` added to the residual and ``diag(c)``
+to the tangent, ``c = alpha max(diag K(u_n), floor)`` (:meth:`_Newton.stabilise`,
+``alpha = stabilisation_factor``).  That solve minimises the energy plus
+``1/2 |u - u_n|^2_c``: near-singular soft modes (tissue pinched between a plate and the
+fixed chest wall) get the stiffness ``alpha K_ii`` and Newton no longer wanders along
+them.  Its state is not an equilibrium (it carries the damping force), so it is never
+returned: the next increment starts from it undamped, and a step whose last increment was
+stabilised ends with undamped Newton solves at ``t = 1`` (each failing one followed by one
+more proximal solve about the current state, at most ``stabilisation_polish`` rounds:
+``_polish``).  The returned state is therefore converged to the same criteria as always;
+a failure reports and keeps the last *undamped* equilibrium.  ``"off"`` restores the
+line-search merit and contact-tangent retries (below).  Measured on the phantom CC
+compression (1,841 nodes): 200 Newton iterations and 1 cut-back instead of 334 and 2, with
+the plate forces equal to 0.03 %.
 An increment that fails (iterations exhausted, divergence, inversion, NaN) is rolled
 back and cut (``cutback``); easy increments grow the next one (``growth``).  Below
 ``min_increment`` the step stops with :class:`SolverDidNotConvergeError`, which keeps
@@ -127,6 +143,26 @@ class _Newton:
         self.ls = linsolver
         self._cons_cache: dict[bytes, _Constraints] = {}
         self.first_solve_iterations = 0
+        self.damping: tuple[np.ndarray, np.ndarray] | None = None  # (c per dof (N/mm), u_start)
+        self._diag: np.ndarray | None = None
+        self.damped_last = False  # the last accepted increment was stabilised
+
+    def stabilise(self, u_start: np.ndarray | None) -> None:
+        """Proximal stabilisation about ``u_start`` (None: off).  Adds the force
+        ``c (u - u_start)`` to the residual and ``diag(c)`` to the tangent, with
+        ``c = alpha max(diag K(u_start), floor)`` (tissue and skin tangent; ``floor``: 1 %
+        of the median positive diagonal), i.e. each solve minimises
+        ``Pi(u) + 1/2 (u - u_start)^T diag(c) (u - u_start)``."""
+        if u_start is None:
+            self.damping = None
+            return
+        if self._diag is None:
+            self._diag = self.p.pattern.diagonal_positions()
+        ev = evaluate(self.p, u_start, want_k=True)
+        kd = ev.data[self._diag]
+        pos = kd[kd > 0]
+        floor = 0.01 * float(np.median(pos)) if len(pos) else 1e-9
+        self.damping = (self.o.stabilisation_factor * np.maximum(kd, floor), u_start.copy())
 
     def constraints(self, dofs: np.ndarray) -> _Constraints:
         key = dofs.tobytes()
@@ -141,6 +177,8 @@ class _Newton:
         if ev.n_inverted != 0 or not np.all(np.isfinite(ev.f)):
             return None, None, None
         R = ev.f - fext
+        if self.damping is not None:
+            R = R + self.damping[0] * (u - self.damping[1])
         ktan = []
         t0 = time.perf_counter()
         fc2 = 0.0
@@ -159,6 +197,8 @@ class _Newton:
         """System matrix with contributions, before the constraint rows are replaced."""
         pat = self.p.pattern
         data = ev.data
+        if self.damping is not None:
+            data[self._diag] += self.damping[0]
         n = self.p.layout.n
         extra = []
         self.symmetric = True
@@ -399,6 +439,8 @@ def solve_step(problem: Problem, u0: np.ndarray, *, gravity: Gravity | None = No
     for c in newton.contribs:
         c.begin_step(step)
     t, dt = 0.0, o.initial_increment
+    u_eq, t_eq = u.copy(), 0.0  # last state that is an undamped equilibrium
+    newton.damped_last = False
     while t < 1.0 - 1e-12:
         dt = min(dt, 1.0 - t)
         if 1.0 - (t + dt) < 1e-9:
@@ -417,12 +459,14 @@ def solve_step(problem: Problem, u0: np.ndarray, *, gravity: Gravity | None = No
             if dt < o.min_increment:
                 stats.t_total = time.perf_counter() - tstart
                 err = ContactDidNotConvergeError if "augment" in str(why) else SolverDidNotConvergeError
-                raise err(f"step '{step_name}': Newton did not converge beyond load fraction t = {t:.4g} "
+                raise err(f"step '{step_name}': Newton did not converge beyond load fraction t = {t_eq:.4g} "
                           f"({why}); try smaller [mechanics.solver] min_increment/initial_increment, more "
                           "max_iterations, or check the boundary conditions and loads",
-                          load_fraction=t, last_converged=u.reshape(-1, 3).copy()) from None
+                          load_fraction=t_eq, last_converged=u_eq.reshape(-1, 3).copy()) from None
             continue
         u, t = u_new, t_new
+        if not newton.damped_last:
+            u_eq, t_eq = u, t
         stats.increments += 1
         stats.residual_history.append(hist)
         for c in newton.contribs:
@@ -433,6 +477,21 @@ def solve_step(problem: Problem, u0: np.ndarray, *, gravity: Gravity | None = No
             dt = min(dt * o.growth, o.max_increment)
         if progress is not None:
             progress(step_name, t)
+    if newton.damped_last:
+        try:
+            u = _polish(newton, u, gravity, dirichlet, o, stats)
+        except _Failed as why:
+            for c in newton.contribs:
+                c.rollback()
+            stats.t_total = time.perf_counter() - tstart
+            raise SolverDidNotConvergeError(
+                f"step '{step_name}': the stabilised solution at t = 1 did not reach an undamped "
+                f"equilibrium ({why}); the last equilibrium is at load fraction t = {t_eq:.4g}; try a "
+                "smaller [mechanics.solver] stabilisation_factor, more stabilisation_polish, or check "
+                "the boundary conditions and loads",
+                load_fraction=t_eq, last_converged=u_eq.reshape(-1, 3).copy()) from None
+        if newton.contribs:  # the reports describe the returned (undamped) state
+            stats.reports[-1] = {"t": t, **{c.name: c.report(u.reshape(-1, 3)) for c in newton.contribs}}
     stats.t_total = time.perf_counter() - tstart
     stats.cpu_total = time.process_time() - cstart
     stats.factorisations = ls.n_factorisations - nfac0
@@ -460,11 +519,25 @@ def _increment_with_retries(newton: _Newton, u, t_new, gravity, dirichlet, hist,
     """One increment; before the caller cuts back, a failed increment is solved again
     (from the same start) with, in turn: the residual (Armijo) line search
     (``line_search_merit = "auto"``, ``merit_retries``), then the contributions' other
-    tangent (``swap_tangent``, ``tangent_retries``).  Raises the last ``_Failed``."""
+    tangent (``swap_tangent``, ``tangent_retries``).  With ``stabilisation = "auto"`` the
+    only retry is the stabilised one (:meth:`_Newton.stabilise`), which sets
+    ``newton.damped_last``.  Raises the last ``_Failed``."""
+    newton.damped_last = False
     try:
         return _increment(newton, u, t_new, gravity, dirichlet, hist)
     except _Failed as first:
         why = first
+    if o.stabilisation == "auto":
+        for c in newton.contribs:
+            c.rollback()
+        stats.stabilised_increments += 1
+        newton.stabilise(u)
+        try:
+            u_new = _increment(newton, u, t_new, gravity, dirichlet, hist)
+        finally:
+            newton.stabilise(None)
+        newton.damped_last = True
+        return u_new
     if o.line_search_merit == "auto":
         for c in newton.contribs:
             c.rollback()
@@ -487,6 +560,34 @@ def _increment_with_retries(newton: _Newton, u, t_new, gravity, dirichlet, hist,
     finally:
         for c in swapped:
             c.swap_tangent()
+
+
+def _polish(newton: _Newton, u: np.ndarray, gravity, dirichlet, o: SolverOptions, stats: StepStats) -> np.ndarray:
+    """Undamped equilibrium at t = 1 from a stabilised state: an undamped solve, and while
+    that fails, one more stabilised (proximal) solve about the current state; at most
+    ``stabilisation_polish`` rounds.  Commits the contributions' state after each solve."""
+    for _ in range(o.stabilisation_polish):
+        stats.polish_solves += 1
+        hist: list[float] = []
+        try:
+            u = _increment(newton, u, 1.0, gravity, dirichlet, hist)
+            stats.residual_history.append(hist)
+            for c in newton.contribs:
+                c.commit(u.reshape(-1, 3))
+            newton.damped_last = False
+            return u
+        except _Failed:
+            for c in newton.contribs:
+                c.rollback()
+        newton.stabilise(u)
+        try:
+            u = _increment(newton, u, 1.0, gravity, dirichlet, hist)
+        finally:
+            newton.stabilise(None)
+        stats.residual_history.append(hist)
+        for c in newton.contribs:
+            c.commit(u.reshape(-1, 3))
+    raise _Failed(f"no undamped equilibrium after {o.stabilisation_polish} stabilised solves")
 
 
 def _increment(newton: _Newton, u: np.ndarray, t: float, gravity, dirichlet, hist) -> np.ndarray:

@@ -30,6 +30,8 @@ class StepStats:
     stalled_residual_max: float = 0.0
     merit_retries: int = 0
     tangent_retries: int = 0
+    stabilised_increments: int = 0
+    polish_solves: int = 0
     line_search_trials: int = 0
     factorisations: int = 0
     analyses: int = 0
@@ -47,7 +49,7 @@ class StepStats:
     def to_dict(self) -> dict:
         keys = ("name", "increments", "iterations", "cutbacks", "augmentations", "extra_iterations",
                 "freezes", "stalled_accepts", "stalled_residual_max", "merit_retries", "tangent_retries",
-                "line_search_trials",
+                "stabilised_increments", "polish_solves", "line_search_trials",
                 "factorisations", "analyses", "krylov_solves", "krylov_iterations", "t_assembly", "t_contrib",
                 "t_solve", "t_line_search", "t_total", "cpu_total")
         d = {k: getattr(self, k) for k in keys}
