@@ -534,8 +534,13 @@ def _increment_with_retries(newton: _Newton, u, t_new, gravity, dirichlet, hist,
         newton.stabilise(u)
         try:
             u_new = _increment(newton, u, t_new, gravity, dirichlet, hist)
+        except _Failed as again:
+            log.info("%s: increment to t = %.4g failed undamped (%s) and stabilised (%s)",
+                     stats.name, t_new, why, again)
+            raise
         finally:
             newton.stabilise(None)
+        log.info("%s: increment to t = %.4g stabilised (undamped: %s)", stats.name, t_new, why)
         newton.damped_last = True
         return u_new
     if o.line_search_merit == "auto":
