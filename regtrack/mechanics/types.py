@@ -16,7 +16,10 @@ class StepStats:
     factorisation + solve), ``t_line_search`` (extra residual evaluations), ``t_total``;
     ``cpu_total`` is the process CPU time of the step (all threads; s).  ``factorisations``
     counts sparse factorisations, ``krylov_solves`` the solves done on a re-used one and
-    ``krylov_iterations`` all GMRES iterations (:mod:`.linsolve`).
+    ``krylov_iterations`` all GMRES iterations (:mod:`.linsolve`).  ``stabilised_increments``
+    counts the stabilised retries of failed increments (successful or not) and
+    ``polish_solves`` the undamped solves at t = 1 after a stabilised last increment
+    (:mod:`.solver`).
     """
 
     name: str = ""
