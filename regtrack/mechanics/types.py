@@ -17,7 +17,9 @@ class StepStats:
     ``cpu_total`` is the process CPU time of the step (all threads; s).  ``factorisations``
     counts sparse factorisations, ``krylov_solves`` the solves done on a re-used one and
     ``krylov_iterations`` all GMRES iterations (:mod:`.linsolve`).  ``stabilised_increments``
-    counts the stabilised retries of failed increments (successful or not) and
+    counts the stabilised retries of failed increments (successful or not),
+    ``settled_increments`` those whose state an undamped solve at the same load then made an
+    equilibrium, and
     ``polish_solves`` the undamped solves at t = 1 after a stabilised last increment
     (:mod:`.solver`).
     """
@@ -34,6 +36,7 @@ class StepStats:
     merit_retries: int = 0
     tangent_retries: int = 0
     stabilised_increments: int = 0
+    settled_increments: int = 0
     polish_solves: int = 0
     line_search_trials: int = 0
     factorisations: int = 0
@@ -52,7 +55,7 @@ class StepStats:
     def to_dict(self) -> dict:
         keys = ("name", "increments", "iterations", "cutbacks", "augmentations", "extra_iterations",
                 "freezes", "stalled_accepts", "stalled_residual_max", "merit_retries", "tangent_retries",
-                "stabilised_increments", "polish_solves", "line_search_trials",
+                "stabilised_increments", "settled_increments", "polish_solves", "line_search_trials",
                 "factorisations", "analyses", "krylov_solves", "krylov_iterations", "t_assembly", "t_contrib",
                 "t_solve", "t_line_search", "t_total", "cpu_total")
         d = {k: getattr(self, k) for k in keys}
