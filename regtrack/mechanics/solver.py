@@ -60,9 +60,10 @@ more proximal solve about the current state, at most ``stabilisation_polish`` ro
 lag made the next undamped increment fail as well, and on Pelicano exam 10's 10k MLO every
 increment of the compression ended up stabilised and the final polish failed.  The returned state is therefore converged to the same criteria as always;
 a failure reports and keeps the last *undamped* equilibrium.  ``"off"`` restores the
-line-search merit and contact-tangent retries (below).  Measured on the phantom CC
-compression (1,841 nodes): 200 Newton iterations and 1 cut-back instead of 334 and 2, with
-the plate forces equal to 0.03 %.
+line-search merit and contact-tangent retries (below).  Measured, compression step: phantom
+CC (1,841 nodes) 254 Newton iterations instead of 334; Pelicano exam 03 CC (1.5k nodes)
+445 instead of 344 (not a win at this size); at 10k nodes it lets the CC of exams 05 and
+10 complete where the retries and cut-backs crawled (see the session-7 note of issue 5).
 An increment that fails (iterations exhausted, divergence, inversion, NaN) is rolled
 back and cut (``cutback``); easy increments grow the next one (``growth``).  Below
 ``min_increment`` the step stops with :class:`SolverDidNotConvergeError`, which keeps
