@@ -16,7 +16,7 @@ not), nu 0.495 vs 0.49, friction 0 vs 0.1, the truth's 1,803-node mesh vs the pi
 from.
 
 Measured 2026-11-22 (1,841 nodes, phantom regenerated with the stabilised solver): CC theta_p =
-4.70 deg (0.30 deg off), d_T = 0.28 mm; MLO theta_p = -4.43 deg (0.43 deg off), d_T = 0.13 mm.  With the paper's homogeneous default
+4.67 deg (0.33 deg off), d_T = 0.27 mm; MLO theta_p = -4.43 deg (0.43 deg off), d_T = 0.13 mm.  With the paper's homogeneous default
 (c1 = 0.54 kPa, ``tissue_model = "homogeneous"``) the MLO missed by 2.74 deg (session 5,
 before the wrinkling skin): this case's make-up is stiffer than the default.
 """
