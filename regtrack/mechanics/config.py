@@ -75,9 +75,10 @@ class SolverOptions:
     line_search_max: int = param(6, "-", "line-search trials per iteration", ge=1, le=30)
     max_augmentations: int = param(20, "-", "augmented-Lagrangian updates per increment", ge=1)
     stabilisation: str = param("auto", "", "'auto': an increment that fails is solved again with "
-                               "proximal (viscous-like) stabilisation before it is cut back, and a step "
-                               "whose last increment needed it ends with undamped equilibrium "
-                               "iterations at t = 1 (the returned state is a true equilibrium); 'off': "
+                               "proximal (viscous-like) stabilisation before it is cut back, then "
+                               "settled by an undamped solve at the same load; a step whose last "
+                               "increment stayed damped ends with undamped equilibrium iterations at "
+                               "t = 1 (a damped state is never returned); 'off': "
                                "line-search merit and contact-tangent retries instead (see solver.py)",
                                choices=("auto", "off"))
     stabilisation_factor: float = param(0.05, "-", "proximal weight alpha: the damping force of a "

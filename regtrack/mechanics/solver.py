@@ -535,15 +535,12 @@ def _increment_with_retries(newton: _Newton, u, t_new, gravity, dirichlet, hist,
         for c in newton.contribs:
             c.rollback()
         stats.stabilised_increments += 1
-        newton.stabilise(u)
         try:
-            u_new = _increment(newton, u, t_new, gravity, dirichlet, hist)
+            u_new = _stabilised_increment(newton, u, t_new, gravity, dirichlet, hist)
         except _Failed as again:
             log.info("%s: increment to t = %.4g failed undamped (%s) and stabilised (%s)",
                      stats.name, t_new, why, again)
             raise
-        finally:
-            newton.stabilise(None)
         log.info("%s: increment to t = %.4g stabilised (undamped: %s)", stats.name, t_new, why)
         # settle: undamped Newton at the same load from the stabilised state, so that the
         # damping lag does not carry into the next increment (which would then fail too)
@@ -578,6 +575,17 @@ def _increment_with_retries(newton: _Newton, u, t_new, gravity, dirichlet, hist,
             c.swap_tangent()
 
 
+def _stabilised_increment(newton: _Newton, u: np.ndarray, t: float, gravity, dirichlet, hist,
+                          scale: float = 1.0) -> np.ndarray:
+    """:func:`_increment` with proximal stabilisation about ``u`` (``scale`` times the
+    configured weight); the damping is removed whatever the outcome."""
+    newton.stabilise(u, scale)
+    try:
+        return _increment(newton, u, t, gravity, dirichlet, hist)
+    finally:
+        newton.stabilise(None)
+
+
 def _polish(newton: _Newton, u: np.ndarray, gravity, dirichlet, o: SolverOptions, stats: StepStats) -> np.ndarray:
     """Undamped equilibrium at t = 1 from a stabilised state: an undamped solve, and while
     that fails, one more stabilised (proximal) solve about the current state; at most
@@ -597,16 +605,13 @@ def _polish(newton: _Newton, u: np.ndarray, gravity, dirichlet, o: SolverOptions
         except _Failed:
             for c in newton.contribs:
                 c.rollback()
-        newton.stabilise(u, scale)
         try:
-            u = _increment(newton, u, 1.0, gravity, dirichlet, hist)
+            u = _stabilised_increment(newton, u, 1.0, gravity, dirichlet, hist, scale)
         except _Failed:
             for c in newton.contribs:
                 c.rollback()
             scale *= 4.0  # stiffer damping: a smaller, easier proximal step
             continue
-        finally:
-            newton.stabilise(None)
         stats.residual_history.append(hist)
         for c in newton.contribs:
             c.commit(u.reshape(-1, 3))
