@@ -68,8 +68,10 @@ def test_solution_matches_an_independent_direct_solve(precision):
 
 
 def test_factorisation_is_reused_until_stale():
-    A0, b = anp_system(0.0)
-    A1, _ = anp_system(0.002, seed=3)  # a nearby state: the old factors precondition well
+    # a nearby state (same random direction, 5 % further): the old factors precondition it in
+    # 4 GMRES iterations, within the budget of this small system (cost ratio at its floor, 16)
+    A0, b = anp_system(0.002, seed=3)
+    A1, _ = anp_system(0.0021, seed=3)
     ls = LinearSolver()
     ls.solve(A0, b, symmetric=True)
     x = ls.solve(A1, b, symmetric=True, rtol=1e-8)
@@ -166,7 +168,7 @@ def test_reuse_decisions_do_not_depend_on_measured_times(monkeypatch):
     Newton path (and a contact run) is reproducible on a loaded machine."""
     import regtrack.mechanics.linsolve as L
 
-    mats = [anp_system(s, seed=k)[0] for k, s in enumerate((0.0, 0.002, 0.005, 0.01, 0.03))]
+    mats = [anp_system(s, seed=3)[0] for s in (0.002, 0.0021, 0.0025, 0.003, 0.005, 0.01, 0.03)]
     _, b = anp_system(0.0)
 
     def run():

@@ -73,6 +73,11 @@ class SolverOptions:
                                    "is retried once with 'residual' before a cut-back)",
                                    choices=("auto", "residual", "directional"))
     line_search_max: int = param(6, "-", "line-search trials per iteration", ge=1, le=30)
+    extrapolation: str = param("linear", "", "starting guess of an increment's Newton iterations: "
+                               "'linear' extrapolates the last converged increment, u_n + (dt / "
+                               "dt_prev) (u_n - u_n-1) (Abaqus *STATIC's default), used when its "
+                               "residual is below that of u_n and no element inverts; 'off': start "
+                               "from u_n", choices=("linear", "off"))
     max_augmentations: int = param(20, "-", "augmented-Lagrangian updates per increment", ge=1)
     stabilisation: str = param("auto", "", "'auto': an increment that fails is solved again with "
                                "proximal (viscous-like) stabilisation before it is cut back, then "

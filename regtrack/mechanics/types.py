@@ -21,7 +21,8 @@ class StepStats:
     ``settled_increments`` those whose state an undamped solve at the same load then made an
     equilibrium, and
     ``polish_solves`` the undamped solves at t = 1 after a stabilised last increment
-    (:mod:`.solver`).
+    (:mod:`.solver`); ``extrapolated_increments`` counts the increments whose Newton
+    iterations started from the linear extrapolation of the previous increment.
     """
 
     name: str = ""
@@ -38,6 +39,7 @@ class StepStats:
     stabilised_increments: int = 0
     settled_increments: int = 0
     polish_solves: int = 0
+    extrapolated_increments: int = 0
     line_search_trials: int = 0
     factorisations: int = 0
     analyses: int = 0
@@ -55,7 +57,7 @@ class StepStats:
     def to_dict(self) -> dict:
         keys = ("name", "increments", "iterations", "cutbacks", "augmentations", "extra_iterations",
                 "freezes", "stalled_accepts", "stalled_residual_max", "merit_retries", "tangent_retries",
-                "stabilised_increments", "settled_increments", "polish_solves", "line_search_trials",
+                "stabilised_increments", "settled_increments", "polish_solves", "extrapolated_increments", "line_search_trials",
                 "factorisations", "analyses", "krylov_solves", "krylov_iterations", "t_assembly", "t_contrib",
                 "t_solve", "t_line_search", "t_total", "cpu_total")
         d = {k: getattr(self, k) for k in keys}
