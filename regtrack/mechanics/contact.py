@@ -152,7 +152,11 @@ class ContactConfig:
                                           "(the chest-wall pinch), and 196 Newton iterations at "
                                           "5 mm instead of 344.  Not the default: with 5 mm the "
                                           "phantom's recovered CC rotation moved by 0.9 deg, "
-                                          "friction on or off (see the session-7 note)", ge=0.0)
+                                          "friction on or off (see the session-7 note).  For "
+                                          "plate-force figures use 2.5: the force then does not "
+                                          "depend on the solver's path (phantom CC 36.78 N with "
+                                          "or without the predictor; uncapped 33.7 or 36.8 N)",
+                                          ge=0.0)
     predictor: bool = param(False, "", "extrapolate multipliers and friction bound from the "
                             "last two increments of a step")
     curvature_tangent: bool = param(False, "", "include the rounded-edge curvature term "
