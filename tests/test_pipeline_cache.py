@@ -37,3 +37,14 @@ def test_produce_is_atomic_and_counted(tmp_path):
     assert hit is not None and (hit / "model.vtu").read_text() == "done" and (hit / MARKER).is_file()
     assert (cache.hits, cache.misses) == (1, 2)
     assert cache.marker("mesh", "k1")["info"] == {"n": 1}
+
+
+def test_keys_follow_the_package_code(monkeypatch, tmp_path):
+    """A change of regtrack's sources (a solver fix, same version) gives new stage keys, so
+    a cached simulation of the old code is not re-used."""
+    from regtrack.pipeline import cache as C
+
+    k1 = fingerprint({"stage": "simulate"})
+    assert k1 == fingerprint({"stage": "simulate"})
+    monkeypatch.setattr(C, "code_digest", lambda: "another code")
+    assert fingerprint({"stage": "simulate"}) != k1

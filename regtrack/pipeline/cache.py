@@ -1,8 +1,10 @@
 """Content-addressed cache of finished pipeline stages.
 
 A stage's *key* is the SHA-256 of everything it depends on: the content of its input
-files, the configuration sections it reads, the keys of the stages before it and the
-regtrack version.  Change one registration setting and only registration and later
+files, the configuration sections it reads, the keys of the stages before it, the
+regtrack version and a digest of the package's Python sources (:func:`code_digest`:
+during development a solver change does not bump the version, and a cached simulation
+of the old code was silently re-used; session 7).  Change one registration setting and only registration and later
 stages get new keys; the mesh and the simulations are found in the cache.
 
 A stage is produced in a temporary folder and renamed into place when it finishes,
@@ -13,6 +15,7 @@ folder that a later run would trust (``os.rename`` of a folder is atomic on POSI
 from __future__ import annotations
 
 import contextlib
+import functools
 import hashlib
 import json
 import logging
@@ -46,9 +49,21 @@ def file_digest(path: str | os.PathLike) -> str:
     return h.hexdigest()
 
 
+@functools.lru_cache(maxsize=1)
+def code_digest() -> str:
+    """SHA-256 of the regtrack package's ``.py`` files (relative names and bytes, sorted)."""
+    root = Path(__file__).resolve().parents[1]
+    h = hashlib.sha256()
+    for q in sorted(root.rglob("*.py")):
+        h.update(str(q.relative_to(root)).encode())
+        h.update(q.read_bytes())
+    return h.hexdigest()
+
+
 def fingerprint(*parts: Any) -> str:
-    """Stable 16-hex-digit key of JSON-serialisable parts (plus the regtrack version)."""
-    text = _io.to_json({"version": __version__, "parts": parts}, indent=None)
+    """Stable 16-hex-digit key of JSON-serialisable parts (plus the regtrack version and
+    :func:`code_digest`)."""
+    text = _io.to_json({"version": __version__, "code": code_digest(), "parts": parts}, indent=None)
     return hashlib.sha256(text.encode()).hexdigest()[:16]
 
 
