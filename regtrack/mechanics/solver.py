@@ -66,8 +66,8 @@ CC (1,841 nodes) 254 Newton iterations instead of 334; Pelicano exam 03 CC (1.5k
 10 complete where the retries and cut-backs crawled (see the session-7 note of issue 5).
 Predictor (``extrapolation = "linear"``, the default; Abaqus *STATIC's default too): an
 increment's Newton iterations start from ``u_n + min(dt / dt_prev, 2) (u_n - u_n-1)``, the
-linear extrapolation of the last two equilibria of the step, when no element inverts there and its residual is below that of
-``u_n`` (:meth:`_Newton.start`).  The plate moves in pseudo-time, so ``u_n`` alone has
+linear extrapolation of the last two equilibria of the step, when no element inverts
+there and its residual is below that of ``u_n`` (:meth:`_Newton.start`).  The plate moves in pseudo-time, so ``u_n`` alone has
 the skin nodes under the advanced plate penetrating it by the whole travel of the
 increment; the extrapolated state has them about where they will be.  Measured,
 compression-step Newton iterations (1.5-1.8k-node models, CC + MLO, one thread): phantom
@@ -170,12 +170,11 @@ class _Newton:
     def start(self, u: np.ndarray, guess: np.ndarray, fext: np.ndarray, cons: _Constraints) -> np.ndarray:
         """The start of an increment's Newton iterations: the extrapolated ``guess`` if no
         element inverts there and its free-dof residual is below that of ``u``, else ``u``
-        (two residual evaluations).  Measured, compression-step Newton iterations with the
-        guess against without (1.5-1.8k-node models, CC / MLO): phantom 107 / 66 against
-        198 / 72, Pelicano exam 03 240 / 85 against 445 / 114.  Also trying the point
+        (two residual evaluations; figures in the module docstring).  Also trying the point
         halfway to the guess (where the guess inverts elements at the plate edge) gave
-        344 / 65 and 295 / 86: the paths of these frictional, pinched problems are chaotic,
-        so only totals over several models decide such choices."""
+        more iterations in total (phantom CC / MLO 344 / 65, exam 03 295 / 86): the paths of
+        these frictional, pinched problems are chaotic, so only totals over several models
+        decide such choices."""
         R0, _, _ = self.residual(u, fext, want_k=False)
         R1, _, _ = self.residual(guess, fext, want_k=False)
         if R1 is None or (R0 is not None and np.linalg.norm(R1[cons.free]) >= np.linalg.norm(R0[cons.free])):
@@ -484,7 +483,7 @@ def solve_step(problem: Problem, u0: np.ndarray, *, gravity: Gravity | None = No
             dt = 1.0 - t
         t_new = t + dt
         hist: list[float] = []
-        if o.extrapolation == "linear" and prev is not None and not newton.damped_last:
+        if o.extrapolation == "linear" and prev is not None:
             # linear predictor from the last two equilibria (growth capped at 2x)
             newton.guess = u + min(dt / prev[1], _EXTRAPOLATION_MAX) * (u - prev[0])
         try:
@@ -503,7 +502,7 @@ def solve_step(problem: Problem, u0: np.ndarray, *, gravity: Gravity | None = No
                           "max_iterations, or check the boundary conditions and loads",
                           load_fraction=t_eq, last_converged=u_eq.reshape(-1, 3).copy()) from None
             continue
-        prev = (u, dt) if not newton.damped_last else None
+        prev = (u, dt) if not newton.damped_last else None  # no predictor from a damped state
         u, t = u_new, t_new
         if not newton.damped_last:
             u_eq, t_eq = u, t

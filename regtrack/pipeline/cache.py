@@ -4,8 +4,9 @@ A stage's *key* is the SHA-256 of everything it depends on: the content of its i
 files, the configuration sections it reads, the keys of the stages before it, the
 regtrack version and a digest of the package's Python sources (:func:`code_digest`:
 during development a solver change does not bump the version, and a cached simulation
-of the old code was silently re-used; session 7).  Change one registration setting and only registration and later
-stages get new keys; the mesh and the simulations are found in the cache.
+of the old code was silently re-used; session 7).  Change one registration setting and
+only registration and later stages get new keys; the mesh and the simulations are found
+in the cache.
 
 A stage is produced in a temporary folder and renamed into place when it finishes,
 together with a ``_complete.json`` marker, so an interrupted run never leaves a stage
@@ -35,11 +36,12 @@ log = logging.getLogger(__name__)
 MARKER = "_complete.json"
 
 
-def file_digest(path: str | os.PathLike) -> str:
-    """SHA-256 of a file's bytes, or of a folder's files (names and bytes, sorted)."""
+def file_digest(path: str | os.PathLike, pattern: str = "*") -> str:
+    """SHA-256 of a file's bytes, or of a folder's files matching ``pattern`` (names and
+    bytes, sorted)."""
     p = Path(path)
     h = hashlib.sha256()
-    files = sorted(q for q in p.rglob("*") if q.is_file()) if p.is_dir() else [p]
+    files = sorted(q for q in p.rglob(pattern) if q.is_file()) if p.is_dir() else [p]
     for q in files:
         if p.is_dir():
             h.update(str(q.relative_to(p)).encode())
@@ -52,12 +54,7 @@ def file_digest(path: str | os.PathLike) -> str:
 @functools.lru_cache(maxsize=1)
 def code_digest() -> str:
     """SHA-256 of the regtrack package's ``.py`` files (relative names and bytes, sorted)."""
-    root = Path(__file__).resolve().parents[1]
-    h = hashlib.sha256()
-    for q in sorted(root.rglob("*.py")):
-        h.update(str(q.relative_to(root)).encode())
-        h.update(q.read_bytes())
-    return h.hexdigest()
+    return file_digest(Path(__file__).resolve().parents[1], "*.py")
 
 
 def fingerprint(*parts: Any) -> str:
