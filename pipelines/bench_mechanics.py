@@ -1,4 +1,4 @@
-"""Benchmark of the mechanics core on gmsh hemispheres (R = 50 mm, chest wall fixed).
+"""Benchmark of the mechanics core on gmsh hemispheres (R = 50 mm, chest wall fixed) or meshed cases.
 
 For each mesh size and formulation, in its own subprocess (so the memory peak is per
 size), it measures, as wall-clock / process-CPU seconds (the CPU time counts every thread
@@ -6,8 +6,11 @@ and does not grow with other jobs on a shared machine; the wall time is what a u
 waits):
 
 * ``assembly``: residual + consistent tangent + the system matrix that is factorised;
-* ``factor+solve``: PARDISO factorisation (float32 factors, ``precision = "mixed"``) and
-  GMRES to a relative residual of 1e-10; ``factor+solve dbl``: the same in float64;
+* ``factor+solve``: PARDISO factorisation (float32 factors, ``precision = "mixed"``,
+  node-blocked METIS ordering, ``ordering = "nodes"``) and GMRES to a relative residual
+  of 1e-10; ``PARDISO order``: the same with PARDISO's own ordering of the dof graph;
+  ``factor+solve dbl``: node ordering, float64 factors; ``analysis``: ordering + symbolic
+  analysis (once per sparsity pattern), node ordering / PARDISO's;
 * ``re-used solve``: the tangent at the gravity-loaded state solved to 1e-2 (the inexact
   Newton tolerance) on the factors of the unloaded state (GMRES iterations in brackets);
 * ``iteration``: ``assembly + factor+solve`` (an iteration that refactorises) and
@@ -19,6 +22,7 @@ waits):
 
     .venv/bin/python pipelines/bench_mechanics.py            # ~2k, ~10k, ~50k nodes
     .venv/bin/python pipelines/bench_mechanics.py --lc 5.5 2.9 --formulations p1-anp
+    .venv/bin/python pipelines/bench_mechanics.py --model out/exam05/model.vtu --formulations p1-anp
 
 On a shared machine compare ratios within one run.  With other jobs on the cores set
 ``MKL_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1`` (threads otherwise spin against them).
@@ -46,7 +50,7 @@ def _timed(f, n: int = 1):
     return float(np.median(ws)), float(np.median(cs)), out
 
 
-def one(lc: float, formulation: str, with_step: bool = True) -> dict:
+def one(lc: float, formulation: str, with_step: bool = True, model_path: str = "") -> dict:
     import resource
 
     import numpy as np
@@ -57,7 +61,12 @@ def one(lc: float, formulation: str, with_step: bool = True) -> dict:
     from regtrack.mechanics.linsolve import LinearSolver
     from regtrack.mechanics.meshes import hemisphere_model
 
-    model = hemisphere_model(50.0, lc, tumour_radius=6.0)
+    if model_path:
+        from regtrack.model.io import load_model
+
+        model = load_model(model_path)
+    else:
+        model = hemisphere_model(50.0, lc, tumour_radius=6.0)
     w_setup, c_setup, pr = _timed(lambda: S.build_problem(model, MechanicsConfig(formulation=formulation)))
     u = np.zeros_like(pr.X)
     P.evaluate(pr, u)  # JIT warm-up (cached on disk after the first run)
@@ -73,14 +82,18 @@ def one(lc: float, formulation: str, with_step: bool = True) -> dict:
     b = np.ones(A.shape[0])
     r = {"lc": lc, "formulation": formulation, "nodes": pr.n_nodes, "tets": len(pr.tets), "system": A.shape[0],
          "nnz": int(A.nnz), "setup": [w_setup, c_setup], "assembly": [w_asm, c_asm]}
-    for prec in ("double", "mixed"):  # mixed last: its factors precondition the re-used solve
-        ls = LinearSolver(precision=prec, reuse_factorisation=False)
-        ls.solve(A, b, symmetric=True)  # analysis (once per pattern) + first factorisation
-        r[f"analysis_{prec}"] = ls.time_analysis
+    nodes = P.dof_nodes(pr)
+    # mixed with the node ordering last: its factors precondition the re-used solve
+    for name, prec, order in (("double", "double", "nodes"), ("pardiso_order", "mixed", "pardiso"),
+                              ("mixed", "mixed", "nodes")):
+        ls = LinearSolver(precision=prec, reuse_factorisation=False, ordering=order, dof_nodes=nodes,
+                          decoupled=pr.fixed_dofs)
+        ls.solve(A, b, symmetric=True)  # ordering + analysis (once per pattern) + first factorisation
+        r[f"analysis_{name}"] = ls.time_analysis
         w, c, _ = _timed(lambda: ls.solve(A, b, symmetric=True), 2)
-        r[f"factor_solve_{prec}"] = [w, c]
-        r[f"factor_nnz_{prec}"] = ls.factor_nnz
-        if prec == "double":
+        r[f"factor_solve_{name}"] = [w, c]
+        r[f"factor_nnz_{name}"] = ls.factor_nnz
+        if name != "mixed":
             ls.release()
     # the re-use policy's cost ratio (factorisation / GMRES iteration): measured vs estimated
     be = ls._backends[True]
@@ -117,23 +130,27 @@ def main() -> None:
     ap.add_argument("--no-step-above", type=int, default=100000,
                     help="skip the gravity step for meshes with more nodes than this (time)")
     ap.add_argument("--json", action="store_true", help="print the raw records as JSON lines too")
-    ap.add_argument("--one", nargs=3, metavar=("LC", "FORM", "STEP"), help=argparse.SUPPRESS)
+    ap.add_argument("--model", nargs="+", default=[], help="model .vtu files (regtrack mesh, e.g. a "
+                    "Pelicano exam meshed at the defaults) benchmarked instead of the hemispheres")
+    ap.add_argument("--one", nargs=4, metavar=("LC", "FORM", "STEP", "MODEL"), help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.one:
-        print(json.dumps(one(float(args.one[0]), args.one[1], args.one[2] == "1")))
+        print(json.dumps(one(float(args.one[0]), args.one[1], args.one[2] == "1", args.one[3])))
         return
-    print("| formulation | nodes | system | assembly | factor+solve | factor+solve dbl | re-used solve (GMRES it) "
+    print("| formulation | nodes | system | assembly | analysis: nodes / PARDISO order | factor+solve "
+          "| factor+solve, PARDISO order | factor+solve dbl | re-used solve (GMRES it) "
           "| iteration: refactor / re-use | gravity step: incr, it, fact | gravity step | cost ratio meas. / est. "
           "| peak MB |")
-    print("|---" * 12 + "|")
-    for lc in args.lc:
+    print("|---" * 14 + "|")
+    runs = [(0.0, m) for m in args.model] or [(lc, "") for lc in args.lc]
+    for lc, model in runs:
         for form in args.formulations:
-            est_nodes = 2.0e3 * (5.5 / lc) ** 3  # measured: lc 5.5 mm -> ~2k nodes on R = 50 mm
+            est_nodes = 2.0e3 * (5.5 / lc) ** 3 if lc else 0  # measured: lc 5.5 mm -> ~2k nodes (R = 50 mm)
             step = "1" if est_nodes <= args.no_step_above else "0"
-            out = subprocess.run([sys.executable, __file__, "--one", str(lc), form, step], capture_output=True,
-                                 text=True)
+            out = subprocess.run([sys.executable, __file__, "--one", str(lc), form, step, model],
+                                 capture_output=True, text=True)
             if out.returncode != 0:
-                print(f"lc={lc} {form}: failed: {out.stderr.strip().splitlines()[-1:]}")
+                print(f"{model or f'lc={lc}'} {form}: failed: {out.stderr.strip().splitlines()[-1:]}")
                 continue
             r = json.loads(out.stdout.strip().splitlines()[-1])
             asm, fs, ru = r["assembly"], r["factor_solve_mixed"], r.get("reused_solve")
@@ -142,8 +159,9 @@ def main() -> None:
             g = r.get("gravity")
             gi = "-" if g is None else f"{g['increments']}, {g['iterations']}, {g['factorisations']}"
             gt = "-" if g is None else _fmt([g["wall"], g["cpu"]])
-            print(f"| {form} | {r['nodes']} | {r['system']} | {_fmt(asm)} | {_fmt(fs)} | "
-                  f"{_fmt(r['factor_solve_double'])} | {_fmt(ru)} ({r.get('reused_gmres_iterations', '-')}) | "
+            an = f"{r['analysis_mixed']:.2f} / {r['analysis_pardiso_order']:.2f}"
+            print(f"| {form} | {r['nodes']} | {r['system']} | {_fmt(asm)} | {an} | {_fmt(fs)} | "
+                  f"{_fmt(r['factor_solve_pardiso_order'])} | {_fmt(r['factor_solve_double'])} | {_fmt(ru)} ({r.get('reused_gmres_iterations', '-')}) | "
                   f"{_fmt(it_ref)} ; {_fmt(it_re)} | {gi} | {gt} | {r['cost_ratio'][0]:.0f} / {r['cost_ratio'][1]:.0f} | "
                   f"{r['peak_rss_mb']:.0f} |", flush=True)
             if args.json:

@@ -184,3 +184,85 @@ def test_reuse_decisions_do_not_depend_on_measured_times(monkeypatch):
     for a, b_ in zip(x1, x2):
         assert np.array_equal(a, b_)
     assert os.environ.get("MKL_CBWR")  # MKL's reproducible mode is requested
+
+
+# -- fill-reducing ordering: node-blocked METIS, Dirichlet dofs decoupled -------------------
+
+def _hemisphere_system():
+    from regtrack.mechanics.meshes import hemisphere_model
+
+    pr = S.build_problem(hemisphere_model(50.0, 5.5, tumour_radius=6.0), MechanicsConfig())
+    u = np.zeros_like(pr.X)
+    A = P.system_matrix(pr, P.evaluate(pr, u))
+    cons = S._Constraints(pr, pr.fixed_dofs)
+    A.data[cons.zero] = 0.0
+    A.data[cons.diag] = 1.0
+    return pr, A
+
+
+def test_dof_nodes_name_the_node_of_every_unknown():
+    pr, A = _hemisphere_system()
+    nodes = P.dof_nodes(pr)
+    n3 = pr.n_dofs
+    assert len(nodes) == A.shape[0] > n3  # ANP: pressures after the displacements
+    assert np.array_equal(nodes[:n3], np.repeat(np.arange(pr.n_nodes), 3))
+    g = pr.groups  # every member (element, local node) of a pressure group is that node
+    members = np.repeat(np.arange(g.n_groups), np.diff(g.mptr))
+    assert np.array_equal(pr.tets.reshape(-1)[g.members], nodes[n3 + members])
+    p1 = S.build_problem(box_model((1.0, 1.0, 1.0), (2, 2, 2)), MechanicsConfig(formulation="p1"))
+    assert np.array_equal(P.dof_nodes(p1), np.repeat(np.arange(p1.n_nodes), 3))
+
+
+def test_node_ordering_keeps_each_node_together_and_cuts_the_fill():
+    """The order is a permutation with each node's unknowns consecutive; with it and the
+    chest-wall dofs decoupled the float32 factor of the 2k-node hemisphere has fewer
+    non-zeros than with PARDISO's own ordering of the full pattern (measured 1.83 M against
+    2.48 M, ratio 0.74; asserted < 0.9).  An order read with the inverse convention gives
+    ~20x the fill (measured at 10k), so the bound also checks the perm convention.  Both
+    solve to the asked residual and agree with each other."""
+    from regtrack.mechanics.linsolve import node_ordering
+
+    pr, A = _hemisphere_system()
+    nodes = P.dof_nodes(pr)
+    order = node_ordering(A, nodes)
+    assert np.array_equal(np.sort(order), np.arange(A.shape[0]))
+    runs = np.flatnonzero(np.diff(nodes[order]) != 0)
+    assert len(runs) + 1 == len(np.unique(nodes))  # one run of positions per node
+    b = np.random.default_rng(4).standard_normal(A.shape[0])
+    own = LinearSolver(ordering="pardiso")
+    blocked = LinearSolver(dof_nodes=nodes, decoupled=pr.fixed_dofs)
+    x_own = own.solve(A, b, symmetric=True)
+    x_blk = blocked.solve(A, b, symmetric=True)
+    assert blocked.time_ordering > 0 and own.time_ordering == 0
+    assert relres(A, x_own, b) <= 1e-10 and relres(A, x_blk, b) <= 1e-10
+    assert np.linalg.norm(x_blk - x_own) <= 1e-7 * np.linalg.norm(x_own)
+    assert blocked.factor_nnz < 0.9 * own.factor_nnz, (blocked.factor_nnz, own.factor_nnz)
+
+
+def test_decoupled_dofs_unsymmetric_and_broken_promise():
+    """Decoupled dofs in the LU path (unsymmetric matrix), and a caller that breaks the
+    promise (couplings of 'decoupled' dofs are not zero): GMRES multiplies by the full
+    matrix, so the answer is still right to the tolerance (or the solve raises)."""
+    A, b = anp_system(0.05)
+    n = A.shape[0]
+    offdiag = abs(A - sp.diags(A.diagonal()))
+    fixed = np.flatnonzero(np.asarray(offdiag.sum(axis=1)).ravel() == 0)  # the identity rows
+    assert 0 < len(fixed) < n
+    rng = np.random.default_rng(5)
+    U = A.copy()
+    U.data = U.data * (1 + 0.05 * rng.standard_normal(U.nnz))  # unsymmetric, same pattern
+    cons_rows = np.repeat(np.arange(n), np.diff(U.indptr))
+    zero = np.isin(cons_rows, fixed) | np.isin(U.indices, fixed)
+    U.data[zero & (cons_rows != U.indices)] = 0.0
+    ls = LinearSolver(precision="double", decoupled=fixed)
+    ls._lu_needed = True  # the general LU (mtype 11) on the pruned pattern
+    x = ls.solve(U, b)
+    assert relres(U, x, b) <= 1e-10
+    assert np.linalg.norm(x - spla.spsolve(U.tocsc(), b)) <= 1e-7 * np.linalg.norm(x)
+    free = np.setdiff1d(np.arange(n), fixed)[:20]  # 'decoupled' dofs that are not
+    liar = LinearSolver(decoupled=free)
+    try:
+        x = liar.solve(A, b, symmetric=True)
+    except LinearSolveError:
+        return
+    assert relres(A, x, b) <= 1e-10

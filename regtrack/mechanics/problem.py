@@ -80,6 +80,18 @@ class Problem:
         return self.config.formulation
 
 
+def dof_nodes(problem: Problem) -> np.ndarray:
+    """Mesh node of each unknown of the system matrix (:func:`system_matrix`): ``3 p + k``
+    -> ``p``; an ANP pressure ``3 N + g`` -> the node of its group ``g``.  The linear
+    solver orders the unknowns node by node with it (:func:`.linsolve.node_ordering`)."""
+    nodes = np.repeat(np.arange(problem.n_nodes, dtype=np.int64), 3)
+    g = problem.groups
+    if g is None:
+        return nodes
+    # a group's members are (element, local node) pairs of one node: the first one names it
+    return np.concatenate([nodes, problem.tets.reshape(-1)[g.members[g.mptr[:-1]]].astype(np.int64)])
+
+
 @njit(cache=True)
 def scatter_add(data, pos, vals):
     """``data[pos] += vals`` with repeated positions accumulated."""

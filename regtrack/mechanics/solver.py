@@ -97,8 +97,8 @@ from regtrack.errors import ContactDidNotConvergeError, SolverDidNotConvergeErro
 from regtrack.mechanics.config import SolverOptions
 from regtrack.mechanics.contributions import Contribution
 from regtrack.mechanics.linsolve import LinearSolveError, LinearSolver
-from regtrack.mechanics.problem import (Problem, body_force, build_problem, evaluate, internal_force,
-                                        scatter_add, system_matrix, tangent)
+from regtrack.mechanics.problem import (Problem, body_force, build_problem, dof_nodes, evaluate,
+                                        internal_force, scatter_add, system_matrix, tangent)
 from regtrack.mechanics.types import StepStats
 
 __all__ = ["Problem", "build_problem", "internal_force", "tangent", "solve_step", "reaction_forces"]
@@ -544,11 +544,13 @@ def solve_step(problem: Problem, u0: np.ndarray, *, gravity: Gravity | None = No
 
 def _linear_solver(problem: Problem, o: SolverOptions) -> LinearSolver:
     """The problem's cached solver (the analysis of its fixed pattern is re-used across steps)."""
-    key = (o.linear_solver, o.reuse_factorisation, o.precision, o.krylov_rtol, o.krylov_max)
+    key = (o.linear_solver, o.reuse_factorisation, o.precision, o.krylov_rtol, o.krylov_max, o.ordering)
     cached = getattr(problem, "_linear_solver", None)
     if cached is None or cached[0] != key:
         cached = (key, LinearSolver(o.linear_solver, reuse_factorisation=o.reuse_factorisation,
-                                    precision=o.precision, krylov_rtol=o.krylov_rtol, krylov_max=o.krylov_max))
+                                    precision=o.precision, krylov_rtol=o.krylov_rtol, krylov_max=o.krylov_max,
+                                    ordering=o.ordering, dof_nodes=dof_nodes(problem),
+                                    decoupled=problem.fixed_dofs))
         problem._linear_solver = cached  # type: ignore[attr-defined]
     return cached[1]
 
