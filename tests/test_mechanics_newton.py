@@ -389,6 +389,41 @@ def test_stabilised_increments_end_in_an_undamped_equilibrium(monkeypatch):
     assert "undamped equilibrium" in str(exc.value) and "stabilisation" in str(exc.value)
 
 
+def test_polish_damps_less_after_each_proximal_solve_that_converges(monkeypatch):
+    """The polish at t = 1 halves the proximal weight after each proximal solve that
+    converges (a state creeping towards a distant equilibrium gets there in fewer rounds;
+    Pelicano exam 10's 10k MLO standing-gravity step, session 9) and quadruples it after
+    one that fails; the result is still the undamped equilibrium (1e-8 mm)."""
+    pr, g = _hanging_box()
+    real, real_stab = S._increment, S._stabilised_increment
+    opts = SolverOptions(initial_increment=1.0, force_tol=1e-10, disp_tol=1e-10)
+    u_ref, _ = S.solve_step(pr, np.zeros_like(pr.X), gravity=g, options=replace(opts, stabilisation="off"))
+    undamped = {"n": 0}
+    scales: list[float] = []
+
+    def undamped_fails_five_times(newton, u, t, *a, **k):  # own try, settle, 3 polish rounds
+        if newton.damping is None:
+            undamped["n"] += 1
+            if undamped["n"] <= 5:
+                raise S._Failed("undamped increment refused (test)")
+        return real(newton, u, t, *a, **k)
+
+    def third_proximal_fails(newton, u, t, gravity, dirichlet, hist, scale=1.0):
+        scales.append(scale)
+        if len(scales) == 3:
+            raise S._Failed("proximal solve refused (test)")
+        return real_stab(newton, u, t, gravity, dirichlet, hist, scale)
+
+    monkeypatch.setattr(S, "_increment", undamped_fails_five_times)
+    monkeypatch.setattr(S, "_stabilised_increment", third_proximal_fails)
+    u, st = S.solve_step(pr, np.zeros_like(pr.X), gravity=g, options=opts)
+    # the increment's own stabilised solve, then polish rounds 1 (1.0: converges, halve),
+    # 2 (0.5: refused, x4), 3 (2.0: converges); round 4's undamped solve converges
+    assert scales == [1.0, 1.0, 0.5, 2.0]
+    assert st.polish_solves == 4
+    assert np.abs(u - u_ref).max() < 1e-8
+
+
 def test_linear_extrapolation_starts_increments_closer_and_reaches_the_same_solution():
     """extrapolation = "linear": from the third increment on, Newton starts from
     u_n + (dt / dt_prev) (u_n - u_n-1) (counted in extrapolated_increments).  The result

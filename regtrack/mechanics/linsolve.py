@@ -24,18 +24,18 @@ Measured on the 10.5k-node gmsh hemisphere (ANP augmented system, 42k unknowns,
 * ordering (session 9): METIS nested dissection of the *node* graph, each node's
   unknowns eliminated together (:func:`node_ordering`, handed to PARDISO as ``perm``),
   with the off-diagonal pattern of the chest-wall (Dirichlet) dofs left out of the
-  factorised matrix (``decoupled``).  Float32 factorisation, 2 threads, wall seconds:
+  factorised matrix (``decoupled``).  Float32 factorisation alone, 2 threads, median wall
+  seconds of 7 alternated runs (``pipelines/bench_mechanics.py`` prints both orderings):
 
-  =====================================  =========  ================  ================
-  model (unknowns)                        PARDISO    node order        + decoupled
-  =====================================  =========  ================  ================
-  hemisphere 10.5k nodes (42,103)          0.54       0.43             0.39
-  Pelicano exam 05, 9.5k nodes (38,214)    0.47 *     0.36 *           0.33 *
-  Pelicano exam 02, 12.6k nodes (52,589)   0.91 *     0.64 *           0.59 *
-  =====================================  =========  ================  ================
+  ======================================  =========  ===========  ======  ===========
+  model (unknowns)                         PARDISO    + decoupled  nodes   + decoupled
+  ======================================  =========  ===========  ======  ===========
+  hemisphere, 10.5k nodes (42,103)          0.524      0.451        0.436   0.383
+  Pelicano exam 05, 9.5k nodes (38,214)     0.404      0.365        0.305   0.284
+  ======================================  =========  ===========  ======  ===========
 
-  (* factorisation + one solve.)  Factor non-zeros fall 5 % (node order) and another
-  10 % (decoupled); the rest of the gain is wider supernodes (76 -> 90 GFlop/s).
+  Factor non-zeros fall 5 % (node order) and 10-15 % (decoupled); the rest of the gain
+  is wider supernodes (76 -> 90 GFlop/s on the hemisphere).
   ``ordering = "pardiso"`` restores PARDISO's own METIS on the dof graph.
 * ``iparm``: PARDISO's METIS when it orders (its parallel nested dissection was not
   faster on 2 cores; its two-level factorisation, ``iparm(24)`` 1 or 10, and the VBSR

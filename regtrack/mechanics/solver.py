@@ -54,8 +54,8 @@ fixed chest wall) get the stiffness ``alpha K_ii`` and Newton no longer wanders 
 them.  Its state is not an equilibrium (it carries the damping force), so it is never
 returned: the next increment starts from it undamped, and a step whose last increment was
 stabilised ends with undamped Newton solves at ``t = 1`` (each failing one followed by one
-more proximal solve about the current state, at most ``stabilisation_polish`` rounds:
-``_polish``).  Right after a stabilised increment, an undamped solve at the same load
+more proximal solve about the current state, its weight halved after each one that
+converges, at most ``stabilisation_polish`` rounds: ``_polish``).  Right after a stabilised increment, an undamped solve at the same load
 ("settle", ``settled_increments``) tries to remove the damping lag at once: left in, the
 lag made the next undamped increment fail as well, and on Pelicano exam 10's 10k MLO every
 increment of the compression ended up stabilised and the final polish failed.  The returned state is therefore converged to the same criteria as always;
@@ -627,7 +627,10 @@ def _polish(newton: _Newton, u: np.ndarray, gravity, dirichlet, o: SolverOptions
     """Undamped equilibrium at t = 1 from a stabilised state: an undamped solve, and while
     that fails, one more stabilised (proximal) solve about the current state; at most
     ``stabilisation_polish`` rounds; a proximal solve that fails is not taken, and the next
-    round damps 4x harder.  Commits the contributions' state after each solve."""
+    round damps 4x harder; one that converges is taken, and the next round damps 2x less
+    (down to 1/64 of the first: the proximal step grows while it succeeds, so a state that
+    creeps towards a distant equilibrium by the same small step every round gets there).
+    Commits the contributions' state after each solve."""
     scale = 1.0
     for _ in range(o.stabilisation_polish):
         stats.polish_solves += 1
@@ -652,6 +655,7 @@ def _polish(newton: _Newton, u: np.ndarray, gravity, dirichlet, o: SolverOptions
         stats.residual_history.append(hist)
         for c in newton.contribs:
             c.commit(u.reshape(-1, 3))
+        scale = max(0.5 * scale, 1.0 / 64.0)
     raise _Failed(f"no undamped equilibrium after {o.stabilisation_polish} stabilised solves")
 
 
