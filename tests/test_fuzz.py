@@ -80,7 +80,10 @@ def _mammogram_dataset():
         p = Path(tempfile.mkdtemp(prefix="regtrack-fuzz-mg-")) / "mg.dcm"
         write_dicom(p, np.round(sb.image[:, ::-1] * 4000), ImageLaterality="R",
                     ViewPosition="CC", PatientOrientation=["P", "L"], PixelSpacing=[1.0, 1.0],
-                    PatientName="Fuzz^Patient", PatientID="FZ123", BitsStored=12)
+                    PatientName="Fuzz^Patient", PatientID="FZ123", BitsStored=12,
+                    # fixed, 64 characters: the regression tests edit bytes at fixed offsets
+                    # of the header (a random UID is shorter 1 time in ~100, which moved them)
+                    SOPInstanceUID="1.2.826.0.1.3680043.8.498." + "1" * 38)
         _MG_BYTES = p.read_bytes()
     return pydicom.dcmread(io.BytesIO(_MG_BYTES)), _MG_BYTES
 

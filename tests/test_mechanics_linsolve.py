@@ -77,6 +77,7 @@ def test_factorisation_is_reused_until_stale():
     x = ls.solve(A1, b, symmetric=True, rtol=1e-8)
     assert relres(A1, x, b) <= 1e-8
     assert ls.n_factorisations == 1 and ls.n_krylov_solves == 1 and ls.n_analyses == 1
+    assert ls.n_reuse_failures == 0 == ls.krylov_wasted_iterations
     # without re-use every matrix is factorised
     ls2 = LinearSolver(reuse_factorisation=False)
     ls2.solve(A0, b, symmetric=True)
@@ -87,6 +88,7 @@ def test_factorisation_is_reused_until_stale():
     ls3.solve(A0, b, symmetric=True)
     x = ls3.solve(A1, b, symmetric=True, rtol=1e-12)
     assert relres(A1, x, b) <= 1e-12 and ls3.n_factorisations == 2
+    assert ls3.n_reuse_failures == 1 and ls3.krylov_wasted_iterations == 1  # the one iteration
 
 
 def test_mixed_precision_falls_back_to_double_when_too_inaccurate():

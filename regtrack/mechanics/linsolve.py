@@ -269,7 +269,9 @@ class LinearSolver:
         non-zeros 24.3 M instead of 27.6 M, factorisation 0.39 s instead of 0.43 s.
 
     Attributes: ``n_analyses``, ``n_factorisations``, ``n_krylov_solves`` (solves on a
-    factorisation of an earlier matrix), ``krylov_iterations`` (all GMRES iterations);
+    factorisation of an earlier matrix), ``krylov_iterations`` (all GMRES iterations),
+    ``n_reuse_failures`` (re-used factorisations that could not reach the tolerance within
+    their budget, then refactorised) and ``krylov_wasted_iterations`` (their iterations);
     wall times ``time_analysis``, ``time_factor_solve`` (factorisation + first solve),
     ``time_krylov`` (s); CPU times ``cpu_factor`` (last factorisation) and
     ``cpu_krylov_iteration`` (running mean per GMRES iteration), s.
@@ -295,6 +297,7 @@ class LinearSolver:
         self._full: tuple | None = None
         self._lu_needed = False
         self.n_analyses = self.n_factorisations = self.n_krylov_solves = self.krylov_iterations = 0
+        self.n_reuse_failures = self.krylov_wasted_iterations = 0
         self.time_analysis = self.time_factor_solve = self.time_krylov = 0.0
         self.cpu_factor = 0.0
         self.cpu_krylov_iteration = 0.0
@@ -332,9 +335,12 @@ class LinearSolver:
         sym = self.kind == "pardiso" and (symmetric or (not self._lu_needed and self._upper_sym(A, key) is not None))
         same = self._keys[sym] == key and self._factored[sym]
         if self.reuse and same and not refactor and not self._stale[sym]:
+            k0 = self.krylov_iterations
             x = self._krylov(A, b, sym, tol, fresh=False)
             if x is not None:
                 return x
+            self.n_reuse_failures += 1
+            self.krylov_wasted_iterations += self.krylov_iterations - k0
         t0 = time.perf_counter()
         self._factorise(A, sym, key)
         x = self._krylov(A, b, sym, tol, fresh=True)

@@ -469,6 +469,7 @@ def solve_step(problem: Problem, u0: np.ndarray, *, gravity: Gravity | None = No
     tstart, cstart = time.perf_counter(), time.process_time()
     ls = linear_solver or _linear_solver(problem, o)
     nfac0, nkry0, nan0, nkit0 = ls.n_factorisations, ls.n_krylov_solves, ls.n_analyses, ls.krylov_iterations
+    nfail0, nwaste0 = ls.n_reuse_failures, ls.krylov_wasted_iterations
     newton = _Newton(problem, contributions, o, stats, ls)
     u = np.asarray(u0, float).reshape(-1).copy()
     for c in newton.contribs:
@@ -536,6 +537,8 @@ def solve_step(problem: Problem, u0: np.ndarray, *, gravity: Gravity | None = No
     stats.factorisations = ls.n_factorisations - nfac0
     stats.krylov_iterations = ls.krylov_iterations - nkit0
     stats.krylov_solves = ls.n_krylov_solves - nkry0
+    stats.reuse_failures = ls.n_reuse_failures - nfail0
+    stats.krylov_wasted_iterations = ls.krylov_wasted_iterations - nwaste0
     stats.analyses = ls.n_analyses - nan0
     log.debug("%s: %d increments, %d iterations, %d cut-backs, %.2f s", step_name, stats.increments,
               stats.iterations, stats.cutbacks, stats.t_total)

@@ -16,7 +16,9 @@ class StepStats:
     factorisation + solve), ``t_line_search`` (extra residual evaluations), ``t_total``;
     ``cpu_total`` is the process CPU time of the step (all threads; s).  ``factorisations``
     counts sparse factorisations, ``krylov_solves`` the solves done on a re-used one and
-    ``krylov_iterations`` all GMRES iterations (:mod:`.linsolve`).  ``stabilised_increments``
+    ``krylov_iterations`` all GMRES iterations (:mod:`.linsolve`), ``reuse_failures`` the
+    re-used factorisations given up for a fresh one and ``krylov_wasted_iterations`` the
+    GMRES iterations spent on them.  ``stabilised_increments``
     counts the stabilised retries of failed increments (successful or not),
     ``settled_increments`` those whose state an undamped solve at the same load then made an
     equilibrium, and
@@ -45,6 +47,8 @@ class StepStats:
     analyses: int = 0
     krylov_solves: int = 0
     krylov_iterations: int = 0
+    reuse_failures: int = 0
+    krylov_wasted_iterations: int = 0
     t_assembly: float = 0.0
     t_contrib: float = 0.0
     t_solve: float = 0.0
@@ -58,8 +62,9 @@ class StepStats:
         keys = ("name", "increments", "iterations", "cutbacks", "augmentations", "extra_iterations",
                 "freezes", "stalled_accepts", "stalled_residual_max", "merit_retries", "tangent_retries",
                 "stabilised_increments", "settled_increments", "polish_solves", "extrapolated_increments",
-                "line_search_trials", "factorisations", "analyses", "krylov_solves", "krylov_iterations", "t_assembly", "t_contrib",
-                "t_solve", "t_line_search", "t_total", "cpu_total")
+                "line_search_trials", "factorisations", "analyses", "krylov_solves", "krylov_iterations",
+                "reuse_failures", "krylov_wasted_iterations", "t_assembly", "t_contrib", "t_solve",
+                "t_line_search", "t_total", "cpu_total")
         d = {k: getattr(self, k) for k in keys}
         d["reports"] = self.reports[-1:] if self.reports else []
         return d

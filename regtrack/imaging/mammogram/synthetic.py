@@ -108,7 +108,9 @@ def write_dicom(path: str | os.PathLike, pixels: np.ndarray, *, modality: str = 
 
     ``pixels`` is stored as uint16; ``tags`` are set by keyword (e.g.
     ``ImageLaterality="L"``, ``ViewPosition="CC"``, ``PixelSpacing=[0.1, 0.1]``,
-    ``PatientOrientation=["A", "R"]``).  ``rle`` compresses with RLE Lossless.
+    ``PatientOrientation=["A", "R"]``).  ``rle`` compresses with RLE Lossless.  A given
+    ``SOPInstanceUID`` is also the file meta's (else a random one: byte-exact files, e.g.
+    for offsets into the header, need a fixed one).
     """
     from pydicom.dataset import Dataset, FileMetaDataset
     from pydicom.uid import ExplicitVRLittleEndian, RLELossless, generate_uid
@@ -118,7 +120,7 @@ def write_dicom(path: str | os.PathLike, pixels: np.ndarray, *, modality: str = 
         arr = np.clip(np.round(arr), 0, 65535).astype(np.uint16)
     meta = FileMetaDataset()
     meta.MediaStorageSOPClassUID = "1.2.840.10008.5.1.4.1.1.1.2"
-    meta.MediaStorageSOPInstanceUID = generate_uid()
+    meta.MediaStorageSOPInstanceUID = tags.pop("SOPInstanceUID", None) or generate_uid()
     meta.TransferSyntaxUID = ExplicitVRLittleEndian
     ds = Dataset()
     ds.file_meta = meta
