@@ -391,13 +391,13 @@ class LinearSolver:
         self._last_pattern = (A.indices, A.indptr, key)
         return key
 
-    def _drop(self, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
-        """Pattern entries left out of the factorised matrix: the off-diagonal ones of the
-        ``decoupled`` unknowns (zero by the caller's promise)."""
+    def _drop(self, rows: np.ndarray, cols: np.ndarray, n: int) -> np.ndarray:
+        """Pattern entries (of an ``n``-unknown matrix) left out of the factorised matrix:
+        the off-diagonal ones of the ``decoupled`` unknowns (zero by the caller's promise)."""
         if self.decoupled is None:
             return np.zeros(len(rows), bool)
-        dec = np.zeros(int(max(rows.max(initial=-1), cols.max(initial=-1))) + 1, bool)
-        dec[self.decoupled[self.decoupled < len(dec)]] = True
+        dec = np.zeros(n, bool)
+        dec[self.decoupled[self.decoupled < n]] = True
         return (dec[rows] | dec[cols]) & (rows != cols)
 
     def _pruned(self, A: sp.csr_matrix, key: tuple) -> sp.csr_matrix:
@@ -407,7 +407,7 @@ class LinearSolver:
         if self._full is None or self._full[0] != key:
             n = A.shape[0]
             rows = np.repeat(np.arange(n, dtype=np.int64), np.diff(A.indptr))
-            keep = np.flatnonzero(~self._drop(rows, A.indices.astype(np.int64)))
+            keep = np.flatnonzero(~self._drop(rows, A.indices.astype(np.int64), n))
             indptr = np.zeros(n + 1, np.int32)
             np.cumsum(np.bincount(rows[keep], minlength=n), out=indptr[1:])
             self._full = (key, keep, A.indices[keep].astype(np.int32), indptr)
@@ -424,7 +424,7 @@ class LinearSolver:
             n = A.shape[0]
             rows = np.repeat(np.arange(n, dtype=np.int64), np.diff(A.indptr))
             cols = A.indices.astype(np.int64)
-            up = np.flatnonzero((cols >= rows) & ~self._drop(rows, cols))
+            up = np.flatnonzero((cols >= rows) & ~self._drop(rows, cols, n))
             indptr = np.zeros(n + 1, np.int32)
             np.cumsum(np.bincount(rows[up], minlength=n), out=indptr[1:])
             keys = rows * n + cols  # sorted: rows ascending, sorted column indices

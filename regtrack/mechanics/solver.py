@@ -55,8 +55,9 @@ them.  Its state is not an equilibrium (it carries the damping force), so it is 
 returned: the next increment starts from it undamped, and a step whose last increment was
 stabilised ends with undamped Newton solves at ``t = 1`` (each failing one followed by one
 more proximal solve about the current state, its weight halved after each one that
-converges, at most ``stabilisation_polish`` rounds: ``_polish``).  Right after a stabilised increment, an undamped solve at the same load
-("settle", ``settled_increments``) tries to remove the damping lag at once: left in, the
+converges, at most ``stabilisation_polish`` rounds: ``_polish``).  Right after a
+stabilised increment, an undamped solve at the same load ("settle",
+``settled_increments``) tries to remove the damping lag at once: left in, the
 lag made the next undamped increment fail as well, and on Pelicano exam 10's 10k MLO every
 increment of the compression ended up stabilised and the final polish failed.  The returned state is therefore converged to the same criteria as always;
 a failure reports and keeps the last *undamped* equilibrium.  ``"off"`` restores the
