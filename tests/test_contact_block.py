@@ -80,3 +80,38 @@ def test_frictionless_block_transmits_no_shear():
     reps1 = _press_and_shear(0.1, shear_mm=0.5)
     assert all(r["tangential_force_N"] < 1e-9 for r in reps0)
     assert reps1[-1]["tangential_force_N"] > 0.5 * 0.1 * reps1[-1]["normal_force_N"]
+
+
+@pytest.mark.parametrize("band, share", [(0.0, 0.0), (4.0, None), (100.0, 1.0)])
+def test_edge_band_force_is_the_force_of_the_nodes_near_the_plate_edge(band, share):
+    """``edge_normal_force_N``: the normal force of the nodes whose reference position lies
+    within ``edge_band_mm`` in front of the plate's chest-wall edge (here s = -1 mm, 1 mm
+    behind the block's x = 0 face).  The block is pressed 0.5 mm; with band 4 mm the
+    nodes at x = 0 and 2.5 mm count (two of the five node columns), so the share is that
+    of their tributary areas: between 0.2 and 0.5 of the force (the pressure is not
+    uniform under a frictional press)."""
+    model = box_model((10.0, 10.0, 5.0), (4, 4, 2))
+    prob = build_problem(model, MechanicsConfig(tissue_c1_kpa=1.0, nu=0.3, formulation="p1",
+                                                skin_enabled=False))
+    X = model.points
+    bottom = model.skin[np.all(np.isclose(X[model.skin][:, :, 2], 0.0), axis=1)]
+    nodes = np.unique(bottom)
+    plate = RigidPlate(name="lower", origin=(0, 0, 0), normal=(0, 0, 1), e1=(1, 0, 0),
+                       s_range=(-1.0, np.inf))
+    c = PlateContact(plate, X, nodes, tributary_areas(X, bottom)[nodes],
+                     config=ContactConfig(friction=0.1, penetration_tol_mm=1e-3, edge_band_mm=band),
+                     penalty=0.01)
+    top = np.flatnonzero(np.isclose(X[:, 2], 5.0))
+    dofs = (3 * top[:, None] + np.arange(3)).ravel()
+    u, st = solve_step(prob, np.zeros_like(X), contributions=[c], options=OPTS, step_name="press",
+                       dirichlet=lambda t: (dofs, np.tile([0.0, 0.0, -0.5 * t], len(top))))
+    rep = st.reports[-1]["lower"]
+    f, _ = c.nodal_forces(u)
+    near = X[nodes, 0] < 2.6
+    assert rep["normal_force_N"] > 0
+    if share is None:
+        assert rep["edge_normal_force_N"] == pytest.approx(float(f[near, 2].sum()), rel=1e-9)
+        assert 0.2 < rep["edge_normal_force_N"] / rep["normal_force_N"] < 0.5
+    else:
+        assert rep["edge_normal_force_N"] == pytest.approx(share * rep["normal_force_N"], rel=1e-9,
+                                                           abs=1e-12)

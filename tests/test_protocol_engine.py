@@ -193,3 +193,34 @@ def test_plates_start_clear_of_a_thick_base_behind_their_edge():
         assert pc.plate.query(X[free]).gap.min() == pytest.approx(2.0, abs=1e-6)
     over = free[X[free, 0] >= -30.0 + 10.0]  # beyond the edge's rounding: only the face counts
     assert plates["upper"].plate.query(X[over]).gap.min() > 2.0 + 1.0  # backed off for the base
+
+
+def test_chest_wall_contact_pushes_skin_back_in_front_of_the_wall():
+    """``[contact] chest_wall_contact``: a frictionless rigid wall at the chest-wall plane
+    (x = -40 mm here) on the free skin nodes, off by default.  A skin node moved 0.1 mm
+    behind the plane feels the penalty force eps_N * 0.1 mm * A, along +x only; the fixed
+    nodes are no candidates; the runner hands the wall to the solver with the plates."""
+    from regtrack.mechanics.protocol_run import chest_wall
+
+    body = _body()
+    assert chest_wall(body, ContactConfig()) is None
+    assert "chest-wall" not in ProtocolRunner(body, shipped_protocol("cc"), mock_solver(
+        body.points, body.fixed)).contacts
+    wall = chest_wall(body, ContactConfig(chest_wall_contact=True))
+    assert wall.mu == 0.0 and wall.name == "chest-wall"
+    assert not body.fixed[wall.nodes].any()
+    assert np.allclose(wall.plate.origin[0], -40.0) and np.allclose(wall.plate.normal, [1, 0, 0])
+    i = int(np.flatnonzero(np.isclose(body.points[wall.nodes, 0], -35.0))[0])
+    node = wall.nodes[i]
+    u = np.zeros_like(body.points)
+    r0, k0 = wall.residual_tangent(u)
+    assert k0 is None and not r0.any()  # nothing behind the wall: no force
+    u[node, 0] = -5.1  # 0.1 mm behind the plane
+    r, _ = wall.residual_tangent(u)
+    f = -r.reshape(-1, 3)  # force on the body
+    assert f[node] == pytest.approx([wall.eps_n * 0.1 * wall.areas[i], 0.0, 0.0], rel=1e-9)
+    assert np.count_nonzero(np.abs(f).sum(axis=1)) == 1
+    runner = ProtocolRunner(body, shipped_protocol("cc"), mock_solver(body.points, body.fixed),
+                            config=ContactConfig(chest_wall_contact=True))
+    assert set(runner.contacts) == {"lower", "upper", "chest-wall"}
+    assert set(runner.plates) == {"lower", "upper"}

@@ -163,6 +163,21 @@ class ContactConfig:
                                     "-A p dn/dx in the contact tangent (exact but indefinite "
                                     "where skin is pinched at a plate edge; see the module "
                                     "docstring)")
+    chest_wall_contact: bool = param(False, "", "protocols: the skin may not pass behind the "
+                                     "chest-wall plane (a frictionless rigid wall at the model's "
+                                     "most posterior x: the torso).  Off by default, as in the "
+                                     "paper's model: the tissue pinched between a plate's rounded "
+                                     "edge and the fixed chest wall is then squeezed 5 to 8 mm "
+                                     "behind that plane (Pelicano exams 03 and 10).  On, the plates "
+                                     "must not reach over the wall: with the default plate edge "
+                                     "(5 mm anterior, radius 10 mm) skin nodes are trapped "
+                                     "between the wall and the rounded edge; use [plates] "
+                                     "posterior_edge_mm >= edge_radius_mm + 5")
+    edge_band_mm: float = param(10.0, "mm", "reports: the plate force carried by the skin "
+                                "that lay (reference configuration) within this distance in "
+                                "front of the plate's chest-wall edge, or behind it, is "
+                                "reported apart as edge_normal_force_N: the tissue attached "
+                                "near the fixed chest wall", ge=0.0)
     penalty_growth: float = param(4.0, "-", "augmented Lagrangian: a node whose violation "
                                   "fell by less than slow_uzawa_ratio in one multiplier update "
                                   "gets its penalty multiplied by this (1: never)", ge=1.0, le=100.0)
@@ -522,6 +537,12 @@ class PlateContact:
     def report(self, u: np.ndarray) -> dict:
         """Plate force (N), maximum penetration (mm), active nodes, contact area (mm^2).
 
+        ``edge_normal_force_N`` is the part of ``normal_force_N`` carried by the skin that,
+        in the reference configuration, lies behind the plate's chest-wall edge or within
+        ``edge_band_mm`` in front of it (plate-local ``s`` of the reference position below
+        the edge's ``s`` plus the band): the tissue attached near the fixed chest wall,
+        wherever the compression has moved it.
+
         Call after :meth:`commit`; ``n_slip`` counts the nodes that slid in the increment
         just committed.
         """
@@ -531,10 +552,15 @@ class PlateContact:
         fn = float(-(force_on_plate @ n0))
         ft = force_on_plate - (force_on_plate @ n0) * n0
         act = st["active"]
+        s_ref = self.plate.to_local(self.X[self.nodes])[:, 0]  # reference positions
+        edge = act & (s_ref < self.plate.s_range[0] + self.config.edge_band_mm)
+        fn_edge = float(f[edge].sum(axis=0) @ n0)
         return {"name": self.name,
                 "force_N": force_on_plate.tolist(),
                 "normal_force_N": fn,
                 "tangential_force_N": float(np.linalg.norm(ft)),
+                "edge_normal_force_N": fn_edge,
+                "edge_band_mm": self.config.edge_band_mm,
                 "max_penetration_mm": st["max_penetration_mm"],
                 "n_active": int(act.sum()),
                 "n_slip": self._n_slip,

@@ -18,6 +18,17 @@ are unbounded elsewhere.  The lower plate faces ``+n``, the upper one ``-n``; bo
 (rounded edge included: a thick chest-wall base behind the edge would otherwise start
 inside the plate, 6.5 mm deep on the phantom's MLO with ``posterior_edge_mm = 10``).
 
+Chest wall: the chest-wall nodes are fixed, and the plates' rounded edges reach to within
+``posterior_edge_mm`` of them, so the tissue next to the wall is pinched between a plate
+and the fixed nodes.  By default (the paper's model) nothing else stops it: measured on
+Pelicano exams 03 and 10 at the default CC, it is squeezed 5 to 8 mm behind the
+chest-wall plane.  That tissue carries most of the plate force, and its share grows with
+mesh refinement: on exam 10 CC the skin that lay within 15 mm of the wall carries 39 N of
+45 N on 1.9k nodes and 81 N of 88 N on 8.9k (``edge_normal_force_N``, see
+``edge_band_mm``; pipelines/mesh_convergence.py and the session-10 note of issue 5).
+``[contact] chest_wall_contact`` adds a frictionless rigid wall at that plane
+(:func:`chest_wall`; with it, move the plate edges clear of the wall).
+
 Targets of an upper-plate move: the plate is first brought to touch the breast (no
 force), which measures the uncompressed thickness ``T_0`` (plate gap at first touch);
 then it travels to the gap ``(1 - D) T_0`` (degree), the given gap (gap), or until the
@@ -117,6 +128,26 @@ class ProtocolResult:
         return self.steps[-1].u
 
 
+def chest_wall(body: BodySetup, config: ContactConfig) -> PlateContact | None:
+    """Frictionless rigid wall at the chest-wall plane, facing ``+x``: free skin nodes may
+    not pass behind it (the torso is there).  The plane is ``x = min x`` of the model, the
+    most posterior node (the chest-wall nodes of a model cut from an MRI lie within 0.3 mm
+    of it), so that no node starts behind it.  None when ``chest_wall_contact`` is off or
+    the body has no fixed node."""
+    from dataclasses import replace
+
+    if not config.chest_wall_contact or not body.fixed.any():
+        return None
+    X = body.points
+    nodes = np.unique(body.skin)
+    nodes = nodes[~body.fixed[nodes]]
+    wall = RigidPlate(name="chest-wall", origin=(float(X[:, 0].min()), 0.0, 0.0), normal=(1.0, 0.0, 0.0),
+                      e1=(0.0, 1.0, 0.0))
+    eps = automatic_penalty(config, young_mpa=body.young_mpa, h_mm=mean_edge_length(X, body.skin))
+    return PlateContact(wall, X, nodes, tributary_areas(X, body.skin)[nodes],
+                        config=replace(config, friction=0.0), penalty=eps)
+
+
 def make_plates(body: BodySetup, protocol: Protocol, *, config: ContactConfig
                 ) -> tuple[dict[str, PlateContact], Any]:
     """The lower and upper :class:`PlateContact` of a protocol, placed around the body."""
@@ -187,6 +218,9 @@ class ProtocolRunner:
         self.solve = solve
         self.config = config or ContactConfig()
         self.plates, self.frame = make_plates(body, protocol, config=self.config)
+        wall = chest_wall(body, self.config)
+        # every contact: the plates, and the chest wall (not a plate: never moved or drawn)
+        self.contacts = dict(self.plates, **({wall.name: wall} if wall is not None else {}))
         self.n = self.frame.normal
         self.u = np.zeros_like(body.points)
         self.g = np.zeros(3)
@@ -197,7 +231,7 @@ class ProtocolRunner:
     # -- one solve ------------------------------------------------------------------
     def _solve(self, g_end: np.ndarray, name: str, *, single: bool = False,
                max_increment: float | None = None) -> dict:
-        contribs = list(self.plates.values())
+        contribs = list(self.contacts.values())
         for c in contribs:
             c.begin_step(name)
         kw = {}
@@ -216,7 +250,7 @@ class ProtocolRunner:
         return dict(stats or {})
 
     def _penetration(self) -> tuple[float, dict]:
-        reps = {k: c.report(self.u) for k, c in self.plates.items()}
+        reps = {k: c.report(self.u) for k, c in self.contacts.items()}
         return max(r["max_penetration_mm"] for r in reps.values()), reps
 
     def _move(self, pc: PlateContact, distance: float, name: str) -> dict:
@@ -240,11 +274,11 @@ class ProtocolRunner:
         return stats
 
     def _snapshot(self):
-        return (self.u.copy(), {k: c.get_state() for k, c in self.plates.items()})
+        return (self.u.copy(), {k: c.get_state() for k, c in self.contacts.items()})
 
     def _restore(self, snap) -> None:
         self.u = snap[0].copy()
-        for k, c in self.plates.items():
+        for k, c in self.contacts.items():
             c.set_state(snap[1][k])
 
     def _force_target(self, pc: PlateContact, step: Step, t0: float) -> dict:

@@ -116,13 +116,21 @@ def simulate_view(case: Any, model: BreastModel, view: str, *, out_dir: str | Pa
 
 
 def summarise(result: ProtocolResult, timing: dict | None = None) -> dict:
-    """Headline figures of a run: D, plate force, penetration, steps, iterations, time."""
+    """Headline figures of a run: D, plate force, penetration, steps, iterations, time.
+
+    ``upper_edge_force_N``: the part of the upper plate force carried by the skin that lay
+    within ``[contact] edge_band_mm`` in front of the plate's chest-wall edge (15 mm of the
+    chest wall at the defaults).  That tissue is attached to the fixed chest wall; on
+    Pelicano exam 10 CC it carries 87 to 93 % of the plate force: 39 N on 1.9k nodes and
+    81 N on 8.9k, while the rest of the breast carries 5.4 to 6.6 N on every mesh
+    (pipelines/mesh_convergence.py; issue 5, session-10 note)."""
     last = result.steps[-1]
     return {"protocol": result.protocol.name, "view": result.protocol.view,
             "complete": result.complete, "D": last.D, "D_mean": last.D_mean,
             "plate_gap_mm": last.gap_mm, "T0_mm": last.T0_mm,
             "upper_force_N": last.contact["upper"]["normal_force_N"],
             "lower_force_N": last.contact["lower"]["normal_force_N"],
+            "upper_edge_force_N": last.contact["upper"].get("edge_normal_force_N"),
             "max_penetration_mm": max(s.max_penetration_mm for s in result.steps),
             "increments": sum(s.solver.get("increments", 0) for s in result.steps),
             "iterations": sum(s.solver.get("iterations", 0) for s in result.steps),
