@@ -35,24 +35,12 @@ from pathlib import Path
 
 import numpy as np
 
+from regtrack.config import config_from_assignments
+from regtrack.errors import ConfigError
 from regtrack.mechanics.contact import ContactConfig
 from regtrack.mechanics.protocol import shipped_protocol
 from regtrack.mechanics.run_view import run_protocol_on_model, summarise
 from regtrack.virtual.project import project_model
-
-
-def _kw(items: list[str]) -> dict:
-    out: dict = {}
-    for item in items:
-        k, v = item.split("=", 1)
-        out[k] = {"true": True, "false": False}.get(v.lower(), v)
-        for conv in (int, float):
-            try:
-                out[k] = conv(v)
-                break
-            except ValueError:
-                pass
-    return out
 
 
 def _contour_distance(a: np.ndarray, b: np.ndarray) -> float:
@@ -101,7 +89,10 @@ def main() -> None:
 
     case = load_case(args.case, deep=False)
     labels = read_label_map(case.mri.labels)
-    contact = ContactConfig(**_kw(args.contact))
+    try:
+        contact = config_from_assignments(ContactConfig, args.contact, where="--contact")
+    except ConfigError as exc:
+        ap.error(str(exc))
     rows = []
     for n in sorted(args.nodes):
         rows.append(run_one(case, labels, n, args.view, contact))

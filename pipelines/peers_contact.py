@@ -20,6 +20,8 @@ from pathlib import Path
 
 import numpy as np
 
+from regtrack.config import config_from_assignments, parse_assignments
+from regtrack.errors import ConfigError
 from regtrack.mechanics.config import MechanicsConfig
 from regtrack.mechanics.contact import ContactConfig, PlateContact, tributary_areas
 from regtrack.mechanics.meshes import boundary_faces, orient_tets
@@ -107,16 +109,11 @@ def main() -> None:
                     choices=["dome0", "dome01", "mammo0", "mammo01"])
     ap.add_argument("--contact", nargs="*", default=[], help="ContactConfig overrides key=value")
     args = ap.parse_args()
-    kw: dict = {}
-    for item in args.contact:
-        k, v = item.split("=", 1)
-        kw[k] = {"true": True, "false": False}.get(v.lower(), v)
-        for conv in (int, float):
-            try:
-                kw[k] = conv(v)
-                break
-            except ValueError:
-                pass
+    try:
+        config_from_assignments(ContactConfig, args.contact, where="--contact")  # validates them
+    except ConfigError as exc:
+        ap.error(str(exc))
+    kw = parse_assignments(args.contact, where="--contact")
     for case in args.cases:
         r = run_case(case, kw)
         print(f"{case}: force {r['force_mN']:.1f} mN; iterations gravity/plate {r['iterations']}, "

@@ -22,24 +22,12 @@ import time
 from pathlib import Path
 
 from regtrack.mechanics.config import MechanicsConfig
+from regtrack.config import config_from_assignments
+from regtrack.errors import ConfigError
 from regtrack.mechanics.contact import ContactConfig
 from regtrack.mechanics.protocol import shipped_protocol
 from regtrack.mechanics.run_view import run_protocol_on_model, summarise, write_outputs
 from regtrack.model.io import load_model
-
-
-def _kw(items: list[str]) -> dict:
-    out: dict = {}
-    for item in items:
-        k, v = item.split("=", 1)
-        out[k] = {"true": True, "false": False}.get(v.lower(), v)
-        for conv in (int, float):
-            try:
-                out[k] = conv(v)
-                break
-            except ValueError:
-                pass
-    return out
 
 
 def main() -> None:
@@ -50,7 +38,10 @@ def main() -> None:
     ap.add_argument("--out", type=Path, default=None, help="also write the result files here")
     args = ap.parse_args()
     logging.basicConfig(level=logging.WARNING)
-    contact = ContactConfig(**_kw(args.contact))
+    try:
+        contact = config_from_assignments(ContactConfig, args.contact, where="--contact")
+    except ConfigError as exc:
+        ap.error(str(exc))
     print("| case | nodes | view | D | upper N | lower N | pen. mm | incr. | iter. | aug. | cut | wall s | CPU s |")
     print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for path in args.models:

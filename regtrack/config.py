@@ -21,6 +21,8 @@ import difflib
 import typing
 from typing import Any, TypeVar
 
+from regtrack.errors import ConfigError
+
 T = TypeVar("T")
 
 
@@ -82,6 +84,26 @@ def _check_type(value: Any, tp: Any) -> tuple[bool, Any]:
 
 def _type_name(tp: Any) -> str:
     return getattr(tp, "__name__", str(tp)).replace("typing.", "")
+
+
+def parse_assignments(items: list[str], *, where: str = "command line") -> dict[str, Any]:
+    """``["key=value", ...]`` (command-line overrides) -> a table for :func:`parse_section`:
+    ``true``/``false`` become booleans, then int, then float, else the string is kept."""
+    out: dict[str, Any] = {}
+    for item in items:
+        key, sep, text = item.partition("=")
+        if not sep or not key.strip():
+            raise ConfigError(f"{where}: '{item}' is not key=value (e.g. friction=0.1)")
+        value: Any = {"true": True, "false": False}.get(text.strip().lower(), text.strip())
+        if isinstance(value, str):
+            for conv in (int, float):
+                try:
+                    value = conv(value)
+                    break
+                except ValueError:
+                    pass
+        out[key.strip()] = value
+    return out
 
 
 def parse_section(cls: type[T], table: dict | None, *, where: str) -> tuple[T, list[str], list[str]]:
@@ -163,3 +185,13 @@ def describe(cls: type) -> list[dict]:
 def to_table(obj: Any) -> dict:
     """Plain dict (TOML-ready) of a config dataclass, for writing into outputs."""
     return dataclasses.asdict(obj)
+
+
+def config_from_assignments(cls: type[T], items: list[str], *, where: str) -> T:
+    """``cls`` from command-line ``key=value`` overrides (:func:`parse_assignments`),
+    validated like a case.toml section; unknown keys and bad values raise
+    :class:`ConfigError` naming ``where``, the key and the allowed values."""
+    obj, problems, warnings = parse_section(cls, parse_assignments(items, where=where), where=where)
+    if problems or warnings:
+        raise ConfigError("; ".join(problems + [w.replace("' ignored", "'") for w in warnings]))
+    return obj

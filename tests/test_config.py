@@ -2,6 +2,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import pytest
+
 from regtrack.config import param, parse_section
 
 
@@ -29,3 +31,24 @@ def test_parse_collects_all_problems_and_warns_unknown_keys():
 def test_parse_coerces_int_to_float():
     obj, problems, _ = parse_section(_Mat, {"c1_kpa": 2}, where="x")
     assert problems == [] and isinstance(obj.c1_kpa, float) and obj.c1_kpa == 2.0
+
+
+def test_command_line_assignments_are_typed_and_validated():
+    """``key=value`` overrides of the pipelines' ``--contact``: booleans, ints, floats and
+    strings; a bad item, an unknown key or a value out of range is a ConfigError that
+    names the option and the key."""
+    from regtrack.config import config_from_assignments, parse_assignments
+    from regtrack.errors import ConfigError
+    from regtrack.mechanics.contact import ContactConfig
+
+    assert parse_assignments(["friction=0.2", "chest_wall_contact=true", "max_augmentations=3",
+                              "friction_bound=current"]) == {
+        "friction": 0.2, "chest_wall_contact": True, "max_augmentations": 3,
+        "friction_bound": "current"}
+    c = config_from_assignments(ContactConfig, ["friction=0", "edge_band_mm=12.5"], where="--contact")
+    assert c.friction == 0.0 and c.edge_band_mm == 12.5
+    for bad, words in ((["friction"], "not key=value"), (["frction=0.1"], "did you mean 'friction'"),
+                       (["friction=-1"], "friction"), (["friction_bound=sometimes"], "friction_bound")):
+        with pytest.raises(ConfigError, match=words) as err:
+            config_from_assignments(ContactConfig, bad, where="--contact")
+        assert "--contact" in str(err.value)
