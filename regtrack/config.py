@@ -193,5 +193,6 @@ def config_from_assignments(cls: type[T], items: list[str], *, where: str) -> T:
     :class:`ConfigError` naming ``where``, the key and the allowed values."""
     obj, problems, warnings = parse_section(cls, parse_assignments(items, where=where), where=where)
     if problems or warnings:
-        raise ConfigError("; ".join(problems + [w.replace("' ignored", "'") for w in warnings]))
+        unknown = [w.replace("' ignored", "'") for w in warnings]
+        raise ConfigError("; ".join(problems + unknown))
     return obj

@@ -45,10 +45,13 @@ def test_command_line_assignments_are_typed_and_validated():
                               "friction_bound=current"]) == {
         "friction": 0.2, "chest_wall_contact": True, "max_augmentations": 3,
         "friction_bound": "current"}
-    c = config_from_assignments(ContactConfig, ["friction=0", "edge_band_mm=12.5"], where="--contact")
+    c = config_from_assignments(ContactConfig, ["friction=0", "edge_band_mm=12.5"],
+                                where="--contact")
     assert c.friction == 0.0 and c.edge_band_mm == 12.5
-    for bad, words in ((["friction"], "not key=value"), (["frction=0.1"], "did you mean 'friction'"),
-                       (["friction=-1"], "friction"), (["friction_bound=sometimes"], "friction_bound")):
+    for bad, words in ((["friction"], "not key=value"),
+                       (["frction=0.1"], "did you mean 'friction'"),
+                       (["friction=-1"], "friction"),
+                       (["friction_bound=sometimes"], "friction_bound")):
         with pytest.raises(ConfigError, match=words) as err:
             config_from_assignments(ContactConfig, bad, where="--contact")
         assert "--contact" in str(err.value)

@@ -141,8 +141,8 @@ def chest_wall(body: BodySetup, config: ContactConfig) -> PlateContact | None:
     X = body.points
     nodes = np.unique(body.skin)
     nodes = nodes[~body.fixed[nodes]]
-    wall = RigidPlate(name="chest-wall", origin=(float(X[:, 0].min()), 0.0, 0.0), normal=(1.0, 0.0, 0.0),
-                      e1=(0.0, 1.0, 0.0))
+    wall = RigidPlate(name="chest-wall", origin=(float(X[:, 0].min()), 0.0, 0.0),
+                      normal=(1.0, 0.0, 0.0), e1=(0.0, 1.0, 0.0))
     eps = automatic_penalty(config, young_mpa=body.young_mpa, h_mm=mean_edge_length(X, body.skin))
     return PlateContact(wall, X, nodes, tributary_areas(X, body.skin)[nodes],
                         config=replace(config, friction=0.0), penalty=eps)
