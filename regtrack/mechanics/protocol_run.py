@@ -138,14 +138,23 @@ def chest_wall(body: BodySetup, config: ContactConfig) -> PlateContact | None:
 
     if not config.chest_wall_contact or not body.fixed.any():
         return None
+    nodes, areas, eps = _skin_contact(body, config)
+    wall = RigidPlate(name="chest-wall", origin=(float(body.points[:, 0].min()), 0.0, 0.0),
+                      normal=(1.0, 0.0, 0.0), e1=(0.0, 1.0, 0.0))
+    return PlateContact(wall, body.points, nodes, areas, config=replace(config, friction=0.0),
+                        penalty=eps)
+
+
+def _skin_contact(body: BodySetup, config: ContactConfig) -> tuple[np.ndarray, np.ndarray, float]:
+    """Contact candidates of the body: its free skin nodes, their tributary skin areas
+    (mm^2) and the automatic normal penalty (MPa/mm)."""
     X = body.points
     nodes = np.unique(body.skin)
     nodes = nodes[~body.fixed[nodes]]
-    wall = RigidPlate(name="chest-wall", origin=(float(X[:, 0].min()), 0.0, 0.0),
-                      normal=(1.0, 0.0, 0.0), e1=(0.0, 1.0, 0.0))
+    if len(nodes) == 0:
+        raise ConfigError("model has no free skin node: contact needs skin triangles")
     eps = automatic_penalty(config, young_mpa=body.young_mpa, h_mm=mean_edge_length(X, body.skin))
-    return PlateContact(wall, X, nodes, tributary_areas(X, body.skin)[nodes],
-                        config=replace(config, friction=0.0), penalty=eps)
+    return nodes, tributary_areas(X, body.skin)[nodes], eps
 
 
 def make_plates(body: BodySetup, protocol: Protocol, *, config: ContactConfig
@@ -155,11 +164,7 @@ def make_plates(body: BodySetup, protocol: Protocol, *, config: ContactConfig
 
     frame = plate_frame(protocol.view, body.side, angle_deg=protocol.angle_deg)
     X = body.points
-    nodes = np.unique(body.skin)
-    nodes = nodes[~body.fixed[nodes]]
-    if len(nodes) == 0:
-        raise ConfigError("model has no free skin node: contact needs skin triangles")
-    areas = tributary_areas(X, body.skin)[nodes]
+    nodes, areas, eps = _skin_contact(body, config)
     geo = protocol.plates
     x_cw = float(X[body.fixed, 0].mean()) if body.fixed.any() else float(X[:, 0].min())
     s_edge = x_cw + geo.posterior_edge_mm
@@ -171,7 +176,6 @@ def make_plates(body: BodySetup, protocol: Protocol, *, config: ContactConfig
     h = X[nodes] @ n
     lo = float(h[over].min()) - geo.clearance_mm
     hi = float(h[over].max()) + geo.clearance_mm
-    eps = automatic_penalty(config, young_mpa=body.young_mpa, h_mm=mean_edge_length(X, body.skin))
     plates = {}
     for name, normal, height in (("lower", n, lo), ("upper", -n, hi)):
         pl = RigidPlate(name=name, origin=height * n, normal=normal, e1=frame.e_x,
