@@ -143,6 +143,60 @@ def test_failure_keeps_last_converged_state_and_names_the_step():
     assert not partial.complete
 
 
+def test_a_failed_plate_move_is_retried_once_with_a_lower_penalty_growth_cap():
+    """A plate move that does not converge is run again from the state at its start
+    (plate position and node penalties restored), with every contact's
+    ``penalty_growth_max`` lowered to ``retry_penalty_growth_max``; the record says so,
+    and the configuration is restored afterwards.  Gravity steps are not retried, and 0
+    switches the retry off."""
+    body = _body()
+    inner = mock_solver(body.points, body.fixed)
+    seen = []
+
+    def solve(u0, g0, g1, contribs, name):
+        if name == "compression":
+            up = next(c for c in contribs if c.name == "upper")
+            seen.append((up.plate.origin.copy(), up.config.penalty_growth_max,
+                         float((up.eps_node / up.eps_n).max())))
+            if len(seen) == 1:  # spoil the state, then fail
+                up.set_time(0.7)
+                up.eps_node *= 100.0
+                raise SolverDidNotConvergeError("mock: cycling", load_fraction=0.6)
+        return inner(u0, g0, g1, contribs, name)
+
+    cfg = ContactConfig(friction=0.1)
+    runner = ProtocolRunner(body, shipped_protocol("cc"), solve, config=cfg)
+    res = runner.run()
+    # the move is solved in two parts (a first short one, then the rest): the first
+    # attempt fails in its first part, the retry solves both
+    assert res.complete and len(seen) == 3
+    (o1, cap1, e1), (o2, cap2, e2) = seen[:2]
+    np.testing.assert_array_equal(o1, o2)  # the retry starts where the first attempt did
+    assert cap1 == cfg.penalty_growth_max and cfg.retry_penalty_growth_max == 16
+    assert all(cap == 16 and e <= 16 for _, cap, e in seen[1:]) and e1 == 1.0
+    assert e2 == 1.0  # the spoiled (x100) node penalties were restored, not just capped
+    last = res.steps[-1]
+    assert last.solver["retry"]["penalty_growth_max"] == 16
+    assert "mock: cycling" in last.solver["retry"]["first_attempt"]
+    assert last.solver["retry"]["first_attempt_s"] >= 0
+    assert all(c.config is cfg for c in runner.contacts.values())
+    assert "retry" not in res.steps[0].solver
+    from regtrack.mechanics.run_view import summarise
+    assert summarise(res)["retried_steps"] == ["compression"]
+
+    with pytest.raises(SolverDidNotConvergeError, match="also after a retry"):
+        _run(shipped_protocol("cc"), fail_at="compression")
+    body = _body()
+    with pytest.raises(SolverDidNotConvergeError, match="mock") as ei:
+        ProtocolRunner(body, shipped_protocol("cc"), mock_solver(body.points, body.fixed,
+                                                                 fail_at="compression"),
+                       config=ContactConfig(retry_penalty_growth_max=0.0)).run()
+    assert "retry" not in str(ei.value)
+    with pytest.raises(SolverDidNotConvergeError) as ei:
+        _run(shipped_protocol("cc"), fail_at="standing-gravity")
+    assert "retry" not in str(ei.value)
+
+
 def test_penetration_guard_rejects_soft_penalty():
     body = _body()
     runner = ProtocolRunner(body, shipped_protocol("cc"), mock_solver(body.points, body.fixed),

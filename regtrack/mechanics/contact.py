@@ -188,6 +188,10 @@ class ContactConfig:
                                     "above which a node's penalty grows", gt=0.0, lt=1.0)
     penalty_growth_max: float = param(256.0, "-", "largest node penalty as a multiple of the "
                                       "automatic one", ge=1.0, le=1e6)
+    retry_penalty_growth_max: float = param(16.0, "-", "protocols: a plate move that does not "
+                                            "converge is run once more from its start with "
+                                            "penalty_growth_max lowered to this (0: no retry); "
+                                            "see ProtocolRunner._run_step_with_retry", ge=0.0)
 
 
 def tributary_areas(points: np.ndarray, tris: np.ndarray) -> np.ndarray:

@@ -123,7 +123,9 @@ def summarise(result: ProtocolResult, timing: dict | None = None) -> dict:
     chest wall at the defaults).  That tissue is attached to the fixed chest wall; on
     Pelicano exam 10 CC it carries 87 to 93 % of the plate force: 39 N on 1.9k nodes and
     81 N on 8.9k, while the rest of the breast carries 5.4 to 6.6 N on every mesh
-    (pipelines/mesh_convergence.py; issue 5, session-10 note)."""
+    (pipelines/mesh_convergence.py; issue 5, session-10 note).  ``retried_steps``: the
+    plate moves that converged only on their automatic retry
+    (``[contact] retry_penalty_growth_max``); their figures are those of the retry."""
     last = result.steps[-1]
     return {"protocol": result.protocol.name, "view": result.protocol.view,
             "complete": result.complete, "D": last.D, "D_mean": last.D_mean,
@@ -135,6 +137,7 @@ def summarise(result: ProtocolResult, timing: dict | None = None) -> dict:
             "increments": sum(s.solver.get("increments", 0) for s in result.steps),
             "iterations": sum(s.solver.get("iterations", 0) for s in result.steps),
             "cutbacks": sum(s.solver.get("cutbacks", 0) for s in result.steps),
+            "retried_steps": [s.name for s in result.steps if "retry" in s.solver],
             "tissue": result.materials, "timing_s": timing or {}}
 
 
