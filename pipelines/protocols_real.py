@@ -3,7 +3,7 @@
 Usage::
 
     .venv/bin/python pipelines/protocols_real.py MODEL.vtu [MODEL.vtu ...] [--views cc mlo]
-        [--contact friction_bound=current ...] [--out DIR]
+        [--contact friction_bound=current ...] [--solver augmentation=final ...] [--out DIR]
 
 Models come from ``regtrack mesh`` (e.g. the Pelicano exams of ../shared/data/pelicano,
 Pelicano et al., Sensors 2021 / PLoS One 2024, or sample_cases/phantom01).  Each run uses
@@ -21,7 +21,7 @@ import logging
 import time
 from pathlib import Path
 
-from regtrack.mechanics.config import MechanicsConfig
+from regtrack.mechanics.config import MechanicsConfig, SolverOptions
 from regtrack.config import config_from_assignments
 from regtrack.errors import ConfigError
 from regtrack.mechanics.contact import ContactConfig
@@ -35,11 +35,14 @@ def main() -> None:
     ap.add_argument("models", nargs="+", type=Path)
     ap.add_argument("--views", nargs="+", default=["cc", "mlo"])
     ap.add_argument("--contact", nargs="*", default=[], help="ContactConfig overrides key=value")
+    ap.add_argument("--solver", nargs="*", default=[], help="[mechanics.solver] overrides key=value")
     ap.add_argument("--out", type=Path, default=None, help="also write the result files here")
     args = ap.parse_args()
     logging.basicConfig(level=logging.WARNING)
     try:
         contact = config_from_assignments(ContactConfig, args.contact, where="--contact")
+        mechanics = MechanicsConfig(solver=config_from_assignments(SolverOptions, args.solver,
+                                                                   where="--solver"))
     except ConfigError as exc:
         ap.error(str(exc))
     print("| case | nodes | view | D | upper N | lower N | pen. mm | incr. | iter. | aug. | cut | wall s | CPU s |")
@@ -49,7 +52,7 @@ def main() -> None:
         for view in args.views:
             t, c = time.perf_counter(), time.process_time()
             try:
-                res, timing = run_protocol_on_model(model, shipped_protocol(view), mechanics=MechanicsConfig(),
+                res, timing = run_protocol_on_model(model, shipped_protocol(view), mechanics=mechanics,
                                                     contact=contact)
             except Exception as err:  # noqa: BLE001 - a table row per failure
                 print(f"| {path.stem} | {model.n_nodes} | {view} | failed: {str(err)[:160]} |")

@@ -164,6 +164,31 @@ def test_augmented_lagrangian_bounds_penetration():
     assert res["augmented-lagrangian"] <= ContactConfig().penetration_tol_mm
 
 
+def test_carried_multipliers_are_one_uzawa_update():
+    """``carry_multipliers`` then ``commit``: the next increment starts with
+    ``lambda = max(0, lambda - eps g)`` node by node, i.e. at the same positions the
+    pressure grows by ``eps * penetration`` where the node penetrates and a separated
+    node keeps no multiplier (hand values, eps = 0.5 MPa/mm)."""
+    X = np.zeros((3, 3))
+    eps = 0.5
+    c = _contact(X, mu=0.0, method="augmented-lagrangian", eps=eps)
+    u = np.array([[0, 0, -0.4], [0, 0, -0.1], [0, 0, 0.2]])  # gaps -0.4, -0.1, +0.2 mm
+    c.set_time(0.5)
+    c.carry_multipliers(u)
+    c.commit(u)
+    np.testing.assert_allclose(c._lam, [0.2, 0.05, 0.0])
+    c.set_time(1.0)
+    _, _, p, act = c._state(u, tangent=False)
+    np.testing.assert_allclose(p, [0.4, 0.1, 0.0])  # lambda - eps g = 2 eps * penetration
+    assert act.tolist() == [True, True, False]
+    # plain penalty: nothing to carry
+    c = _contact(X, mu=0.0, method="penalty", eps=eps)
+    c.set_time(0.5)
+    c.carry_multipliers(u)
+    c.commit(u)
+    np.testing.assert_allclose(c._lam, 0.0)
+
+
 def test_tributary_area_sums_to_surface_area():
     pts = np.array([[0, 0, 0], [2, 0, 0], [2, 3, 0], [0, 3, 0]], float)
     tris = np.array([[0, 1, 2], [0, 2, 3]])

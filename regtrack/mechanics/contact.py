@@ -489,6 +489,20 @@ class PlateContact:
         self._plate0 = self.plate
         self._new_solve()
 
+    def carry_multipliers(self, u: np.ndarray) -> None:
+        """Before :meth:`commit` of an increment that ends before the step does (solver
+        ``augmentation = "final"``, no ``augment`` re-solves): one Uzawa update of the
+        multipliers, ``lambda <- max(0, lambda - eps g(u)) = p(u)``, which the commit
+        carries into the next increment (augmented Lagrangian only).  The solve's frozen
+        stick/slip state is dropped, so the commit stores the stick points of the exact
+        return mapping at ``u``: that state is not checked here as :meth:`augment` checks
+        it."""
+        if self.use_al:
+            _, _, p, _ = self._state(u, tangent=False)
+            self.lam = p.copy()
+            self.pbar = p.copy()
+        self._new_solve()
+
     def rollback(self) -> None:
         """Forget the trial multipliers and plate position of a cut-back increment."""
         self.lam = self._lam.copy()

@@ -23,6 +23,11 @@ A load step runs a pseudo-time ``t`` from 0 to 1; the solver calls, in this orde
 * ``report(u) -> dict`` after each converged increment: plain figures (force on the
   plate in N, maximum penetration in mm, number of active nodes, contact area mm^2).
 
+Optional: ``carry_multipliers(u)``, called just before ``commit`` of an increment that
+ends before t = 1 (solver ``augmentation = "final"``, where such increments skip the
+``augment`` re-solves): update the multipliers once, for ``commit`` to carry into the
+next increment.
+
 Optional: ``freeze()``, called when Newton stagnates, asks the contribution to hold its
 discrete state (stick/slip) for the rest of the solve and to check it in ``augment``;
 a contribution without it is left alone.
