@@ -92,12 +92,14 @@ def test_factorisation_is_reused_until_stale():
 
 
 def test_mixed_precision_falls_back_to_double_when_too_inaccurate():
-    """With one GMRES iteration allowed, float32 factors (error ~1e-6) cannot reach 1e-12:
-    the solver switches to float64 factors for good and still solves."""
+    """With one GMRES iteration allowed, float32 factors (error ~1e-6) cannot reach 1e-10:
+    the solver switches to float64 factors for good and still solves.  (1e-10, not 1e-12:
+    with MKL 2026.x one iteration on float64 factors gives 1.1e-12 on this system, and
+    float32 factors miss even 1e-8; measured in session 12.)"""
     A, b = anp_system(0.05)
-    ls = LinearSolver(krylov_max=1, krylov_rtol=1e-12)
+    ls = LinearSolver(krylov_max=1, krylov_rtol=1e-10)
     x = ls.solve(A, b, symmetric=True)
-    assert ls.precision == "double" and relres(A, x, b) <= 1e-12
+    assert ls.precision == "double" and relres(A, x, b) <= 1e-10
 
 
 def _unsymmetric(A, scale: float, nodes: np.ndarray):
