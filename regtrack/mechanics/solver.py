@@ -510,11 +510,6 @@ def solve_step(problem: Problem, u0: np.ndarray, *, gravity: Gravity | None = No
             u_eq, t_eq = u, t
         stats.increments += 1
         stats.residual_history.append(hist)
-        if _intermediate(o, t) and not newton.damped_last:
-            for c in newton.contribs:  # Uzawa across increments (see _increment)
-                carry = getattr(c, "carry_multipliers", None)
-                if carry is not None:
-                    carry(u.reshape(-1, 3))
         for c in newton.contribs:
             c.commit(u.reshape(-1, 3))
         if newton.contribs:
@@ -668,19 +663,14 @@ def _polish(newton: _Newton, u: np.ndarray, gravity, dirichlet, o: SolverOptions
     raise _Failed(f"no undamped equilibrium after {o.stabilisation_polish} stabilised solves")
 
 
-def _intermediate(o: SolverOptions, t: float) -> bool:
-    """An increment that ends before t = 1 with ``augmentation = "final"``."""
-    return o.augmentation == "final" and t < 1.0 - 1e-12
-
-
 def _increment(newton: _Newton, u: np.ndarray, t: float, gravity, dirichlet, hist) -> np.ndarray:
     """Newton solve of the increment ending at ``t``, then the augmented-Lagrangian loop:
     while a contribution updates its multipliers (``augment`` returns False), re-solve.
 
     With ``augmentation = "final"`` an undamped increment that ends before ``t = 1`` skips
-    the loop: the caller lets each contribution take one Uzawa update of its multipliers
-    (``carry_multipliers``) and commits it into the next increment, whose plate motion the
-    solve has to follow anyway.  The penetration of those intermediate states is bounded
+    the loop: each contribution takes one Uzawa update of its multipliers instead
+    (``carry_multipliers``), which the caller's commit carries into the next increment,
+    whose plate motion the solve has to follow anyway.  The penetration of those intermediate states is bounded
     by the penalty alone (about ``p / eps``); the step's last increment iterates the
     multipliers to ``penetration_tol_mm`` as before, and only that state is returned.
     Stabilised (damped) increments keep the loop: their state is not an equilibrium to
@@ -715,7 +705,11 @@ def _increment(newton: _Newton, u: np.ndarray, t: float, gravity, dirichlet, his
     start = u if guess is None else newton.start(u, guess, fext, newton.constraints(dofs))
     u_new = newton.solve_increment(start, fext, dofs, vals, hist, u_base=u)
     newton.first_solve_iterations = newton.stats.iterations - it0
-    if _intermediate(o, t) and newton.damping is None:
+    if o.augmentation == "final" and t < 1.0 - 1e-12 and newton.damping is None:
+        for c in newton.contribs:
+            carry = getattr(c, "carry_multipliers", None)
+            if carry is not None:
+                carry(u_new.reshape(-1, 3))
         return u_new
     for _ in range(o.max_augmentations):
         done = [c.augment(u_new.reshape(-1, 3)) for c in newton.contribs]
