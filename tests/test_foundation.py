@@ -82,3 +82,30 @@ def test_run_set_overrides_parse_into_sections():
     for bad in ("target_nodes=3", "model.=3", "model.target_nodes"):
         with pytest.raises(ConfigError, match="SECTION.KEY=VALUE"):
             parse_sets([bad])
+
+
+def test_every_dependency_is_pinned_in_constraints():
+    """make installs with constraints.txt: each direct dependency (core and test extra) of
+    pyproject.toml must be pinned there (==), so a fresh clone cannot pick up an unpinned
+    new release (session 12: a new MKL build moved the phantom's Newton path and failed
+    CI); and the pin must satisfy pyproject's own lower bound."""
+    import re
+    import tomllib
+    from pathlib import Path
+
+    from packaging.requirements import Requirement
+    from packaging.utils import canonicalize_name
+
+    root = Path(__file__).resolve().parents[1]
+    proj = tomllib.loads((root / "pyproject.toml").read_text())["project"]
+    reqs = [Requirement(r) for r in proj["dependencies"] + proj["optional-dependencies"]["test"]]
+    pins = {}
+    for line in (root / "constraints.txt").read_text().splitlines():
+        m = re.fullmatch(r"([A-Za-z0-9_.\-]+)==(\S+)", line.strip())
+        if m:
+            pins[canonicalize_name(m.group(1))] = m.group(2)
+    missing = [r.name for r in reqs if canonicalize_name(r.name) not in pins]
+    assert not missing, f"constraints.txt does not pin {missing}: run `make lock`"
+    bad = [f"{r.name}=={pins[canonicalize_name(r.name)]} vs {r.specifier}" for r in reqs
+           if not r.specifier.contains(pins[canonicalize_name(r.name)], prereleases=True)]
+    assert not bad, f"pins outside pyproject's ranges: {bad}"
