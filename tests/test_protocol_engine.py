@@ -182,7 +182,12 @@ def test_a_failed_plate_move_is_retried_once_with_a_lower_penalty_growth_cap():
     assert all(c.config is cfg for c in runner.contacts.values())
     assert "retry" not in res.steps[0].solver
     from regtrack.mechanics.run_view import summarise
-    assert summarise(res)["retried_steps"] == ["compression"]
+    sm = summarise(res)
+    assert sm["retried_steps"] == ["compression"]
+    rep = res.steps[-1].contact["upper"]
+    assert sm["upper_edge_force_N"] == rep["edge_normal_force_N"]
+    assert sm["upper_body_force_N"] == pytest.approx(rep["normal_force_N"]
+                                                     - rep["edge_normal_force_N"], abs=1e-12)
 
     with pytest.raises(SolverDidNotConvergeError, match="also after a retry"):
         _run(shipped_protocol("cc"), fail_at="compression")

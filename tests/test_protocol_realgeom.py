@@ -60,6 +60,7 @@ def test_shipped_protocol_on_real_breast(model, view, target):
     up = sm["upper_force_N"]
     assert up > 0.1 and sm["lower_force_N"] > 0
     assert 0.0 <= sm["upper_edge_force_N"] <= up
+    assert sm["upper_body_force_N"] == pytest.approx(up - sm["upper_edge_force_N"], rel=1e-12)
     for rec in res.steps:
         if "chest_wall_reaction_N" in rec.solver:
             # the solver may accept an increment whose Newton iterations stall below

@@ -27,7 +27,11 @@ mesh refinement: on exam 10 CC the skin that lay within 15 mm of the wall carrie
 45 N on 1.9k nodes and 81 N of 88 N on 8.9k (``edge_normal_force_N``, see
 ``edge_band_mm``; pipelines/mesh_convergence.py and the session-10 note of issue 5).
 ``[contact] chest_wall_contact`` adds a frictionless rigid wall at that plane
-(:func:`chest_wall`; with it, move the plate edges clear of the wall).
+(:func:`chest_wall`; with it, move the plate edges clear of the wall).  The paper's model
+stays the default (issue 5, session 13): moving the edges clear made Pelicano exam 10 CC
+(8.9k nodes) more than 4x slower without the wall and stop at t = 0.86 with it; the
+mesh-dependent part of the plate force is reported apart (``upper_body_force_N`` in
+:func:`regtrack.mechanics.run_view.summarise`).
 
 Targets of an upper-plate move: the plate is first brought to touch the breast (no
 force), which measures the uncompressed thickness ``T_0`` (plate gap at first touch);

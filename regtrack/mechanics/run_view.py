@@ -123,16 +123,21 @@ def summarise(result: ProtocolResult, timing: dict | None = None) -> dict:
     chest wall at the defaults).  That tissue is attached to the fixed chest wall; on
     Pelicano exam 10 CC it carries 87 to 93 % of the plate force: 39 N on 1.9k nodes and
     81 N on 8.9k, while the rest of the breast carries 5.4 to 6.6 N on every mesh
-    (pipelines/mesh_convergence.py; issue 5, session-10 note).  ``retried_steps``: the
+    (pipelines/mesh_convergence.py; issue 5, session-10 note).  ``upper_body_force_N`` is
+    the rest, ``upper_force_N - upper_edge_force_N``: the force of the breast between the
+    plates, the part that does not grow with mesh refinement.  ``retried_steps``: the
     plate moves that converged only on their automatic retry
     (``[contact] retry_penalty_growth_max``); their figures are those of the retry."""
     last = result.steps[-1]
+    upper = last.contact["upper"]["normal_force_N"]
+    edge = last.contact["upper"].get("edge_normal_force_N")
     return {"protocol": result.protocol.name, "view": result.protocol.view,
             "complete": result.complete, "D": last.D, "D_mean": last.D_mean,
             "plate_gap_mm": last.gap_mm, "T0_mm": last.T0_mm,
-            "upper_force_N": last.contact["upper"]["normal_force_N"],
+            "upper_force_N": upper,
             "lower_force_N": last.contact["lower"]["normal_force_N"],
-            "upper_edge_force_N": last.contact["upper"].get("edge_normal_force_N"),
+            "upper_edge_force_N": edge,
+            "upper_body_force_N": None if edge is None else upper - edge,
             "max_penetration_mm": max(s.max_penetration_mm for s in result.steps),
             "increments": sum(s.solver.get("increments", 0) for s in result.steps),
             "iterations": sum(s.solver.get("iterations", 0) for s in result.steps),
