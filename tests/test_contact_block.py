@@ -152,3 +152,34 @@ def test_uzawa_across_increments_reaches_the_same_frictionless_equilibrium():
     f_every = st_every.reports[-1]["lower"]["normal_force_N"]
     f_final = st_final.reports[-1]["lower"]["normal_force_N"]
     assert f_final == pytest.approx(f_every, rel=4e-3)
+
+
+def test_a_node_pinned_into_the_plate_stops_the_step_early():
+    """A bottom node held 0.2 mm inside the plate (a Dirichlet condition: the skin pinned
+    by the fixed chest wall under a plate edge) can never meet the penetration tolerance.
+    The step must stop with a contact error that keeps the last converged state.  With the
+    Uzawa stall check (``stalled_uzawa_updates = 2``, the default) an attempt gives up
+    after its penalty reached the cap and two more updates changed nothing; without it
+    (0) each attempt runs out max_augmentations (20): more than twice the updates."""
+    from regtrack.errors import ContactDidNotConvergeError
+
+    updates = {}
+    for stall in (2, 0):
+        prob, X, c, top, dofs = _block_on_plate(0.0, stalled_uzawa_updates=stall)
+        calls = []
+        real = c.augment
+        c.augment = lambda u, real=real, calls=calls: calls.append(1) or real(u)
+        pin = int(c.nodes[0])
+        pdofs = np.concatenate([dofs, [3 * pin + 2]])
+        opts = SolverOptions(initial_increment=0.5, max_increment=0.5, min_increment=0.1)
+        with pytest.raises(ContactDidNotConvergeError) as err:
+            solve_step(prob, np.zeros_like(X), contributions=[c], options=opts, step_name="press",
+                       dirichlet=lambda t: (pdofs, np.concatenate([np.zeros(len(dofs)), [-0.2]])))
+        assert err.value.load_fraction == 0.0
+        assert err.value.last_converged.shape == X.shape
+        if stall:
+            assert "stalled on plate 'lower'" in str(err.value) and f"node {pin}" in str(err.value)
+        else:
+            assert "not converged after 20 updates" in str(err.value)
+        updates[stall] = len(calls)
+    assert 2 * updates[2] < updates[0]

@@ -278,3 +278,44 @@ def test_default_tangent_leaves_out_the_edge_curvature_and_stays_semidefinite():
     dist = 3.0 + q.gap[0]  # distance to the edge's axis: _contact's R = 3 mm plus the gap
     assert e1.min() == pytest.approx(-2.0 * p / dist, rel=1e-9)  # A = 2 mm^2
     assert e0.min() >= -1e-12 and e0.max() == pytest.approx(2.0 * exact.eps_n)
+
+
+def test_uzawa_stall_at_the_penalty_cap_is_reported():
+    """A node that the multiplier updates cannot move (pinned, the stiff-support limit)
+    grows its penalty to the cap (penalty_growth_max = 256: 2 -> 8 -> 32 -> 128 -> 512 in
+    updates 2 to 5), then each update at the cap leaves its violation unchanged: after
+    ``stalled_uzawa_updates`` (2) such updates, in update 7, ``stalled`` names the plate,
+    the node and its depth, and the solver cuts the increment back.  A new increment
+    clears it; 0 turns the check off."""
+    X = np.array([[10.0, 0.0, -0.5], [14.0, 0.0, 2.0]])
+    u = np.zeros(X.size)
+    for n, first in ((2, 7), (1, 6)):
+        c = _contact(X, mu=0.0, method="augmented-lagrangian", eps=2.0)
+        c.config = ContactConfig(friction=0.0, stalled_uzawa_updates=n)
+        c.set_time(0.0)
+        updates = 0
+        while not c.stalled:
+            assert not c.augment(u)
+            updates += 1
+            assert updates < 50
+        assert updates == first
+        assert c.eps_node[0] == pytest.approx(2.0 * 256)
+        assert "'upper'" in c.stalled and "node 0" in c.stalled and "0.5 mm" in c.stalled
+        c.set_time(0.5)
+        assert c.stalled == ""
+    c = _contact(X, mu=0.0, method="augmented-lagrangian", eps=2.0)
+    c.config = ContactConfig(friction=0.0, stalled_uzawa_updates=0)
+    for _ in range(30):
+        assert not c.augment(u)
+    assert c.stalled == ""
+    # a node at the cap that still converges (violation halves per update) is not stalled
+    c = _contact(X, mu=0.0, method="augmented-lagrangian", eps=2.0)
+    c.set_time(0.0)
+    c.eps_node[:] = 2.0 * 256
+    depth = 0.5
+    for _ in range(8):
+        uu = u.reshape(-1, 3).copy()
+        uu[0, 2] = 0.5 - depth
+        c.augment(uu)
+        depth *= 0.5
+    assert c.stalled == ""

@@ -35,7 +35,12 @@ chest wall have ``k_i >~ eps_N A_i`` (measured on Pelicano exam 03: the violatio
 each update, so six to eight re-solves per increment).  A node whose violation fell by
 less than ``slow_uzawa_ratio`` in one update gets ``eps_i <- penalty_growth * eps_i``
 (at most ``penalty_growth_max * eps_N``); the multipliers carry the converged pressure,
-so the growth changes the path of the iteration, not its limit (``g_i -> 0``).
+so the growth changes the path of the iteration, not its limit (``g_i -> 0``).  A node
+that the updates cannot move at all (skin pinned between a plate's rounded edge and the
+fixed chest wall, its multiplier rising by the same amount at every update) would run out
+``max_augmentations``; once the worst node's penalty is at the cap and its violation has
+fallen by less than 1 % in ``stalled_uzawa_updates`` updates in a row, the increment is
+cut back instead (:meth:`PlateContact._check_stall`).
 
 Regularised Coulomb friction (stick/slip return mapping, :mod:`.friction`): with the
 stick point ``a_i`` (plate-local, committed at the end of each converged increment) and
@@ -188,6 +193,13 @@ class ContactConfig:
                                     "above which a node's penalty grows", gt=0.0, lt=1.0)
     penalty_growth_max: float = param(256.0, "-", "largest node penalty as a multiple of the "
                                       "automatic one", ge=1.0, le=1e6)
+    stalled_uzawa_updates: int = param(2, "-", "augmented Lagrangian: an increment is cut back "
+                                       "once its largest violation has fallen by less than 1 % "
+                                       "in this many consecutive multiplier updates at the "
+                                       "penalty cap (penalty_growth_max): a node the plate "
+                                       "pins against the fixed chest wall, whose multiplier "
+                                       "only grows (0: never; the increment then runs out its "
+                                       "max_augmentations)", ge=0, le=1000)
     retry_penalty_growth_max: float = param(16.0, "-", "protocols: a plate move that does not "
                                             "converge is run once more from its start with "
                                             "penalty_growth_max lowered to this (0: no retry); "
@@ -276,6 +288,8 @@ class PlateContact:
         m = len(self.nodes)
         self.eps_node = np.full(m, self.eps_n)  # node-wise normal penalty (grows, see augment)
         self._viol_last: np.ndarray | None = None  # violation at the last multiplier update
+        self._stalled_updates = 0  # consecutive capped updates without progress (augment)
+        self.stalled: str = ""  # why the multipliers cannot converge (solver cuts back), or ""
         # committed state (end of the last converged increment)
         self._lam = np.zeros(m)
         self._pconv = np.zeros(m)  # pressure of the last converged increment (MPa)
@@ -343,6 +357,8 @@ class PlateContact:
             self.plate = self.plate.moved_to(a + float(t) * (b - a))
         self._t = float(t)
         self._viol_last = None
+        self._stalled_updates = 0
+        self.stalled = ""
         self._fric_resolves = 0
         self.lam = self._lam.copy()
         self.pbar = self._pconv.copy()
@@ -527,6 +543,7 @@ class PlateContact:
             v = np.where(act, np.abs(q.gap), 0.0)
             if float(v.max(initial=0.0)) > self.config.penetration_tol_mm:
                 c = self.config
+                self._check_stall(v)
                 if c.penalty_growth > 1.0 and self._viol_last is not None:
                     slow = ((v > c.penetration_tol_mm) & (self._viol_last > 0)
                             & (v > c.slow_uzawa_ratio * self._viol_last))
@@ -554,6 +571,28 @@ class PlateContact:
             self.pbar = p.copy()
             self._new_solve()
         return done
+
+    def _check_stall(self, v: np.ndarray) -> None:
+        """Uzawa stall: the worst node's violation ``v`` (mm) fell by less than 1 % since the
+        last multiplier update although its penalty is at the cap, ``stalled_uzawa_updates``
+        times in a row; sets :attr:`stalled` (the solver then cuts the increment back).
+
+        Seen on the benchmark hemisphere's CC (9.5k nodes): a skin node 2.5 mm in front of
+        the fixed chest wall, under the rounded plate edge, stayed 5.000 mm deep while its
+        multiplier rose by 29 MPa at every update for 15 re-solves (2-4 Newton iterations
+        each), after which the increment failed all the same."""
+        c = self.config
+        if c.stalled_uzawa_updates <= 0 or self._viol_last is None:
+            return
+        i = int(np.argmax(v))
+        capped = self.eps_node[i] >= c.penalty_growth_max * self.eps_n * (1.0 - 1e-12)
+        if capped and v[i] > 0.99 * self._viol_last[i]:
+            self._stalled_updates += 1
+        else:
+            self._stalled_updates = 0
+        if self._stalled_updates >= c.stalled_uzawa_updates:
+            self.stalled = (f"augmented-Lagrangian multipliers stalled on plate '{self.name}': skin node "
+                            f"{int(self.nodes[i])} stays {v[i]:.3g} mm deep at the penalty cap")
 
     def report(self, u: np.ndarray) -> dict:
         """Plate force (N), maximum penetration (mm), active nodes, contact area (mm^2).

@@ -104,6 +104,7 @@ import time
 import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
+from numba import njit
 
 log = logging.getLogger(__name__)
 
@@ -378,17 +379,21 @@ class LinearSolver:
     # -- internals ----------------------------------------------------------------------
     def _key(self, A: sp.csr_matrix) -> tuple:
         """Identity of a sparsity pattern: a full hash (a wrong match would corrupt PARDISO),
-        skipped when ``A`` shares the very index arrays of the last matrix (the solver's
-        fixed layout; the arrays are kept referenced, so their identity cannot be recycled)."""
+        skipped when ``A``'s index arrays are views of the very same memory as those of the
+        last matrix (the solver's fixed layout: scipy wraps the layout's arrays in new
+        views for every matrix, so the views differ but their base arrays do not; the
+        bases are kept referenced, so their identity cannot be recycled).  The hash cost
+        ~10 ms per Newton iteration at 38k unknowns (1.4 % of the 10k-node CC run)."""
         import hashlib
 
         last = getattr(self, "_last_pattern", None)
-        if last is not None and A.indices is last[0] and A.indptr is last[1]:
+        ident = (_memory_id(A.indices), _memory_id(A.indptr))
+        if last is not None and ident[0] == last[0] and ident[1] == last[1]:
             return last[2]
         key = (A.shape[0], A.nnz, hashlib.blake2b(np.ascontiguousarray(A.indices).view(np.uint8),
                                                   digest_size=16).digest(),
                hashlib.blake2b(np.ascontiguousarray(A.indptr).view(np.uint8), digest_size=16).digest())
-        self._last_pattern = (A.indices, A.indptr, key)
+        self._last_pattern = (*ident, key, A.indices, A.indptr)
         return key
 
     def _drop(self, rows: np.ndarray, cols: np.ndarray, n: int) -> np.ndarray:
@@ -435,7 +440,7 @@ class LinearSolver:
         _, up, idx, ptr, tmap = self._upper
         if tmap is None:
             return None
-        U = sp.csr_matrix((0.5 * (A.data[up] + A.data[tmap]), idx, ptr), shape=A.shape, copy=False)
+        U = sp.csr_matrix((_half_sum(A.data, up, tmap), idx, ptr), shape=A.shape, copy=False)
         U.has_sorted_indices = True
         return U
 
@@ -551,6 +556,25 @@ def node_ordering(A: sp.csr_matrix, dof_nodes: np.ndarray) -> np.ndarray:
     rank = np.empty(nn, np.int64)
     rank[np.asarray(perm)] = np.arange(nn)
     return np.lexsort((np.arange(len(dof_nodes)), rank[dof_nodes])).astype(np.int32)
+
+
+@njit(cache=True)
+def _half_sum(data, up, tmap):
+    """``0.5 * (data[up] + data[tmap])`` in one pass (the values of the symmetric part)."""
+    out = np.empty(up.shape[0])
+    for j in range(up.shape[0]):
+        out[j] = 0.5 * (data[up[j]] + data[tmap[j]])
+    return out
+
+
+def _memory_id(a: np.ndarray) -> tuple:
+    """(identity of the base array, data address, shape, strides) of an index array: equal
+    for two views of the same memory with the same extent.  The caller keeps a reference
+    to the view, hence to its base, so that identity cannot be recycled."""
+    base = a
+    while isinstance(base.base, np.ndarray):
+        base = base.base
+    return (id(base), a.__array_interface__["data"][0], a.shape, a.strides)
 
 
 def _norm(v: np.ndarray) -> float:

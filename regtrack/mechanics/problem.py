@@ -175,17 +175,42 @@ def body_force(problem: Problem, g_ms2: np.ndarray) -> np.ndarray:
     return (problem.body_weight[:, None] * np.asarray(g_ms2, float)[None, :]).reshape(-1)
 
 
+@njit(cache=True)
+def _scatter_b(out, b_pos, bt_pos, dv):
+    """``out[b_pos] += bvals`` then ``out[bt_pos] += bvals`` for the ANP ``B`` values
+    ``bvals[e, i, a, k] = dv[e, a, k] / 4`` (:attr:`Evaluation.bvals`), without forming
+    them (same values, same order of summation as two :func:`scatter_add` calls)."""
+    for pos in (b_pos, bt_pos):
+        j = 0
+        for e in range(dv.shape[0]):
+            for i in range(4):
+                for a in range(4):
+                    for k in range(3):
+                        out[pos[j]] += 0.25 * dv[e, a, k]
+                        j += 1
+
+
 @dataclass
 class Evaluation:
     """Internal force (3N,) N, tangent CSR values (local part) or None, stored energy (N mm),
-    inverted count, and for ANP the values of ``B = dv_g/du`` (E*48,) in layout order."""
+    inverted count, and for ANP (with the tangent) ``dv`` (E, 4, 3), the derivative of each
+    element's current volume, from which ``B = dv_g/du`` follows (:attr:`bvals`)."""
 
     f: np.ndarray
     data: np.ndarray | None
     energy: float
     n_inverted: int
-    bvals: np.ndarray | None = None
+    dv: np.ndarray | None = None
     contrib_norm: float = 0.0  # largest resultant force of a contribution (plate force), set by the solver
+
+    @property
+    def bvals(self) -> np.ndarray | None:
+        """Values of ``B = dv_g/du`` (E*48,) in layout order: ``B[g(e, i), dofs of e] +=
+        dv_e / 4`` for each local node ``i``."""
+        if self.dv is None:
+            return None
+        dv = self.dv
+        return np.broadcast_to(0.25 * dv[:, None, :, :], (len(dv), 4, 4, 3)).reshape(-1)
 
 
 def evaluate(problem: Problem, u: np.ndarray, *, want_k: bool = True) -> Evaluation:
@@ -214,9 +239,7 @@ def evaluate(problem: Problem, u: np.ndarray, *, want_k: bool = True) -> Evaluat
     dv = np.empty((len(problem.tets), 4, 3))
     e_dev, bad = tissue.tet_kernel(x, problem.tets, problem.G, problem.V, m.c1, p, dp, want_k, f, data,
                                    problem.tet_base, problem.pattern.rowstride, dv)
-    bvals = None
-    if want_k and grp is not None:  # B[g(e,i), dofs of e] += dv_e / 4 for each local node i
-        bvals = np.broadcast_to(0.25 * dv[:, None, :, :], (len(dv), 4, 4, 3)).reshape(-1)
+    dv_b = dv if (want_k and grp is not None) else None  # B = dv_g/du (Evaluation.bvals)
     energy = e_dev + e_vol
     if problem.skin_mat is not None:
         try:
@@ -229,7 +252,7 @@ def evaluate(problem: Problem, u: np.ndarray, *, want_k: bool = True) -> Evaluat
         if want_k:
             scatter_add(data, problem.skin_pos, Ke.reshape(-1))
         energy += e_skin
-    return Evaluation(f.reshape(-1), data if want_k else None, energy, int(bad), bvals)
+    return Evaluation(f.reshape(-1), data if want_k else None, energy, int(bad), dv_b)
 
 
 def _evaluate_p2(problem: Problem, x: np.ndarray, want_k: bool) -> Evaluation:
@@ -269,8 +292,7 @@ def system_matrix(problem: Problem, ev: Evaluation, data: np.ndarray | None = No
         return problem.pattern.matrix(kd)
     out = np.zeros(len(lay.indices))
     out[lay.k_pos] = kd
-    scatter_add(out, lay.b_pos, ev.bvals)
-    scatter_add(out, lay.bt_pos, ev.bvals)
+    _scatter_b(out, lay.b_pos, lay.bt_pos, ev.dv)
     out[lay.d_pos] = -problem.groups.vol0 / problem.groups.kappa
     m = sp.csr_matrix((out, lay.indices, lay.indptr), shape=(lay.n, lay.n), copy=False)
     m.has_sorted_indices = True

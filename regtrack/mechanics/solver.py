@@ -665,7 +665,10 @@ def _polish(newton: _Newton, u: np.ndarray, gravity, dirichlet, o: SolverOptions
 
 def _increment(newton: _Newton, u: np.ndarray, t: float, gravity, dirichlet, hist) -> np.ndarray:
     """Newton solve of the increment ending at ``t``, then the augmented-Lagrangian loop:
-    while a contribution updates its multipliers (``augment`` returns False), re-solve.
+    while a contribution updates its multipliers (``augment`` returns False), re-solve; a
+    contribution whose multipliers have stopped converging (its ``stalled`` message, see
+    :meth:`.contact.PlateContact._check_stall`) fails the increment at once (cut-back),
+    counted in ``stalled_augmentations``.
 
     With ``augmentation = "final"`` an undamped increment that ends before ``t = 1`` skips
     the loop: each contribution takes one Uzawa update of its multipliers instead
@@ -715,6 +718,10 @@ def _increment(newton: _Newton, u: np.ndarray, t: float, gravity, dirichlet, his
         done = [c.augment(u_new.reshape(-1, 3)) for c in newton.contribs]
         if all(done):
             return u_new
+        stalled = [c.stalled for c in newton.contribs if getattr(c, "stalled", "")]
+        if stalled:
+            newton.stats.stalled_augmentations += 1
+            raise _Failed(stalled[0])
         newton.stats.augmentations += 1
         u_new = newton.solve_increment(u_new, fext, dofs, vals, hist, u_base=u)
     raise _Failed(f"augmented-Lagrangian multipliers not converged after {o.max_augmentations} updates")

@@ -23,7 +23,9 @@ class StepStats:
     ``settled_increments`` those whose state an undamped solve at the same load then made an
     equilibrium, and
     ``polish_solves`` the undamped solves at t = 1 after a stabilised last increment
-    (:mod:`.solver`); ``extrapolated_increments`` counts the increments whose Newton
+    (:mod:`.solver`); ``stalled_augmentations`` the increments cut back because a
+    contribution's multipliers stopped converging (:meth:`.contact.PlateContact.augment`);
+    ``extrapolated_increments`` counts the increments whose Newton
     iterations started from the linear extrapolation of the previous increment.
     """
 
@@ -36,6 +38,7 @@ class StepStats:
     freezes: int = 0
     stalled_accepts: int = 0
     stalled_residual_max: float = 0.0
+    stalled_augmentations: int = 0
     merit_retries: int = 0
     tangent_retries: int = 0
     stabilised_increments: int = 0
@@ -60,7 +63,8 @@ class StepStats:
 
     def to_dict(self) -> dict:
         keys = ("name", "increments", "iterations", "cutbacks", "augmentations", "extra_iterations",
-                "freezes", "stalled_accepts", "stalled_residual_max", "merit_retries", "tangent_retries",
+                "freezes", "stalled_accepts", "stalled_residual_max", "stalled_augmentations", "merit_retries",
+                "tangent_retries",
                 "stabilised_increments", "settled_increments", "polish_solves", "extrapolated_increments",
                 "line_search_trials", "factorisations", "analyses", "krylov_solves", "krylov_iterations",
                 "reuse_failures", "krylov_wasted_iterations", "t_assembly", "t_contrib", "t_solve",
