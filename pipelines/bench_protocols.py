@@ -11,6 +11,14 @@ process CPU time (on a shared machine the CPU time is the figure that does not d
 the other jobs; the wall-clock is what a user waits).  Timings depend on machine load:
 compare ratios, not absolute figures across runs.  With other jobs on the CPU, set
 MKL_NUM_THREADS=1 (PARDISO's threads otherwise spin against them).
+
+Threads and paths: the frictional Newton path (and with it the iteration count) depends on
+round-off.  PARDISO in MKL's strict CNR mode (set by :mod:`regtrack.mechanics.linsolve`)
+gave bit-identical solutions with one and two threads; numpy's OpenBLAS reductions (vector
+norms and dot products) do not.  So ``MKL_NUM_THREADS=2 OPENBLAS_NUM_THREADS=1`` follows
+the one-thread path to the last digit and times the second core on the same work, while
+the default (both libraries on every core) takes another path (session 14: CC 383
+iterations against 343 on the hemisphere).
 """
 
 from __future__ import annotations
