@@ -316,3 +316,42 @@ def test_pattern_key_is_reused_for_views_of_the_layout_and_hashed_otherwise(monk
     assert ls._key(view) == k2 and not hashes  # a view of the last layout: no hash
     other = (A + sp.eye(A.shape[0], k=5)).tocsr()
     assert ls._key(other) != k2 and hashes  # another pattern: hashed, another key
+
+
+def test_newton_path_does_not_depend_on_the_openblas_thread_count():
+    """numpy's OpenBLAS splits dot products and norms of more than 10,000 entries across its
+    threads, each split summing in another order; the solver runs it on one thread
+    (``serial_openblas``), so a solve whose vectors are longer than that (4,050 nodes,
+    12,150 unknowns) gives bit-identical displacements whatever the thread count outside,
+    and the outside setting is restored afterwards.  With the limit removed the two
+    solutions differ by 9e-11 mm (checked when the test was written)."""
+    from threadpoolctl import ThreadpoolController
+
+    blas = ThreadpoolController().select(internal_api="openblas")
+    if not blas.lib_controllers:
+        pytest.skip("numpy does not use OpenBLAS here")
+    m = box_model((30.0, 30.0, 40.0), (14, 14, 17))
+    m.fixed = m.points[:, 2] < 1e-9
+    pr = S.build_problem(m, MechanicsConfig(nu=0.49))
+    assert pr.n_dofs > 10_000
+    o = SolverOptions(initial_increment=0.5)
+    inside = []
+
+    def progress(name, t):
+        inside.append({c.num_threads for c in ThreadpoolController().select(internal_api="openblas").lib_controllers})
+
+    out = []
+    for n in (1, 2):
+        with blas.limit(limits=n):
+            if n == 2 and {c.num_threads for c in ThreadpoolController().select(
+                    internal_api="openblas").lib_controllers} != {2}:
+                pytest.skip("OpenBLAS does not take two threads here")
+            pr._linear_solver = None
+            u, st = S.solve_step(pr, np.zeros_like(pr.X), gravity=lambda t: t * np.array([9.81, 0.0, -9.81]),
+                                 options=o, progress=progress)
+            after = {c.num_threads for c in ThreadpoolController().select(internal_api="openblas").lib_controllers}
+            assert after == {n}  # the caller's setting is back
+        out.append(u)
+    assert st.iterations >= 4 and np.abs(out[0]).max() > 1.0  # a nonlinear solve, mm-size motion
+    assert inside and all(s == {1} for s in inside)
+    assert np.array_equal(out[0], out[1]), np.abs(out[0] - out[1]).max()

@@ -97,6 +97,7 @@ per solve) made 860 of the step's 970 s.
 from __future__ import annotations
 
 import ctypes
+import contextlib
 import logging
 import os
 import time
@@ -113,6 +114,27 @@ log = logging.getLogger(__name__)
 # digits from run to run, and a hard increment converges in one run and not in the next
 # (measured: the same CC protocol stopped at t = 0.6817 and 0.6801).  Read when MKL loads.
 os.environ.setdefault("MKL_CBWR", "AUTO,STRICT")
+
+
+@contextlib.contextmanager
+def serial_openblas():
+    """Run numpy's and scipy's OpenBLAS on one thread inside the block (a context manager
+    and, called, a decorator); MKL, i.e. PARDISO, keeps its threads.
+
+    With PARDISO in strict CNR mode (above) the Newton path then no longer depends on the
+    machine's core count.  OpenBLAS splits a dot product (or a norm) of more than 10,000
+    entries across its threads, and each split sums in another order: on the 9,496-node
+    benchmark hemisphere (28k-entry vectors) the default two threads took the CC
+    compression along another path than one thread (383 against 343 Newton iterations,
+    session 14), and the frictional pinch problems amplify such last-digit differences
+    into different plate forces.  Below 10,000 entries OpenBLAS uses one thread anyway,
+    so the small models' results are unchanged.  The limit is process-wide while the block
+    runs (threadpoolctl); the study engine runs simulations in processes, not threads.
+    """
+    from threadpoolctl import ThreadpoolController
+
+    with ThreadpoolController().select(internal_api="openblas").limit(limits=1):
+        yield
 
 #: iparm (0-based) shared by both matrix types; see the module docstring.
 _IPARM_COMMON = {0: 1, 1: 2, 7: 0, 17: -1, 20: 1, 23: 0, 26: 0, 34: 1}

@@ -56,6 +56,7 @@ import numpy as np
 
 from regtrack.errors import ConfigError, ResultCheckError, SolverDidNotConvergeError
 from regtrack.mechanics import compression as comp
+from regtrack.mechanics.linsolve import serial_openblas
 from regtrack.mechanics.contact import (ContactConfig, PlateContact, automatic_penalty,
                                         mean_edge_length, tributary_areas)
 from regtrack.mechanics.plates import RigidPlate
@@ -438,8 +439,11 @@ class ProtocolRunner:
         smask = b.points[b.skin].mean(axis=1)[:, 0] >= edge
         return comp.mean_thickness(x, b.tets, b.skin, self.n, tet_mask=tmask, skin_mask=smask)
 
+    @serial_openblas()
     def run(self) -> ProtocolResult:
-        """Run every step; on failure raise with the partial result in ``last_converged``."""
+        """Run every step; on failure raise with the partial result in ``last_converged``.
+        OpenBLAS runs on one thread meanwhile, so that the result does not depend on the
+        core count (:func:`regtrack.mechanics.linsolve.serial_openblas`)."""
         result = ProtocolResult(self.protocol, self.records, self.frame.to_dict())
         for i, step in enumerate(self.protocol.steps):
             log.info("protocol %s: step %d/%d '%s'", self.protocol.name, i + 1,

@@ -97,7 +97,7 @@ import scipy.sparse as sp
 from regtrack.errors import ContactDidNotConvergeError, SolverDidNotConvergeError
 from regtrack.mechanics.config import SolverOptions
 from regtrack.mechanics.contributions import Contribution
-from regtrack.mechanics.linsolve import LinearSolveError, LinearSolver
+from regtrack.mechanics.linsolve import LinearSolveError, LinearSolver, serial_openblas
 from regtrack.mechanics.problem import (Problem, body_force, build_problem, dof_nodes, evaluate,
                                         internal_force, scatter_add, system_matrix, tangent)
 from regtrack.mechanics.types import StepStats
@@ -437,6 +437,7 @@ class _Newton:
             self.stats.t_line_search += time.perf_counter() - t0
 
 
+@serial_openblas()
 def solve_step(problem: Problem, u0: np.ndarray, *, gravity: Gravity | None = None,
                dirichlet: Dirichlet | None = None, contributions: Sequence[Contribution] = (),
                options: SolverOptions | None = None, progress: Progress | None = None,
@@ -464,6 +465,9 @@ def solve_step(problem: Problem, u0: np.ndarray, *, gravity: Gravity | None = No
     ------
     SolverDidNotConvergeError
         with ``load_fraction`` (last converged t) and ``last_converged`` (N, 3).
+
+    numpy's OpenBLAS runs on one thread during the step, so the Newton path does not
+    depend on the core count (:func:`regtrack.mechanics.linsolve.serial_openblas`).
     """
     o = options or problem.config.solver
     stats = StepStats(name=step_name)
