@@ -14,11 +14,12 @@ MKL_NUM_THREADS=1 (PARDISO's threads otherwise spin against them).
 
 Threads and paths: the frictional Newton path (and with it the iteration count) depends on
 round-off.  PARDISO in MKL's strict CNR mode (set by :mod:`regtrack.mechanics.linsolve`)
-gave bit-identical solutions with one and two threads; numpy's OpenBLAS reductions (vector
-norms and dot products) do not.  So ``MKL_NUM_THREADS=2 OPENBLAS_NUM_THREADS=1`` follows
-the one-thread path to the last digit and times the second core on the same work, while
-the default (both libraries on every core) takes another path (session 14: CC 383
-iterations against 343 on the hemisphere).
+gives bit-identical solutions with 1, 2 or 4 threads (measured on a 12.8k-unknown gravity
+step and, with 1 and 2, on the benchmark); numpy's OpenBLAS reductions (vector
+norms and dot products over 10,000 entries) did not, so until session 15 the default two
+threads took another path than one (CC 383 iterations against 343 on the hemisphere).
+The solver now runs OpenBLAS on one thread (``serial_openblas``), so the path, and every
+figure but the times, is the same whatever ``MKL_NUM_THREADS``.
 """
 
 from __future__ import annotations
