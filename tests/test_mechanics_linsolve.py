@@ -355,3 +355,30 @@ def test_newton_path_does_not_depend_on_the_openblas_thread_count():
     assert st.iterations >= 4 and np.abs(out[0]).max() > 1.0  # a nonlinear solve, mm-size motion
     assert inside and all(s == {1} for s in inside)
     assert np.array_equal(out[0], out[1]), np.abs(out[0] - out[1]).max()
+
+
+def test_serial_openblas_blocks_that_overlap_restore_the_setting_when_the_last_one_leaves():
+    """Simulations sharing a process (threads of a Dask worker) overlap their blocks out
+    of nesting order: the limit must hold until the last block leaves, then the caller's
+    setting comes back."""
+    from threadpoolctl import ThreadpoolController
+
+    from regtrack.mechanics.linsolve import serial_openblas
+
+    def threads():
+        return {c.num_threads for c in ThreadpoolController().select(internal_api="openblas").lib_controllers}
+
+    blas = ThreadpoolController().select(internal_api="openblas")
+    if not blas.lib_controllers:
+        pytest.skip("numpy does not use OpenBLAS here")
+    with blas.limit(limits=2):
+        if threads() != {2}:
+            pytest.skip("OpenBLAS does not take two threads here")
+        a, b = serial_openblas(), serial_openblas()
+        a.__enter__()
+        b.__enter__()
+        assert threads() == {1}
+        a.__exit__(None, None, None)  # the first one leaves while the second still runs
+        assert threads() == {1}
+        b.__exit__(None, None, None)
+        assert threads() == {2}

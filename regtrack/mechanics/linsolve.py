@@ -96,10 +96,11 @@ per solve) made 860 of the step's 970 s.
 
 from __future__ import annotations
 
-import ctypes
 import contextlib
+import ctypes
 import logging
 import os
+import threading
 import time
 
 import numpy as np
@@ -116,6 +117,9 @@ log = logging.getLogger(__name__)
 os.environ.setdefault("MKL_CBWR", "AUTO,STRICT")
 
 
+_SERIAL = {"lock": threading.Lock(), "depth": 0, "limiter": None}
+
+
 @contextlib.contextmanager
 def serial_openblas():
     """Run numpy's and scipy's OpenBLAS on one thread inside the block (a context manager
@@ -128,13 +132,29 @@ def serial_openblas():
     compression along another path than one thread (383 against 343 Newton iterations,
     session 14), and the frictional pinch problems amplify such last-digit differences
     into different plate forces.  Below 10,000 entries OpenBLAS uses one thread anyway,
-    so the small models' results are unchanged.  The limit is process-wide while the block
-    runs (threadpoolctl); the study engine runs simulations in processes, not threads.
-    """
-    from threadpoolctl import ThreadpoolController
+    so the small models' results are unchanged.
 
-    with ThreadpoolController().select(internal_api="openblas").limit(limits=1):
+    The limit is process-wide (threadpoolctl), so it is counted: the first block to enter
+    sets it and the last to leave restores the caller's setting, also when blocks of
+    several threads overlap (simulations sharing a Dask worker process); other numpy work
+    of the process runs on one OpenBLAS thread meanwhile.
+    """
+    st = _SERIAL
+    with st["lock"]:
+        if st["depth"] == 0:
+            from threadpoolctl import ThreadpoolController
+
+            st["limiter"] = ThreadpoolController().select(internal_api="openblas").limit(limits=1)
+        st["depth"] += 1
+    try:
         yield
+    finally:
+        with st["lock"]:
+            st["depth"] -= 1
+            if st["depth"] == 0:
+                st["limiter"].restore_original_limits()
+                st["limiter"] = None
+
 
 #: iparm (0-based) shared by both matrix types; see the module docstring.
 _IPARM_COMMON = {0: 1, 1: 2, 7: 0, 17: -1, 20: 1, 23: 0, 26: 0, 34: 1}
