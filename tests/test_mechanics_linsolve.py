@@ -318,6 +318,20 @@ def test_pattern_key_is_reused_for_views_of_the_layout_and_hashed_otherwise(monk
     assert ls._key(other) != k2 and hashes  # another pattern: hashed, another key
 
 
+def _openblas():
+    """threadpoolctl's controller of the loaded OpenBLAS pools (numpy's, scipy's)."""
+    from threadpoolctl import ThreadpoolController
+
+    blas = ThreadpoolController().select(internal_api="openblas")
+    if not blas.lib_controllers:
+        pytest.skip("numpy does not use OpenBLAS here")
+    return blas
+
+
+def _openblas_threads() -> set:
+    return {c.num_threads for c in _openblas().lib_controllers}
+
+
 def test_newton_path_does_not_depend_on_the_openblas_thread_count():
     """numpy's OpenBLAS splits dot products and norms of more than 10,000 entries across its
     threads, each split summing in another order; the solver runs it on one thread
@@ -325,11 +339,7 @@ def test_newton_path_does_not_depend_on_the_openblas_thread_count():
     12,150 unknowns) gives bit-identical displacements whatever the thread count outside,
     and the outside setting is restored afterwards.  With the limit removed the two
     solutions differ by 9e-11 mm (checked when the test was written)."""
-    from threadpoolctl import ThreadpoolController
-
-    blas = ThreadpoolController().select(internal_api="openblas")
-    if not blas.lib_controllers:
-        pytest.skip("numpy does not use OpenBLAS here")
+    blas = _openblas()
     m = box_model((30.0, 30.0, 40.0), (14, 14, 17))
     m.fixed = m.points[:, 2] < 1e-9
     pr = S.build_problem(m, MechanicsConfig(nu=0.49))
@@ -338,19 +348,17 @@ def test_newton_path_does_not_depend_on_the_openblas_thread_count():
     inside = []
 
     def progress(name, t):
-        inside.append({c.num_threads for c in ThreadpoolController().select(internal_api="openblas").lib_controllers})
+        inside.append(_openblas_threads())
 
     out = []
     for n in (1, 2):
         with blas.limit(limits=n):
-            if n == 2 and {c.num_threads for c in ThreadpoolController().select(
-                    internal_api="openblas").lib_controllers} != {2}:
+            if n == 2 and _openblas_threads() != {2}:
                 pytest.skip("OpenBLAS does not take two threads here")
             pr._linear_solver = None
             u, st = S.solve_step(pr, np.zeros_like(pr.X), gravity=lambda t: t * np.array([9.81, 0.0, -9.81]),
                                  options=o, progress=progress)
-            after = {c.num_threads for c in ThreadpoolController().select(internal_api="openblas").lib_controllers}
-            assert after == {n}  # the caller's setting is back
+            assert _openblas_threads() == {n}  # the caller's setting is back
         out.append(u)
     assert st.iterations >= 4 and np.abs(out[0]).max() > 1.0  # a nonlinear solve, mm-size motion
     assert inside and all(s == {1} for s in inside)
@@ -361,24 +369,16 @@ def test_serial_openblas_blocks_that_overlap_restore_the_setting_when_the_last_o
     """Simulations sharing a process (threads of a Dask worker) overlap their blocks out
     of nesting order: the limit must hold until the last block leaves, then the caller's
     setting comes back."""
-    from threadpoolctl import ThreadpoolController
-
     from regtrack.mechanics.linsolve import serial_openblas
 
-    def threads():
-        return {c.num_threads for c in ThreadpoolController().select(internal_api="openblas").lib_controllers}
-
-    blas = ThreadpoolController().select(internal_api="openblas")
-    if not blas.lib_controllers:
-        pytest.skip("numpy does not use OpenBLAS here")
-    with blas.limit(limits=2):
-        if threads() != {2}:
+    with _openblas().limit(limits=2):
+        if _openblas_threads() != {2}:
             pytest.skip("OpenBLAS does not take two threads here")
         a, b = serial_openblas(), serial_openblas()
         a.__enter__()
         b.__enter__()
-        assert threads() == {1}
+        assert _openblas_threads() == {1}
         a.__exit__(None, None, None)  # the first one leaves while the second still runs
-        assert threads() == {1}
+        assert _openblas_threads() == {1}
         b.__exit__(None, None, None)
-        assert threads() == {2}
+        assert _openblas_threads() == {2}

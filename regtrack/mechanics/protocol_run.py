@@ -56,9 +56,9 @@ import numpy as np
 
 from regtrack.errors import ConfigError, ResultCheckError, SolverDidNotConvergeError
 from regtrack.mechanics import compression as comp
-from regtrack.mechanics.linsolve import serial_openblas
 from regtrack.mechanics.contact import (ContactConfig, PlateContact, automatic_penalty,
                                         mean_edge_length, tributary_areas)
+from regtrack.mechanics.linsolve import serial_openblas
 from regtrack.mechanics.plates import RigidPlate
 from regtrack.mechanics.protocol import G_STANDARD, Protocol, Step
 
