@@ -6,9 +6,10 @@ Usage::
     .venv/bin/python pipelines/bench_protocols.py --model out/model.vtu   # a meshed case
 
 Prints one table row per protocol step (increments, Newton iterations, augmentations,
-assembly / contact / linear-solve / total seconds) and the totals: wall-clock and the
-process CPU time (on a shared machine the CPU time is the figure that does not depend on
-the other jobs; the wall-clock is what a user waits).  Timings depend on machine load:
+line-search trials rejected for inverted elements, assembly / contact / linear-solve /
+total seconds) and the totals: wall-clock and the process CPU time (on a shared machine
+the CPU time is the figure that does not depend on the other jobs; the wall-clock is what
+a user waits).  Timings depend on machine load:
 compare ratios, not absolute figures across runs.  With other jobs on the CPU, set
 MKL_NUM_THREADS=1 (PARDISO's threads otherwise spin against them).
 
@@ -52,7 +53,8 @@ def main() -> None:
         model = hemisphere_model(50.0, args.lc, tumour_radius=8.0)
     t_mesh = time.perf_counter() - t
     print(f"model: {model.n_nodes} nodes, {model.n_tets} tets (meshing/loading {t_mesh:.1f} s)")
-    hdr = f"{'view':5} {'step':22} {'incr':>4} {'iter':>4} {'aug':>3} {'asm s':>7} {'cont s':>7} {'solve s':>7} {'total s':>7}"
+    hdr = (f"{'view':5} {'step':22} {'incr':>4} {'iter':>4} {'aug':>3} {'inv':>4} {'asm s':>7} "
+           f"{'cont s':>7} {'solve s':>7} {'total s':>7}")
     grand = grand_cpu = 0.0
     for view in args.views:
         c0 = time.process_time()
@@ -62,7 +64,8 @@ def main() -> None:
         for st in res.steps:
             s = st.solver
             print(f"{view:5} {st.name:22} {s.get('increments', 0):4d} {s.get('iterations', 0):4d} "
-                  f"{s.get('augmentations', 0):3d} {s.get('t_assembly', 0):7.2f} {s.get('t_contrib', 0):7.2f} "
+                  f"{s.get('augmentations', 0):3d} {s.get('inverted_trials', 0):4d} "
+                  f"{s.get('t_assembly', 0):7.2f} {s.get('t_contrib', 0):7.2f} "
                   f"{s.get('t_solve', 0):7.2f} {s.get('t_total', 0):7.2f}")
         sm = summarise(res, timing)
         tot = timing["total_s"]

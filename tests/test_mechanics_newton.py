@@ -466,3 +466,24 @@ def test_extrapolated_start_is_refused_where_it_inverts_elements_or_raises_the_r
     assert newton.start(u0, near, fext, cons) is near
     assert newton.stats.extrapolated_increments == 1
 
+
+
+class _Inverting(_Scalar):
+    """As :class:`_Scalar`, but an element "inverts" beyond u = -0.5 (no residual there)."""
+
+    def residual(self, u, fext, want_k):
+        return (None, None, None) if u[0] < -0.5 else (np.arctan(u), None, None)
+
+
+def test_line_search_counts_the_trials_rejected_for_inverted_elements():
+    """From u = 2 the Newton step du = -5 * atan(2) = -5.54 inverts at a = 1, 0.5 (u =
+    -3.54, -0.77) and not at 0.25 (u = 0.62): two rejected trials, then the merit test."""
+    st = _Inverting("residual")
+    u0 = np.array([2.0])
+    R0 = np.arctan(u0)
+    du = -(1.0 + u0 ** 2) * R0
+    alpha, _, _ = S._Newton.line_search(st, u0, du, R0, None, _Free())
+    assert alpha == 0.25
+    assert st.stats.inverted_trials == 2
+    assert st.stats.line_search_trials == 3
+    assert st.stats.to_dict()["inverted_trials"] == 2

@@ -408,7 +408,8 @@ class _Newton:
             for trial in range(o.line_search_max + 4):
                 R1, ev1, _ = self.residual(u + alpha * du, fext, want_k=False)
                 self.stats.line_search_trials += 1
-                if R1 is None:
+                if R1 is None:  # an element inverts at this step length
+                    self.stats.inverted_trials += 1
                     alpha *= 0.5
                     continue
                 if not search:
