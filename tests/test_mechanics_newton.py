@@ -467,7 +467,6 @@ def test_extrapolated_start_is_refused_where_it_inverts_elements_or_raises_the_r
     assert newton.stats.extrapolated_increments == 1
 
 
-
 class _Inverting(_Scalar):
     """As :class:`_Scalar`, but an element "inverts" beyond u = -0.5 (no residual there)."""
 

@@ -29,11 +29,12 @@ class StepStats:
     iterations started from the linear extrapolation of the previous increment.
     ``line_search_trials`` counts the line-search residual evaluations and
     ``inverted_trials`` those rejected because an element inverted there (the step is then
-    halved).  Measured on the benchmark hemisphere's CC compression (session 16, 192
-    rejected trials): the inverted elements lie under the plates next to the fixed chest
-    wall (in half the trials every one of them within 6.6 mm of it, reference position;
-    two thirds of them touch a skin node); the failed increment at t = 0.5 had 33 of its 51
-    trials rejected so, and steps down to 0.01.
+    halved).  Measured on the benchmark hemisphere's CC compression (session 16: 185
+    rejected trials, and 7 extrapolated starts refused for the same reason): the inverted
+    elements lie under the plates next to the fixed chest wall (in half of those 192 states
+    every one of them within 6.6 mm of it, reference position; two thirds of them touch a
+    skin node); the failed increment at t = 0.5 had 33 of its 51 trials rejected so, and
+    steps down to 0.01.
     """
 
     name: str = ""
@@ -74,9 +75,9 @@ class StepStats:
                 "freezes", "stalled_accepts", "stalled_residual_max", "stalled_augmentations",
                 "merit_retries", "tangent_retries", "stabilised_increments", "settled_increments",
                 "polish_solves", "extrapolated_increments",
-                "line_search_trials", "inverted_trials", "factorisations", "analyses", "krylov_solves", "krylov_iterations",
-                "reuse_failures", "krylov_wasted_iterations", "t_assembly", "t_contrib", "t_solve",
-                "t_line_search", "t_total", "cpu_total")
+                "line_search_trials", "inverted_trials", "factorisations", "analyses",
+                "krylov_solves", "krylov_iterations", "reuse_failures", "krylov_wasted_iterations",
+                "t_assembly", "t_contrib", "t_solve", "t_line_search", "t_total", "cpu_total")
         d = {k: getattr(self, k) for k in keys}
         d["reports"] = self.reports[-1:] if self.reports else []
         return d
