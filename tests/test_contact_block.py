@@ -183,3 +183,27 @@ def test_a_node_pinned_into_the_plate_stops_the_step_early():
             assert "not converged after 20 updates" in str(err.value)
         updates[stall] = len(calls)
     assert 2 * updates[2] < updates[0]
+
+
+def test_debug_log_accounts_for_every_solve_and_multiplier_update(caplog):
+    """``regtrack --debug`` tells where a step's Newton iterations go: one record per
+    converged solve (first solve or re-solve after a multiplier update) with its iteration
+    count, and one per multiplier check with the largest gap violation.  The records must
+    add up to the step statistics: as many re-solves as augmentations, and the iterations
+    of all records are the step's iterations."""
+    import logging
+    import re
+
+    prob, X, c, top, dofs = _block_on_plate(0.0)
+    with caplog.at_level(logging.DEBUG, logger="regtrack.mechanics"):
+        _, st = solve_step(prob, np.zeros_like(X), contributions=[c], options=OPTS, step_name="press",
+                           dirichlet=lambda t: (dofs, np.tile([0.0, 0.0, -0.5 * t], len(top))))
+    solves = [m for m in caplog.messages if m.startswith("press: increment to t = ")]
+    resolves = [m for m in solves if "re-solve after a multiplier update" in m]
+    assert st.augmentations > 0 and len(resolves) == st.augmentations
+    assert len(solves) - len(resolves) == st.increments == 10
+    its = sum(int(re.search(r": (\d+) Newton iterations", m).group(1)) for m in solves)
+    assert its == st.iterations
+    checks = [m for m in caplog.messages if m.startswith("plate 'lower': largest gap violation")]
+    assert len(checks) == st.increments + st.augmentations
+    assert sum("re-solve" in m for m in checks) == st.augmentations

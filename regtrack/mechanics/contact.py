@@ -570,6 +570,11 @@ class PlateContact:
         if not done:
             self.pbar = p.copy()
             self._new_solve()
+        if log.isEnabledFor(logging.DEBUG) and act.any():
+            log.debug("plate '%s': largest gap violation %.3g mm (tolerance %.3g mm), %d nodes in "
+                      "contact: %s", self.name, float(np.abs(q.gap[act]).max()),
+                      self.config.penetration_tol_mm, int(act.sum()),
+                      "accepted" if done else "re-solve (multipliers or friction bound updated)")
         return done
 
     def _check_stall(self, v: np.ndarray) -> None:

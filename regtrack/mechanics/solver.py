@@ -713,6 +713,7 @@ def _increment(newton: _Newton, u: np.ndarray, t: float, gravity, dirichlet, his
     start = u if guess is None else newton.start(u, guess, fext, newton.constraints(dofs))
     u_new = newton.solve_increment(start, fext, dofs, vals, hist, u_base=u)
     newton.first_solve_iterations = newton.stats.iterations - it0
+    _log_solve(newton, t, "solve", newton.first_solve_iterations, hist)
     if o.augmentation == "final" and t < 1.0 - 1e-12 and newton.damping is None:
         for c in newton.contribs:
             carry = getattr(c, "carry_multipliers", None)
@@ -728,8 +729,19 @@ def _increment(newton: _Newton, u: np.ndarray, t: float, gravity, dirichlet, his
             newton.stats.stalled_augmentations += 1
             raise _Failed(stalled[0])
         newton.stats.augmentations += 1
+        it1 = newton.stats.iterations
         u_new = newton.solve_increment(u_new, fext, dofs, vals, hist, u_base=u)
+        _log_solve(newton, t, "re-solve after a multiplier update", newton.stats.iterations - it1, hist)
     raise _Failed(f"augmented-Lagrangian multipliers not converged after {o.max_augmentations} updates")
+
+
+def _log_solve(newton: _Newton, t: float, what: str, iterations: int, hist: list[float]) -> None:
+    """DEBUG record of one converged Newton solve of an increment (``regtrack --debug``):
+    where a step's iterations go, first solves against augmented-Lagrangian re-solves."""
+    if log.isEnabledFor(logging.DEBUG):
+        log.debug("%s: increment to t = %.4g, %s%s: %d Newton iterations, |R| = %.3g N",
+                  newton.stats.name, t, "stabilised " if newton.damping is not None else "", what,
+                  iterations, hist[-1] if hist else float("nan"))
 
 
 def reaction_forces(problem: Problem, u: np.ndarray, *, gravity_ms2=None,
