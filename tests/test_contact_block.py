@@ -195,9 +195,12 @@ def test_debug_log_accounts_for_every_solve_and_multiplier_update(caplog):
     import re
 
     prob, X, c, top, dofs = _block_on_plate(0.0)
+    def press(t):
+        return dofs, np.tile([0.0, 0.0, -0.5 * t], len(top))
+
     with caplog.at_level(logging.DEBUG, logger="regtrack.mechanics"):
-        _, st = solve_step(prob, np.zeros_like(X), contributions=[c], options=OPTS, step_name="press",
-                           dirichlet=lambda t: (dofs, np.tile([0.0, 0.0, -0.5 * t], len(top))))
+        _, st = solve_step(prob, np.zeros_like(X), contributions=[c], options=OPTS,
+                           step_name="press", dirichlet=press)
     solves = [m for m in caplog.messages if m.startswith("press: increment to t = ")]
     resolves = [m for m in solves if "re-solve after a multiplier update" in m]
     assert st.augmentations > 0 and len(resolves) == st.augmentations

@@ -731,7 +731,8 @@ def _increment(newton: _Newton, u: np.ndarray, t: float, gravity, dirichlet, his
         newton.stats.augmentations += 1
         it1 = newton.stats.iterations
         u_new = newton.solve_increment(u_new, fext, dofs, vals, hist, u_base=u)
-        _log_solve(newton, t, "re-solve after a multiplier update", newton.stats.iterations - it1, hist)
+        _log_solve(newton, t, "re-solve after a multiplier update", newton.stats.iterations - it1,
+                   hist)
     raise _Failed(f"augmented-Lagrangian multipliers not converged after {o.max_augmentations} updates")
 
 
