@@ -25,6 +25,8 @@ class StepStats:
     ``polish_solves`` the undamped solves at t = 1 after a stabilised last increment
     (:mod:`.solver`); ``stalled_augmentations`` the increments cut back because a
     contribution's multipliers stopped converging (:meth:`.contact.PlateContact.augment`);
+    ``tightening_solves`` the solves to ``force_tol`` of increments whose multiplier
+    iterations used inexact solves (``augmentation_force_tol``);
     ``extrapolated_increments`` counts the increments whose Newton
     iterations started from the linear extrapolation of the previous increment.
     ``line_search_trials`` counts the line-search residual evaluations and
@@ -47,6 +49,7 @@ class StepStats:
     stalled_accepts: int = 0
     stalled_residual_max: float = 0.0
     stalled_augmentations: int = 0
+    tightening_solves: int = 0
     merit_retries: int = 0
     tangent_retries: int = 0
     stabilised_increments: int = 0
@@ -73,7 +76,7 @@ class StepStats:
     def to_dict(self) -> dict:
         keys = ("name", "increments", "iterations", "cutbacks", "augmentations", "extra_iterations",
                 "freezes", "stalled_accepts", "stalled_residual_max", "stalled_augmentations",
-                "merit_retries", "tangent_retries", "stabilised_increments", "settled_increments",
+                "tightening_solves", "merit_retries", "tangent_retries", "stabilised_increments", "settled_increments",
                 "polish_solves", "extrapolated_increments",
                 "line_search_trials", "inverted_trials", "factorisations", "analyses",
                 "krylov_solves", "krylov_iterations", "reuse_failures", "krylov_wasted_iterations",
