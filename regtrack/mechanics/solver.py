@@ -727,6 +727,7 @@ def _increment(newton: _Newton, u: np.ndarray, t: float, gravity, dirichlet, his
     Pelicano exam 03 (1.7k)          366 / 219 (23.2 / 24.2)    115 / 79 (14.9 / 15.6)
     Pelicano exam 10 (3.0k)          120 / 128 (56.3 / 56.0)    570 / 101 (34.3 / 40.0)
     Pelicano exam 10 (8.9k)          409 / 1,526 (88.4 / 114.4)
+    Pelicano exam 03 (8.8k)          1,377 / 651 (80.0 / 80.3)
     ==============================  =========================  =========================
 
     (phantom01 with the default homogeneous tissue, not its case's composition model;
