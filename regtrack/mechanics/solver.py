@@ -751,7 +751,8 @@ def _increment(newton: _Newton, u: np.ndarray, t: float, gravity, dirichlet, his
              and any(hasattr(c, "augment") for c in newton.contribs) else None)
     u_new = newton.solve_increment(start, fext, dofs, vals, hist, u_base=u, loose_tol=loose)
     newton.first_solve_iterations = newton.stats.iterations - it0
-    _log_solve(newton, t, "inexact solve" if loose else "solve", newton.first_solve_iterations, hist)
+    _log_solve(newton, t, "inexact solve" if loose else "solve", newton.first_solve_iterations,
+               hist)
     if final:
         for c in newton.contribs:
             carry = getattr(c, "carry_multipliers", None)

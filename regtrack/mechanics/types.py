@@ -76,8 +76,8 @@ class StepStats:
     def to_dict(self) -> dict:
         keys = ("name", "increments", "iterations", "cutbacks", "augmentations", "extra_iterations",
                 "freezes", "stalled_accepts", "stalled_residual_max", "stalled_augmentations",
-                "tightening_solves", "merit_retries", "tangent_retries", "stabilised_increments", "settled_increments",
-                "polish_solves", "extrapolated_increments",
+                "tightening_solves", "merit_retries", "tangent_retries", "stabilised_increments",
+                "settled_increments", "polish_solves", "extrapolated_increments",
                 "line_search_trials", "inverted_trials", "factorisations", "analyses",
                 "krylov_solves", "krylov_iterations", "reuse_failures", "krylov_wasted_iterations",
                 "t_assembly", "t_contrib", "t_solve", "t_line_search", "t_total", "cpu_total")
