@@ -748,7 +748,7 @@ def _increment(newton: _Newton, u: np.ndarray, t: float, gravity, dirichlet, his
     # inexact solves while the multipliers move (augmentation_force_tol); the state that
     # passes the multiplier check is then solved to force_tol and checked again
     loose = (o.augmentation_force_tol if o.augmentation_force_tol > 0 and not final
-             and any(hasattr(c, "augment") for c in newton.contribs) else None)
+             and newton.contribs else None)
     u_new = newton.solve_increment(start, fext, dofs, vals, hist, u_base=u, loose_tol=loose)
     newton.first_solve_iterations = newton.stats.iterations - it0
     _log_solve(newton, t, "inexact solve" if loose else "solve", newton.first_solve_iterations,
@@ -760,7 +760,7 @@ def _increment(newton: _Newton, u: np.ndarray, t: float, gravity, dirichlet, his
                 carry(u_new.reshape(-1, 3))
         return u_new
     updates = 0
-    while updates < o.max_augmentations:
+    while True:
         done = [c.augment(u_new.reshape(-1, 3)) for c in newton.contribs]
         it1 = newton.stats.iterations
         if all(done):
@@ -775,11 +775,16 @@ def _increment(newton: _Newton, u: np.ndarray, t: float, gravity, dirichlet, his
         if stalled:
             newton.stats.stalled_augmentations += 1
             raise _Failed(stalled[0])
+        if updates == o.max_augmentations:
+            break
         updates += 1
         newton.stats.augmentations += 1
         u_new = newton.solve_increment(u_new, fext, dofs, vals, hist, u_base=u, loose_tol=loose)
         _log_solve(newton, t, "re-solve after a multiplier update", newton.stats.iterations - it1,
                    hist)
+        if updates == o.max_augmentations and loose is None:
+            break  # the last re-solve is not checked (as before the inexact solves); an
+            # inexact one is, so that a state passing the check still gets its tightening solve
     raise _Failed(f"augmented-Lagrangian multipliers not converged after {o.max_augmentations} updates")
 
 
