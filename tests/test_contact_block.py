@@ -80,6 +80,36 @@ def test_block_sticks_below_and_slides_at_mu_n(variant):
     assert last["force_N"][0] > 0
 
 
+def test_fixed_bound_preconditioner_reaches_the_same_sliding_state_with_fewer_gmres_iterations():
+    """The block pressed and slid along the plate (every contact node slips at the end),
+    solved with the default preconditioner ("fixed-bound": the tangent without the
+    sliding nodes' bound term) and with the symmetric part of the tangent.  The
+    preconditioner only changes the linear solves, so both reach the same state (nodes
+    within 1e-4 mm, measured 3.4e-6 mm: the Newton paths differ inside force_tol) and the
+    same friction force; the default needs fewer GMRES iterations in the sliding step
+    (measured 148 against 193) and fewer factorisations (10 against 17)."""
+    out = []
+    for pre in ("fixed-bound", "symmetric-part"):
+        prob, X, c, top, dofs = _block_on_plate(0.1)
+        opts = SolverOptions(initial_increment=0.1, max_increment=0.1, preconditioner=pre)
+
+        def drive(sx, dz):
+            return lambda t: (dofs, np.tile([sx(t), 0.0, dz(t)], len(top)))
+
+        u, _ = solve_step(prob, np.zeros_like(X), dirichlet=drive(lambda t: 0.0, lambda t: -0.5 * t),
+                          contributions=[c], options=opts, step_name="press")
+        u, st = solve_step(prob, u, dirichlet=drive(lambda t: 2.0 * t, lambda t: -0.5),
+                           contributions=[c], options=opts, step_name="shear")
+        out.append((u, st))
+    (u0, s0), (u1, s1) = out
+    last0, last1 = s0.reports[-1]["lower"], s1.reports[-1]["lower"]
+    assert last0["n_slip"] == last0["n_active"] > 0
+    np.testing.assert_allclose(u0, u1, rtol=0, atol=1e-4)
+    assert last0["tangential_force_N"] == pytest.approx(last1["tangential_force_N"], rel=1e-4)
+    assert s0.krylov_iterations < s1.krylov_iterations, (s0.krylov_iterations, s1.krylov_iterations)
+    assert s0.factorisations <= s1.factorisations
+
+
 def test_frictionless_block_transmits_no_shear():
     reps0 = _press_and_shear(0.0, shear_mm=0.5)
     reps1 = _press_and_shear(0.1, shear_mm=0.5)

@@ -319,3 +319,40 @@ def test_uzawa_stall_at_the_penalty_cap_is_reported():
         c.augment(uu)
         depth *= 0.5
     assert c.stalled == ""
+
+
+@pytest.mark.parametrize("curvature", [False, True])
+def test_preconditioner_tangent_is_the_tangent_less_the_sliding_bound_term(curvature):
+    """``preconditioner_tangent``: with the ``"current"`` bound the slip tangent has the term
+    ``A ghat (dB/dx)^T = -A mu eps ghat n^T``; the preconditioner tangent is the tangent
+    without it.  Without the edge curvature term (the default) that leaves a symmetric
+    matrix, and the dropped part of each sliding node is rank one and nilpotent
+    (``ghat`` orthogonal to ``n``), which is why GMRES needs few iterations on it.  The
+    lagged bound has no such term: None."""
+    X = np.array([[10.0, 0.0, -0.2],     # stick
+                  [20.0, 5.0, -0.3],     # slip on the flat face
+                  [-1.0, 2.0, -2.5]])    # slip on the rounded edge
+    c = _contact(X, mu=0.3, eps=2.0, bound="current", curvature=curvature)
+    c.commit(np.zeros(X.size))
+    c._anchor = c._anchor + np.array([[0.0, 0.0, 0.0], [3.0, -1.0, 0.0], [0.0, 4.0, 0.0]])
+    u = np.zeros(X.size)
+    _, K = c.residual_tangent(u)
+    P = c.preconditioner_tangent()
+    K, P = K.toarray(), P.toarray()
+    x = X + u.reshape(-1, 3)
+    q = c.plate.query(x)
+    tr = c._friction(x, q, *c._state(u, tangent=False)[2:])
+    assert list(tr.slip) == [False, True, True]
+    D = K - P
+    np.testing.assert_array_equal(D[:3, :3], 0.0)  # the sticking node keeps its tangent
+    for i in (1, 2):
+        b = slice(3 * i, 3 * i + 3)
+        expect = -2.0 * 0.3 * c.eps_node[i] * np.outer(tr.ghat[i], q.normal[i])  # A = 2 mm^2
+        np.testing.assert_allclose(D[b, b], expect, rtol=1e-12, atol=1e-15)
+        np.testing.assert_allclose(D[b, b] @ D[b, b], 0.0, atol=1e-12 * np.abs(expect).max() ** 2)
+    if not curvature:
+        np.testing.assert_allclose(P, P.T, rtol=0, atol=1e-14 * np.abs(P).max())
+        assert np.abs(K - K.T).max() > 0.1 * np.abs(D).max()
+    lagged = _contact(X, mu=0.3, eps=2.0, bound="multiplier", curvature=curvature)
+    lagged.residual_tangent(u)
+    assert lagged.preconditioner_tangent() is None

@@ -127,6 +127,13 @@ class SolverOptions:
                            "preconditioner of float64 GMRES: ~1.7x faster, half the memory; falls back to "
                            "'double' by itself on ill-conditioned systems) or 'double'",
                            choices=("mixed", "double"))
+    preconditioner: str = param("fixed-bound", "", "matrix factorised to precondition GMRES when "
+                                "sliding friction makes the tangent non-symmetric: 'fixed-bound' "
+                                "(the tangent less the sliding nodes' friction-bound term "
+                                "mu d(p)/du, which is symmetric: fresh factorisations reach 1e-2 in "
+                                "1-2 GMRES iterations instead of 3-8) or 'symmetric-part' "
+                                "((K + K^T) / 2, the behaviour before session 20); linsolve.py",
+                                choices=("fixed-bound", "symmetric-part"))
     forcing_max: float = param(1e-2, "-", "largest relative linear-solve tolerance of inexact Newton "
                                "(Eisenstat-Walker forcing term cap)", gt=0, lt=1)
     krylov_rtol: float = param(1e-10, "-", "smallest relative linear-solve tolerance of a re-used "

@@ -304,6 +304,7 @@ class PlateContact:
         self._fric_resolves = 0  # friction re-solves of the current increment
         self.friction_error_accepted = 0.0  # largest friction error accepted in this step
         self._held: np.ndarray | None = None  # state of the last Newton iterate (line search)
+        self._k_pre: sp.csr_matrix | None = None  # see preconditioner_tangent
         self._n_iter = 0
         self._last_x: np.ndarray | None = None
         self._slip_pred: np.ndarray | None = None  # state code of the last increment
@@ -458,6 +459,7 @@ class PlateContact:
         ndof = self.X.size
         x, q, p, act = self._state(u, tangent=True)
         res = np.zeros(ndof)
+        self._k_pre = None
         if not act.any():
             return res, None
         self._chatter_control(x, q, p, act)
@@ -470,18 +472,39 @@ class PlateContact:
         # normal: r = -A p n ; dr/dx = A (eps n n^T - p H)
         eps = self.eps_node[idx]
         K = A[:, None, None] * (eps[:, None, None] * _outer(n, n) - pa[:, None, None] * H)
+        Kp = None  # the tangent less the bound's pressure dependence (preconditioner)
         if self.mu > 0:
             tr = self._friction(x, q, p, act).subset(idx)
             f = f + tr.t
             dB = None if self.lagged else -self.mu * eps[:, None] * n  # dB/dx = mu dp/dx
-            K = K + A[:, None, None] * fr.tangent(tr, n, H, eps_t=self.eps_t, dbound_dx=dB)
+            Kt = fr.tangent(tr, n, H, eps_t=self.eps_t)
+            if dB is not None and tr.slip.any():
+                Kp = K + A[:, None, None] * Kt
+                Kt[tr.slip] += _outer(tr.ghat[tr.slip], dB[tr.slip])
+            K = K + A[:, None, None] * Kt
         f = f * A[:, None]
         dof = 3 * self.nodes[idx][:, None] + np.arange(3)[None]
         np.add.at(res, dof.ravel(), -f.ravel())
         rows = np.repeat(dof, 3, axis=1).ravel()
         cols = np.tile(dof, (1, 3)).ravel()
         Kc = sp.csr_matrix((K.ravel(), (rows, cols)), shape=(ndof, ndof))
+        self._k_pre = None if Kp is None else sp.csr_matrix((Kp.ravel(), (rows, cols)), shape=(ndof, ndof))
         return res, Kc
+
+    def preconditioner_tangent(self) -> sp.spmatrix | None:
+        """The last tangent without the sliding nodes' ``ghat (dB/dx)^T`` term, or None
+        when there is no such term (solver hook: the matrix the preconditioner factorises).
+
+        Per sliding node the term is ``-A mu eps ghat n^T``: of the order of ``mu`` times
+        the normal penalty, far above the tissue's tangential stiffness, and it is the
+        only non-symmetric part of the tangent (with ``curvature_tangent = false``).  The
+        symmetric part of the tangent, ``(K + K^T) / 2``, spreads it over both triangles
+        (``-A mu eps (ghat n^T + n ghat^T) / 2``), which makes a node's block nearly
+        indefinite and a poor preconditioner.  Dropped instead, the preconditioned
+        operator is ``I + P^{-1} E`` with ``E`` a sum of node-local rank-one terms
+        ``ghat n^T``, ``ghat`` orthogonal to ``n``: nearly nilpotent, so GMRES needs few
+        iterations."""
+        return self._k_pre
 
     # -- increment bookkeeping --------------------------------------------------------
     def commit(self, u: np.ndarray) -> None:

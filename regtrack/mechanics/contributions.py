@@ -32,6 +32,13 @@ Optional: ``freeze()``, called when Newton stagnates, asks the contribution to h
 discrete state (stick/slip) for the rest of the solve and to check it in ``augment``;
 a contribution without it is left alone.
 
+Optional: ``preconditioner_tangent()``, called after ``residual_tangent``, returns a
+matrix of the same pattern as that tangent whose (symmetric part's) factorisation
+preconditions the linear solves better than the symmetric part of the tangent itself, or
+None (plate contact: the tangent without the sliding nodes' friction-bound term, which is
+symmetric; solver option ``preconditioner``).  It changes only the linear solves, never
+the residual or the converged state.
+
 Optional: ``swap_tangent() -> bool`` switches the contribution to its alternative tangent
 (plate contact: with or without the rounded-edge curvature term) and returns True, or
 returns False when it has none; the solver calls it to retry a failed increment with the

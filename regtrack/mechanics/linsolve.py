@@ -45,11 +45,27 @@ Measured on the 10.5k-node gmsh hemisphere (ANP augmented system, 42k unknowns,
   LDL^T needs no pivoting; matching made the analysis 1.6x slower and added 5 % flops);
   pivot perturbation 1e-8 (symmetric) / 1e-13 with matching and scaling (LU);
   zero-based indices (no per-call copies); no matrix checker.
-* unsymmetric tangents (sliding friction) are solved by GMRES preconditioned with the
-  LDL^T factors of their symmetric part ``(A + A^T) / 2`` (same pattern, one analysis,
-  half the cost of LU, and the factors stay valid while the stick/slip state flips);
-  only if a fresh factorisation of the symmetric part cannot reach the tolerance does
-  the solver switch to LU (``mtype 11``) for the unsymmetric systems (logged).
+* unsymmetric tangents (sliding friction) are solved by GMRES preconditioned with LDL^T
+  factors of a symmetric matrix of the same pattern (one analysis, and the factors stay
+  valid while the stick/slip state flips): the caller's ``preconditioner`` (the Newton
+  solver passes the tangent without the sliding nodes' friction-bound term, see
+  :meth:`regtrack.mechanics.contact.PlateContact.preconditioner_tangent`), else the
+  symmetric part ``(A + A^T) / 2``.  Only if a fresh factorisation cannot reach the
+  tolerance does the solver switch to LU (``mtype 11``) for the unsymmetric systems
+  (logged).  LU is not used from the start because it costs far more: on the hemisphere
+  (38k unknowns, float32, 2 threads) PARDISO's LU took 1.7-1.9 s with matching and
+  scaling (61.7 M factor entries) against 0.36 s for LDL^T (21.4 M).
+  Why not the symmetric part (session 20): in the benchmark hemisphere's CC the slip
+  term ``-A mu eps ghat n^T`` is of the order of ``mu`` times the normal penalty, far above
+  the tissue's tangential stiffness; halved into both triangles it leaves the sliding
+  nodes' blocks nearly indefinite, and a *fresh* float32 factorisation of the symmetric
+  part needed 1 to 16 GMRES iterations (median 5, all 157 fresh solves of the protocol,
+  mostly to 1e-2); float64 factors did not help (same residual after one solve).  With
+  the term dropped, the preconditioned operator is the identity plus node-local rank-one,
+  nearly nilpotent terms: 1 to 4 iterations (median 2, the first 78).  Over the CC compression
+  (one thread, the default path) that took the GMRES iterations from 3,449 to 2,638 and
+  the factorisations from 147 to 115 (fewer re-used solves run out their budget), and
+  the linear-solve time from 211 to 164 s.
 
 Because a solve is so much cheaper than a factorisation, the factorisation is
 **re-used** (``reuse_factorisation``, default on): a new matrix is first solved on the
@@ -339,6 +355,7 @@ class LinearSolver:
         self._upper: tuple | None = None
         self._full: tuple | None = None
         self._lu_needed = False
+        self._pre: sp.csr_matrix | None = None  # the preconditioning matrix of this solve
         self.n_analyses = self.n_factorisations = self.n_krylov_solves = self.krylov_iterations = 0
         self.n_reuse_failures = self.krylov_wasted_iterations = 0
         self.time_analysis = self.time_factor_solve = self.time_krylov = 0.0
@@ -363,17 +380,28 @@ class LinearSolver:
 
     # -- public -------------------------------------------------------------------------
     def solve(self, A: sp.csr_matrix, b: np.ndarray, *, symmetric: bool = False,
-              rtol: float | None = None, refactor: bool = False) -> np.ndarray:
+              rtol: float | None = None, refactor: bool = False,
+              preconditioner: sp.csr_matrix | None = None) -> np.ndarray:
         """Solve ``A x = b`` to ``||A x - b|| <= rtol ||b||``; ``symmetric=True`` promises
         ``A == A.T``.
 
         ``rtol``: the caller's tolerance (inexact Newton), floored at ``krylov_rtol``
         (its default); ``refactor`` forces a fresh factorisation.
+        ``preconditioner``: for an unsymmetric ``A``, a matrix of the same pattern whose
+        symmetric part is factorised (LDL^T) in place of ``A``'s own symmetric part
+        (ignored when the patterns differ, or once LU is in use).
         Raises :class:`LinearSolveError` when the factorisation fails.
         """
         b = np.asarray(b, float)
         tol = self.krylov_rtol if rtol is None else max(rtol, self.krylov_rtol)
         key = self._key(A)
+        self._pre = None
+        if preconditioner is not None and not symmetric:
+            if self._key(preconditioner) == key:
+                self._pre = preconditioner
+            else:
+                log.debug("preconditioning matrix of another pattern: ignored")
+            self._key(A)  # A's arrays are the ones remembered for the next call
         # handle True: LDL^T of the symmetric part (A itself when symmetric); False: LU
         sym = self.kind == "pardiso" and (symmetric or (not self._lu_needed and self._upper_sym(A, key) is not None))
         same = self._keys[sym] == key and self._factored[sym]
@@ -496,7 +524,10 @@ class LinearSolver:
 
     def _factorise(self, A: sp.csr_matrix, sym: bool, key: tuple) -> None:
         be = self._backends[sym]
-        M = self._upper_sym(A, key) if sym else self._pruned(A, key)
+        if sym:
+            M = self._upper_sym(A if self._pre is None else self._pre, key)
+        else:
+            M = self._pruned(A, key)
         if key != self._keys[sym]:
             t0 = time.perf_counter()
             if self._keys[sym] is not None:

@@ -224,13 +224,21 @@ class _Newton:
             fc2 = max(fc2, float(np.linalg.norm(rc.reshape(-1, 3).sum(axis=0))))
             R = R + rc
             if kc is not None and want_k:
-                ktan.append(kc)
+                pre = getattr(c, "preconditioner_tangent", None)
+                ktan.append((kc, None if pre is None else pre()))
         self.stats.t_contrib += time.perf_counter() - t0
         ev.contrib_norm = fc2  # largest resultant contact (plate) force, part of the force reference
         return R, ev, ktan
 
     def matrix(self, ev, ktan: list):
-        """System matrix with contributions, before the constraint rows are replaced."""
+        """System matrix with contributions, before the constraint rows are replaced, and
+        the matrix to precondition it with (None: the solver's default, the symmetric part).
+
+        ``ktan``: (tangent, preconditioner tangent or None) per contribution (see
+        :mod:`.contributions`, ``preconditioner_tangent``).  The preconditioning matrix is
+        the same sum with each contribution's preconditioner tangent in place of its
+        tangent; it shares the system matrix's layout (None if a tangent falls outside
+        the pattern or no contribution offers one)."""
         pat = self.p.pattern
         data = ev.data
         if self.damping is not None:
@@ -238,7 +246,10 @@ class _Newton:
         n = self.p.layout.n
         extra = []
         self.symmetric = True
-        for kc in ktan:
+        pdata = None
+        if self.o.preconditioner == "fixed-bound" and any(kp is not None for _, kp in ktan):
+            pdata = data.copy()
+        for kc, kp in ktan:
             kc = sp.coo_matrix(kc)
             asym = abs(kc - kc.T)
             if asym.nnz and asym.max() > 1e-12 * abs(kc).max():
@@ -246,13 +257,21 @@ class _Newton:
             pos = pat.dof_positions(kc.row, kc.col)
             if np.all(pos >= 0):
                 scatter_add(data, pos, kc.data.astype(float))
+                if pdata is not None:
+                    kp = kc if kp is None else sp.coo_matrix(kp)
+                    ppos = pos if kp is kc else pat.dof_positions(kp.row, kp.col)
+                    if np.all(ppos >= 0):
+                        scatter_add(pdata, ppos, kp.data.astype(float))
+                    else:
+                        pdata = None
             else:
                 extra.append(sp.coo_matrix((kc.data, (kc.row, kc.col)), shape=(n, n)))
         K = system_matrix(self.p, ev, data)
         for kc in extra:  # outside the pattern: generic sum (new analysis)
             log.debug("contribution tangent outside the pattern: generic assembly")
             K = (K + kc).tocsr()
-        return K, not extra
+        P = None if (extra or pdata is None or self.symmetric) else system_matrix(self.p, ev, pdata)
+        return K, not extra, P
 
     def solve_increment(self, u_start: np.ndarray, fext: np.ndarray, dofs: np.ndarray, vals: np.ndarray,
                         hist: list[float], u_base: np.ndarray | None = None,
@@ -330,7 +349,7 @@ class _Newton:
             if it > 2 and rn > 1e8 * max(hist[0], o.force_floor_n):
                 raise _Failed("residual diverged")
             self.stats.iterations += 1
-            K, fixed_layout = self.matrix(ev, ktan)
+            K, fixed_layout, P = self.matrix(ev, ktan)
             n3, n = len(u), K.shape[0]
             rhs = np.zeros(n)
             rhs[:n3] = -R
@@ -338,14 +357,16 @@ class _Newton:
                 rhs -= K @ np.concatenate([ducon, np.zeros(n - n3)])
             rhs[:n3][cons.mask] = ducon[cons.mask]
             if fixed_layout:
-                K.data[cons.zero] = 0.0
-                K.data[cons.diag] = 1.0
+                for M in (K, P) if P is not None else (K,):
+                    M.data[cons.zero] = 0.0
+                    M.data[cons.diag] = 1.0
             else:
                 keep = (~cons.system_mask).astype(float)
                 K = (sp.diags(keep) @ K @ sp.diags(keep) + sp.diags(1.0 - keep)).tocsr()
             t0 = time.perf_counter()
             try:
-                du = self.ls.solve(K, rhs, symmetric=self.symmetric, rtol=self.forcing(hist))[:n3]
+                du = self.ls.solve(K, rhs, symmetric=self.symmetric, rtol=self.forcing(hist),
+                                   preconditioner=P)[:n3]
             except LinearSolveError as exc:
                 raise _Failed(str(exc)) from None
             self.stats.t_solve += time.perf_counter() - t0
