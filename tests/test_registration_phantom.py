@@ -15,9 +15,10 @@ not), nu 0.495 vs 0.49, friction 0 vs 0.1, the truth's 1,803-node mesh vs the pi
 1,841 nodes, and the simulated X-ray image (noise, JPEG 2000) that the contours are read
 from.
 
-Measured 2026-11-22 (1,841 nodes, phantom regenerated with the node-blocked solver
-ordering of session 9, fresh cache): CC theta_p = 4.63 deg (0.37 deg off), d_T = 0.27 mm;
-MLO theta_p = -4.43 deg (0.43 deg off), d_T = 0.13 mm.  (Session 8: CC 4.93 deg, d_T
+Measured 2026-11-23 (1,841 nodes, phantom regenerated with the session-20 friction
+preconditioner, fresh cache): CC theta_p = 4.66 deg (0.34 deg off), d_T = 0.28 mm;
+MLO theta_p = -4.43 deg (0.43 deg off), d_T = 0.14 mm.  (Session 9: CC 4.63 deg, d_T
+0.27 mm; session 8: CC 4.93 deg, d_T
 0.54 mm; session 7: CC 4.67 deg, d_T 0.27 mm: the frictional CC path moves with the
 solver's increments and its float32 factors.)  With the paper's homogeneous default
 (c1 = 0.54 kPa, ``tissue_model = "homogeneous"``) the MLO missed by 2.74 deg (session 5,
