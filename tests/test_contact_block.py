@@ -96,8 +96,8 @@ def test_fixed_bound_preconditioner_reaches_the_same_sliding_state_with_fewer_gm
         def drive(sx, dz):
             return lambda t: (dofs, np.tile([sx(t), 0.0, dz(t)], len(top)))
 
-        u, _ = solve_step(prob, np.zeros_like(X), dirichlet=drive(lambda t: 0.0, lambda t: -0.5 * t),
-                          contributions=[c], options=opts, step_name="press")
+        u, _ = solve_step(prob, np.zeros_like(X), contributions=[c], options=opts,
+                          dirichlet=drive(lambda t: 0.0, lambda t: -0.5 * t), step_name="press")
         u, st = solve_step(prob, u, dirichlet=drive(lambda t: 2.0 * t, lambda t: -0.5),
                            contributions=[c], options=opts, step_name="shear")
         out.append((u, st))

@@ -130,8 +130,9 @@ class SolverOptions:
     preconditioner: str = param("fixed-bound", "", "matrix factorised to precondition GMRES when "
                                 "sliding friction makes the tangent non-symmetric: 'fixed-bound' "
                                 "(the tangent less the sliding nodes' friction-bound term "
-                                "mu d(p)/du, which is symmetric: fresh factorisations reach 1e-2 in "
-                                "1-2 GMRES iterations instead of 3-8) or 'symmetric-part' "
+                                "mu d(p)/du, which is symmetric: on the benchmark hemisphere's CC "
+                                "fresh factorisations needed 1-4 GMRES iterations, median 2, "
+                                "instead of 1-16, median 5) or 'symmetric-part' "
                                 "((K + K^T) / 2, the behaviour before session 20); linsolve.py",
                                 choices=("fixed-bound", "symmetric-part"))
     forcing_max: float = param(1e-2, "-", "largest relative linear-solve tolerance of inexact Newton "

@@ -488,7 +488,8 @@ class PlateContact:
         rows = np.repeat(dof, 3, axis=1).ravel()
         cols = np.tile(dof, (1, 3)).ravel()
         Kc = sp.csr_matrix((K.ravel(), (rows, cols)), shape=(ndof, ndof))
-        self._k_pre = None if Kp is None else sp.csr_matrix((Kp.ravel(), (rows, cols)), shape=(ndof, ndof))
+        if Kp is not None:
+            self._k_pre = sp.csr_matrix((Kp.ravel(), (rows, cols)), shape=(ndof, ndof))
         return res, Kc
 
     def preconditioner_tangent(self) -> sp.spmatrix | None:
