@@ -480,7 +480,7 @@ class PlateContact:
             Kt = fr.tangent(tr, n, H, eps_t=self.eps_t)
             if dB is not None and tr.slip.any():
                 Kp = K + A[:, None, None] * Kt
-                Kt[tr.slip] += _outer(tr.ghat[tr.slip], dB[tr.slip])
+                Kt = Kt + fr.bound_tangent(tr, dB)  # zero but on slipping nodes
             K = K + A[:, None, None] * Kt
         f = f * A[:, None]
         dof = 3 * self.nodes[idx][:, None] + np.arange(3)[None]

@@ -130,13 +130,12 @@ def return_map(x: np.ndarray, anchor: np.ndarray, normal: np.ndarray, active: np
     return Traction(t=t, stick=stick, slip=slip, ghat=ghat, gt=gt, gn=gn, d=d, bound=B)
 
 
-def tangent(tr: Traction, normal: np.ndarray, dn_dx: np.ndarray, *, eps_t: float,
-            dbound_dx: np.ndarray | None = None) -> np.ndarray:
-    """Derivative of the traction ``-t`` with respect to the node position (M, 3, 3), MPa/mm.
+def tangent(tr: Traction, normal: np.ndarray, dn_dx: np.ndarray, *, eps_t: float) -> np.ndarray:
+    """Derivative of the traction ``-t`` with respect to the node position (M, 3, 3), MPa/mm,
+    at a fixed slip bound ``B`` (add :func:`bound_tangent` when ``B`` depends on the position).
 
     ``dg_T/dx = (I - n n^T) - (n.d) dn/dx - n (dn/dx d)^T``; stick: ``eps_T dg_T/dx``;
-    slip: ``(B/|g_T|)(I - ghat ghat^T) dg_T/dx`` plus ``ghat (dB/dx)^T`` when the bound
-    depends on the position (``dbound_dx`` (M, 3), the ``"current"`` bound).
+    slip: ``(B/|g_T|)(I - ghat ghat^T) dg_T/dx``.
     """
     n = normal
     nd = np.einsum("ni,ni->n", n, tr.d)
@@ -149,8 +148,16 @@ def tangent(tr: Traction, normal: np.ndarray, dn_dx: np.ndarray, *, eps_t: float
         gh = tr.ghat[sl]
         proj = np.eye(3)[None] - _outer(gh, gh)
         K[sl] = (tr.bound[sl] / tr.gn[sl])[:, None, None] * np.einsum("nij,njk->nik", proj, dgt[sl])
-        if dbound_dx is not None:
-            K[sl] += _outer(gh, dbound_dx[sl])
+    return K
+
+
+def bound_tangent(tr: Traction, dbound_dx: np.ndarray) -> np.ndarray:
+    """The slip tangent's term from a position-dependent bound (M, 3, 3), MPa/mm:
+    ``ghat (dB/dx)^T`` on the slipping nodes (``dbound_dx`` (M, 3), the ``"current"``
+    bound), zero elsewhere."""
+    K = np.zeros((len(dbound_dx), 3, 3))
+    sl = tr.slip
+    K[sl] = _outer(tr.ghat[sl], dbound_dx[sl])
     return K
 
 
