@@ -28,10 +28,12 @@ pinned as regression tests at the end of this file.
 
 from __future__ import annotations
 
+import atexit
 import json
 import math
 import os
 import re
+import shutil
 import tempfile
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -50,13 +52,21 @@ N_EXAMPLES = int(os.environ.get("REGTRACK_FUZZ_EXAMPLES", "200"))
 
 
 # ----------------------------------------------------------------------------- fixtures
+def _temp_dir(prefix: str) -> Path:
+    """A fresh temporary folder, removed when the test process exits (the hypothesis
+    tests cannot take pytest's function-scoped ``tmp_path``, so these are per process)."""
+    d = Path(tempfile.mkdtemp(prefix=prefix))
+    atexit.register(shutil.rmtree, d, ignore_errors=True)
+    return d
+
+
 def _work_dir() -> Path:
     """One case folder per process (built on first use; inputs only, re-written per example)."""
     global _WORK
     if _WORK is None:
         from tests.test_case import build_case
 
-        _WORK = build_case(Path(tempfile.mkdtemp(prefix="regtrack-fuzz-")) / "fz01")
+        _WORK = build_case(_temp_dir("regtrack-fuzz-") / "fz01")
     return _WORK
 
 
@@ -77,7 +87,7 @@ def _mammogram_dataset():
 
         sb = synthetic_breast(shape=(96, 64), spacing=(1.0, 1.0), a_mm=45, b_mm=40, yc_mm=48,
                               label=False, film_edge_mm=0, tumour_mm=(20, 45, 6))
-        p = Path(tempfile.mkdtemp(prefix="regtrack-fuzz-mg-")) / "mg.dcm"
+        p = _temp_dir("regtrack-fuzz-mg-") / "mg.dcm"
         write_dicom(p, np.round(sb.image[:, ::-1] * 4000), ImageLaterality="R",
                     ViewPosition="CC", PatientOrientation=["P", "L"], PixelSpacing=[1.0, 1.0],
                     PatientName="Fuzz^Patient", PatientID="FZ123", BitsStored=12,
