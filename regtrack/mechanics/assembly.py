@@ -191,7 +191,8 @@ class SystemLayout:
     ``[[K, B^T], [B, -D]]`` of size 3N + G; ``k_pos`` maps the tangent's values into it,
     ``b_pos/bt_pos`` the entries of ``B`` (E*48, layout order of
     :func:`regtrack.mechanics.problem.evaluate`) and of ``B^T``, ``d_pos`` the diagonal of
-    the pressure block.
+    the pressure block; ``b_dest/bt_dest`` each distinct entry of ``B`` once and its
+    transposed position (``B^T`` is filled by copying ``B``'s sums).
     """
 
     n: int
@@ -203,6 +204,8 @@ class SystemLayout:
     b_pos: np.ndarray | None = None
     bt_pos: np.ndarray | None = None
     d_pos: np.ndarray | None = None
+    b_dest: np.ndarray | None = None
+    bt_dest: np.ndarray | None = None
 
 
 def system_layout(pattern: Pattern, tets: np.ndarray, groups: AnpGroups | None) -> SystemLayout:
@@ -255,6 +258,7 @@ def system_layout(pattern: Pattern, tets: np.ndarray, groups: AnpGroups | None) 
     bt_pos = (indptr[3 * node_a + kk] + kdeg[3 * node_a + kk] + rank[pair_idx]).reshape(-1)
     b_rows = np.broadcast_to(groups.of[:, :, None, None], (ne, 4, 4, 3)).reshape(-1)
     b_cols = np.broadcast_to(3 * node_a + kk, (ne, 4, 4, 3)).reshape(-1)
+    b_dest, first = np.unique(b_pos, return_index=True)
     idx_dtype = np.int32 if len(indices) < 2**31 - 1 else np.int64
     return SystemLayout(n3 + ng, indptr.astype(idx_dtype), indices.astype(idx_dtype), k_pos, b_rows, b_cols,
-                        b_pos, bt_pos, d_pos)
+                        b_pos, bt_pos, d_pos, b_dest, bt_pos[first])

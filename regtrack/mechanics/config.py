@@ -116,6 +116,10 @@ class SolverOptions:
                                       "increment was stabilised gives up its undamped equilibrium",
                                       ge=1, le=100)
     linear_solver: str = param("auto", "", "sparse solver", choices=("auto", "pardiso", "splu"))
+    assembly_threads: int = param(0, "-", "threads of the tetrahedron force/tangent kernel (0: the "
+                                  "CPUs this process may use, at most 4; 1 in a study that runs one "
+                                  "simulation per core).  Results are bit-identical for any count "
+                                  "(see regtrack/mechanics/parallel.py)", ge=0, le=64)
     ordering: str = param("nodes", "", "fill-reducing ordering of the direct solver: 'nodes' (METIS nested "
                           "dissection of the node graph, a node's unknowns together: ~20 % faster "
                           "factorisations at 10k nodes) or 'pardiso' (PARDISO's METIS on the dof graph)",

@@ -33,7 +33,7 @@ import scipy.sparse as sp
 from numba import njit
 
 from regtrack.errors import ConfigError, InputFileError
-from regtrack.mechanics import assembly, membrane, p2, tissue
+from regtrack.mechanics import assembly, membrane, p2, parallel, tissue
 from regtrack.mechanics.config import MechanicsConfig
 from regtrack.mechanics.materials import (G_SCALE, ElementMaterials, SkinMaterial, TissueStiffness,
                                           element_materials, skin_material, tissue_stiffness)
@@ -66,6 +66,7 @@ class Problem:
     layout: assembly.SystemLayout
     t_setup: float = 0.0
     tissue_c1: TissueStiffness | None = None  # c1 of the tissue elements (tissue_model), summary
+    parts: list[parallel.Part] | None = None  # the element kernel's threads (P1, P1-ANP)
 
     @property
     def n_nodes(self) -> int:
@@ -151,6 +152,9 @@ def build_problem(model: BreastModel, config: MechanicsConfig | None = None) -> 
     prob = Problem(model, config, X, tets, G, V if W is None else W, mats, skin, sG, sA,
                    skin_material(config) if use_skin else None, pattern, tet_base, skin_pos, groups, w,
                    fixed_dofs, layout)
+    if not quadratic:
+        threads = parallel.thread_count(config.solver.assembly_threads)
+        prob.parts = parallel.node_partition(len(X), tets, threads)
     prob.t_setup = time.perf_counter() - t0
     prob.tissue_c1 = tissue_k
     log.debug("problem: %d nodes, %d tets, %d skin triangles, %s, nnz %d, setup %.2f s",
@@ -176,18 +180,21 @@ def body_force(problem: Problem, g_ms2: np.ndarray) -> np.ndarray:
 
 
 @njit(cache=True)
-def _scatter_b(out, b_pos, bt_pos, dv):
-    """``out[b_pos] += bvals`` then ``out[bt_pos] += bvals`` for the ANP ``B`` values
-    ``bvals[e, i, a, k] = dv[e, a, k] / 4`` (:attr:`Evaluation.bvals`), without forming
-    them (same values, same order of summation as two :func:`scatter_add` calls)."""
-    for pos in (b_pos, bt_pos):
-        j = 0
-        for e in range(dv.shape[0]):
-            for i in range(4):
-                for a in range(4):
-                    for k in range(3):
-                        out[pos[j]] += 0.25 * dv[e, a, k]
-                        j += 1
+def _scatter_b(out, b_pos, b_dest, bt_dest, dv):
+    """``out[b_pos] += bvals`` for the ANP ``B`` values ``bvals[e, i, a, k] = dv[e, a, k] / 4``
+    (:attr:`Evaluation.bvals`), without forming them, then ``B^T``'s entries copied from
+    ``B``'s (``out[bt_dest] = out[b_dest]``).  Same values, same order of summation as two
+    :func:`scatter_add` calls over ``b_pos`` and ``bt_pos``, at less than half the cost
+    (10.5 against 4 ms on the 48k-tetrahedron benchmark hemisphere)."""
+    j = 0
+    for e in range(dv.shape[0]):
+        for i in range(4):
+            for a in range(4):
+                for k in range(3):
+                    out[b_pos[j]] += 0.25 * dv[e, a, k]
+                    j += 1
+    for s in range(b_dest.shape[0]):
+        out[bt_dest[s]] = out[b_dest[s]]
 
 
 @dataclass
@@ -219,7 +226,7 @@ def evaluate(problem: Problem, u: np.ndarray, *, want_k: bool = True) -> Evaluat
     m = problem.mats
     if problem.formulation == "p2":
         return _evaluate_p2(problem, x, want_k)
-    Je = tissue.jacobians(x, problem.tets, problem.G)
+    Je = tissue.jacobians(x, problem.tets, problem.G, problem.parts)
     if np.any(Je <= 0) or not np.all(np.isfinite(Je)):
         return Evaluation(np.full(problem.n_dofs, np.nan), None, np.inf, int(np.sum(~(Je > 0))))
     grp = problem.groups
@@ -237,8 +244,11 @@ def evaluate(problem: Problem, u: np.ndarray, *, want_k: bool = True) -> Evaluat
     f = np.zeros((problem.n_nodes, 3))
     data = np.zeros(problem.pattern.nnz) if want_k else np.zeros(1)
     dv = np.empty((len(problem.tets), 4, 3))
-    e_dev, bad = tissue.tet_kernel(x, problem.tets, problem.G, problem.V, m.c1, p, dp, want_k, f, data,
-                                   problem.tet_base, problem.pattern.rowstride, dv)
+    ee = np.empty(len(problem.tets))
+    args = (x, problem.tets, problem.G, problem.V, m.c1, p, dp, want_k, f, data, problem.tet_base,
+            problem.pattern.rowstride, dv, ee)
+    bad = sum(parallel.run_parts(tissue.tet_kernel, args, problem.parts))
+    e_dev = tissue.ordered_sum(ee)
     dv_b = dv if (want_k and grp is not None) else None  # B = dv_g/du (Evaluation.bvals)
     energy = e_dev + e_vol
     if problem.skin_mat is not None:
@@ -292,7 +302,7 @@ def system_matrix(problem: Problem, ev: Evaluation, data: np.ndarray | None = No
         return problem.pattern.matrix(kd)
     out = np.zeros(len(lay.indices))
     out[lay.k_pos] = kd
-    _scatter_b(out, lay.b_pos, lay.bt_pos, ev.dv)
+    _scatter_b(out, lay.b_pos, lay.b_dest, lay.bt_dest, ev.dv)
     out[lay.d_pos] = -problem.groups.vol0 / problem.groups.kappa
     m = sp.csr_matrix((out, lay.indices, lay.indptr), shape=(lay.n, lay.n), copy=False)
     m.has_sorted_indices = True

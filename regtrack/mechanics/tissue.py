@@ -28,6 +28,8 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+from regtrack.mechanics import parallel
+
 
 def reference_geometry(points: np.ndarray, tets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Shape-function gradients ``G`` (E, 4, 3) in 1/mm and volumes ``V`` (E,) in mm^3."""
@@ -71,21 +73,34 @@ def _inv_transpose(F, J, H):
     H[2, 2] = (F[0, 0] * F[1, 1] - F[0, 1] * F[1, 0]) / J
 
 
-@njit(cache=True)
-def jacobians(x: np.ndarray, tets: np.ndarray, G: np.ndarray) -> np.ndarray:
-    """Volume ratio ``J = det F`` (E,) of every tetrahedron at current positions ``x``."""
-    ne = tets.shape[0]
-    out = np.empty(ne)
+@njit(cache=True, nogil=True)
+def jacobians_part(x, tets, G, out, elems, owned):
+    """``out[e] = det F`` for the elements of ``elems`` whose first node is ``owned``
+    (one :class:`regtrack.mechanics.parallel.Part`; every element has one such part)."""
     F = np.empty((3, 3))
-    for e in range(ne):
-        _defgrad(x, tets, G, e, F)
-        out[e] = _det3(F)
+    for e in elems:
+        if owned[tets[e, 0]]:
+            _defgrad(x, tets, G, e, F)
+            out[e] = _det3(F)
+
+
+def jacobians(x: np.ndarray, tets: np.ndarray, G: np.ndarray, parts=None) -> np.ndarray:
+    """Volume ratio ``J = det F`` (E,) of every tetrahedron at current positions ``x``
+    (over the threads of ``parts``, :func:`regtrack.mechanics.parallel.node_partition`)."""
+    out = np.empty(len(tets))
+    parts = parts or parallel.node_partition(len(x), tets, 1)
+    parallel.run_parts(jacobians_part, (x, tets, G, out), parts)
     return out
 
 
-@njit(cache=True)
-def tet_kernel(x, tets, G, V, c1, p, dp, want_k, f, data, base, rowstride, dv):
-    """Accumulate internal forces, optionally the tangent, and return the deviatoric energy.
+@njit(cache=True, nogil=True)
+def tet_kernel(x, tets, G, V, c1, p, dp, want_k, f, data, base, rowstride, dv, ee, elems, owned):
+    """Accumulate internal forces and optionally the tangent over one thread's part.
+
+    The part (:class:`regtrack.mechanics.parallel.Part`) is ``elems`` (increasing) and
+    ``owned`` (N,) bool: only the rows of owned nodes are written, and each element's
+    energy and inversion are counted by the part that owns its first node, so that the
+    parts together give the serial loop's values bit for bit (see :mod:`.parallel`).
 
     Parameters
     ----------
@@ -96,23 +111,25 @@ def tet_kernel(x, tets, G, V, c1, p, dp, want_k, f, data, base, rowstride, dv):
     f : (N, 3) forces (N), accumulated in place.
     dv : (E, 4, 3) output: derivative of the current element volume wrt node positions
         (mm^2), used by the ANP rank term.
+    ee : (E,) output: deviatoric energy of each element (N mm; 0 if inverted).
 
     Returns
     -------
-    (energy, n_inverted) : deviatoric energy (N mm) and count of elements with J <= 0.
+    n_inverted : count of this part's elements with J <= 0.
     """
-    ne = tets.shape[0]
     F = np.empty((3, 3))
     H = np.empty((3, 3))
     fa = np.empty((4, 3))
     ha = np.empty((4, 3))
-    energy = 0.0
     bad = 0
-    for e in range(ne):
+    for e in elems:
+        counts = owned[tets[e, 0]]
         _defgrad(x, tets, G, e, F)
         J = _det3(F)
         if J <= 0.0:
-            bad += 1
+            if counts:
+                bad += 1
+                ee[e] = 0.0
             continue
         _inv_transpose(F, J, H)
         I1 = 0.0
@@ -121,7 +138,8 @@ def tet_kernel(x, tets, G, V, c1, p, dp, want_k, f, data, base, rowstride, dv):
                 I1 += F[i, j] * F[i, j]
         Jm23 = J ** (-2.0 / 3.0)
         mu_e = 2.0 * c1[e] * Jm23
-        energy += V[e] * c1[e] * (Jm23 * I1 - 3.0)
+        if counts:
+            ee[e] = V[e] * c1[e] * (Jm23 * I1 - 3.0)
         for a in range(4):
             for i in range(3):
                 sf = 0.0
@@ -134,6 +152,8 @@ def tet_kernel(x, tets, G, V, c1, p, dp, want_k, f, data, base, rowstride, dv):
         pe = p[e]
         for a in range(4):
             n = tets[e, a]
+            if not owned[n]:
+                continue
             for i in range(3):
                 f[n, i] += V[e] * (mu_e * (fa[a, i] - I1 / 3.0 * ha[a, i]) + pe * J * ha[a, i])
                 dv[e, a, i] = V[e] * J * ha[a, i]
@@ -143,6 +163,8 @@ def tet_kernel(x, tets, G, V, c1, p, dp, want_k, f, data, base, rowstride, dv):
         cgeo = mu_e * I1 / 3.0 - pe * J
         for a in range(4):
             na = tets[e, a]
+            if not owned[na]:
+                continue
             rs = rowstride[na]
             for b in range(4):
                 gg = 0.0
@@ -157,4 +179,13 @@ def tet_kernel(x, tets, G, V, c1, p, dp, want_k, f, data, base, rowstride, dv):
                         if i == k:
                             v += mu_e * gg
                         data[b0 + i * rs + k] += V[e] * v
-    return energy, bad
+    return bad
+
+
+@njit(cache=True)
+def ordered_sum(v):
+    """``sum(v)`` accumulated left to right (the serial kernel's order)."""
+    s = 0.0
+    for i in range(v.shape[0]):
+        s += v[i]
+    return s
