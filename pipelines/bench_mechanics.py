@@ -5,7 +5,10 @@ size), it measures, as wall-clock / process-CPU seconds (the CPU time counts eve
 and does not grow with other jobs on a shared machine; the wall time is what a user
 waits):
 
-* ``assembly``: residual + consistent tangent + the system matrix that is factorised;
+* ``assembly``: residual + consistent tangent + the system matrix that is factorised,
+  on the default threads (``[mechanics.solver] assembly_threads``), and in brackets the
+  thread count and the wall time of the same assembly on one thread (medians of 7
+  alternated calls);
 * ``factor+solve``: PARDISO factorisation (float32 factors, ``precision = "mixed"``,
   node-blocked METIS ordering, ``ordering = "nodes"``) and GMRES to a relative residual
   of 1e-10; ``PARDISO order``: the same with PARDISO's own ordering of the dof graph;
@@ -73,16 +76,25 @@ def one(lc: float, formulation: str, with_step: bool = True, model_path: str = "
     P.evaluate(pr, u)  # JIT warm-up (cached on disk after the first run)
     cons = S._Constraints(pr, pr.fixed_dofs)
 
-    def system(uu):
-        A = P.system_matrix(pr, P.evaluate(pr, uu))
+    def system(uu, prob=pr):
+        A = P.system_matrix(prob, P.evaluate(prob, uu))
         A.data[cons.zero] = 0.0
         A.data[cons.diag] = 1.0
         return A
 
-    w_asm, c_asm, A = _timed(lambda: system(u), 5)
+    # the same assembly on one thread (assembly_threads = 1), alternated with the default
+    pr1 = S.build_problem(model, MechanicsConfig(formulation=formulation,
+                                                 solver=SolverOptions(assembly_threads=1)))
+    P.evaluate(pr1, u)
+    both = [(_timed(lambda: system(u)), _timed(lambda: system(u, pr1)))
+            for _ in range(7)]
+    w_asm, c_asm = (float(np.median([b[0][i] for b in both])) for i in range(2))
+    w_one = float(np.median([b[1][0] for b in both]))
+    A = system(u)
     b = np.ones(A.shape[0])
     r = {"lc": lc, "formulation": formulation, "nodes": pr.n_nodes, "tets": len(pr.tets), "system": A.shape[0],
-         "nnz": int(A.nnz), "setup": [w_setup, c_setup], "assembly": [w_asm, c_asm]}
+         "nnz": int(A.nnz), "setup": [w_setup, c_setup], "assembly": [w_asm, c_asm],
+         "assembly_threads": len(pr.parts or [1]), "assembly_one_thread_wall": w_one}
     nodes = P.dof_nodes(pr)
     # mixed with the node ordering last: its factors precondition the re-used solve
     for name, prec, order in (("double", "double", "nodes"), ("pardiso_order", "mixed", "pardiso"),
@@ -165,7 +177,8 @@ def main() -> None:
             gi = "-" if g is None else f"{g['increments']}, {g['iterations']}, {g['factorisations']}"
             gt = "-" if g is None else _fmt([g["wall"], g["cpu"]])
             an = f"{r['analysis_mixed']:.2f} / {r['analysis_pardiso_order']:.2f}"
-            print(f"| {form} | {r['nodes']} | {r['system']} | {_fmt(asm)} | {an} | {_fmt(fs)} | "
+            a1 = f"{_fmt(asm)} ({r['assembly_threads']} thr; 1: {r['assembly_one_thread_wall']:.2f})"
+            print(f"| {form} | {r['nodes']} | {r['system']} | {a1} | {an} | {_fmt(fs)} | "
                   f"{_fmt(r['factor_solve_pardiso_order'])} | {_fmt(r['factor_solve_double'])} | {_fmt(ru)} ({r.get('reused_gmres_iterations', '-')}) | "
                   f"{_fmt(it_ref)} ; {_fmt(it_re)} | {gi} | {gt} | {r['cost_ratio'][0]:.0f} / {r['cost_ratio'][1]:.0f} | "
                   f"{r['peak_rss_mb']:.0f} |", flush=True)

@@ -104,6 +104,15 @@ def test_inverted_elements_are_counted_once_and_small_meshes_stay_serial():
     assert parallel.thread_count(3) == 3 and 1 <= parallel.thread_count(0) <= parallel.MAX_AUTO_THREADS
 
 
+def test_auto_thread_count_follows_the_study_workers_share(monkeypatch):
+    monkeypatch.setenv("NUMBA_NUM_THREADS", "1")
+    assert parallel.thread_count(0) == 1
+    assert parallel.thread_count(2) == 2  # an explicit count wins
+    monkeypatch.delenv("NUMBA_NUM_THREADS")
+    monkeypatch.setenv("OMP_NUM_THREADS", "1")
+    assert parallel.thread_count(0) == 1
+
+
 def test_a_failing_part_raises_in_the_caller():
     parts = parallel.node_partition(10, np.zeros((0, 4), np.int64), 1) * 3
 

@@ -46,14 +46,21 @@ class Part:
 
 
 def thread_count(requested: int) -> int:
-    """``requested`` if positive, else the CPUs this process may use (at most
-    :data:`MAX_AUTO_THREADS`)."""
+    """``requested`` if positive, else the CPUs this process may use, at most
+    :data:`MAX_AUTO_THREADS` and at most ``NUMBA_NUM_THREADS`` / ``OMP_NUM_THREADS`` when
+    set (the study workers set them to their share of the cores,
+    :mod:`regtrack.study.backends`)."""
     if requested > 0:
         return int(requested)
     try:
         n = len(os.sched_getaffinity(0))
     except AttributeError:  # not Linux
         n = os.cpu_count() or 1
+    for var in ("NUMBA_NUM_THREADS", "OMP_NUM_THREADS"):
+        value = os.environ.get(var, "").strip()
+        if value.isdigit() and int(value) > 0:
+            n = min(n, int(value))
+            break
     return max(1, min(n, MAX_AUTO_THREADS))
 
 
