@@ -20,7 +20,9 @@ step and, with 1 and 2, on the benchmark); numpy's OpenBLAS reductions (vector
 norms and dot products over 10,000 entries) did not, so until session 15 the default two
 threads took another path than one (CC 383 iterations against 343 on the hemisphere).
 The solver now runs OpenBLAS on one thread (``serial_openblas``), so the path, and every
-figure but the times, is the same whatever ``MKL_NUM_THREADS``.
+figure but the times, is the same whatever ``MKL_NUM_THREADS``; the element kernel's
+threads (``[mechanics.solver] assembly_threads``, :mod:`regtrack.mechanics.parallel`)
+keep every sum in the serial order, so they do not change it either.
 """
 
 from __future__ import annotations
