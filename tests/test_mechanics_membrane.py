@@ -151,3 +151,16 @@ def test_wrinkled_tangent_finite_difference(theta):
     e = membrane_forces(x, tris, G, A0, MAT, want_k=False)[2]
     assert e < membrane_forces(x, tris, G, A0, PLAIN, want_k=False)[2]  # relaxed: wrinkled
     assert_consistent(X, x, tris, rng)
+
+
+def test_tangent_sandwich_is_the_tensor_contraction():
+    """The numba kernel that forms D^T H D per triangle equals the einsum contraction
+    (to round-off; it sums in einsum's order, bit-identical on the benchmark path)."""
+    from regtrack.mechanics.membrane import _sandwich
+
+    rng = np.random.default_rng(5)
+    D, H = rng.normal(size=(57, 3, 9)), rng.normal(size=(57, 3, 3))
+    ref = np.einsum("tmA,tmn,tnB->tAB", D, H, D)
+    np.testing.assert_allclose(_sandwich(D, H), ref, rtol=1e-13, atol=1e-13 * np.abs(ref).max())
+    K = _sandwich(D, np.ascontiguousarray(H + H.transpose(0, 2, 1)))
+    np.testing.assert_allclose(K, K.transpose(0, 2, 1), rtol=0, atol=1e-12)  # symmetric H -> symmetric K
