@@ -15,9 +15,11 @@ an element on a part boundary has its kinematics computed by each part it touche
 The kernels are numba functions compiled with ``nogil=True`` and run in plain
 ``threading`` threads (no thread pool: nothing to go stale in a forked Dask worker).
 
-Measured on the 9,496-node benchmark hemisphere (48,477 tetrahedra, tangent included,
-this 2-core machine): the tetrahedron kernel takes 22-24 ms on 2 threads against 53-60 ms
-serial (``pipelines/bench_protocols.py`` reports the whole-protocol effect).
+Measured on the 9,496-node benchmark hemisphere (48,477 tetrahedra) at its compressed CC
+state, this 2-core machine, alternated in one process: the kernel with the tangent takes
+54-56 ms on 2 threads against 97-121 ms for the former serial kernel, 6.4-7.5 against
+8.0-8.4 ms without it (``pipelines/bench_mechanics.py`` prints the one-thread assembly
+beside the default).
 """
 
 from __future__ import annotations
