@@ -148,7 +148,8 @@ def membrane_forces(x: np.ndarray, tris: np.ndarray, G: np.ndarray, A0: np.ndarr
 @njit(cache=True)
 def _surface_gradient(X, G):
     """``F[t, i, J] = sum_a X[t, a, i] G[t, a, J]`` (T, 3, 2), summed over ``a`` in order as
-    numpy's ``einsum("tai,taJ->tiJ")`` that it replaces (1.0 against 0.02 ms here)."""
+    numpy's ``einsum("tai,taJ->tiJ")`` that it replaces (0.02 ms against einsum's 1.0 ms
+    on the benchmark hemisphere's 4,490 skin triangles)."""
     nt = X.shape[0]
     out = np.empty((nt, 3, 2))
     for t in range(nt):
