@@ -117,8 +117,8 @@ class SolverOptions:
                                       ge=1, le=100)
     linear_solver: str = param("auto", "", "sparse solver", choices=("auto", "pardiso", "splu"))
     assembly_threads: int = param(0, "-", "threads of the tetrahedron force/tangent kernel (0: the "
-                                  "CPUs this process may use, at most 4; 1 in a study that runs one "
-                                  "simulation per core).  Results are bit-identical for any count "
+                                  "CPUs this process may use, at most 4, and at most a study worker's "
+                                  "share of the cores).  Results are bit-identical for any count "
                                   "(see regtrack/mechanics/parallel.py)", ge=0, le=64)
     ordering: str = param("nodes", "", "fill-reducing ordering of the direct solver: 'nodes' (METIS nested "
                           "dissection of the node graph, a node's unknowns together: ~20 % faster "

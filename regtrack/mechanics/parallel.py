@@ -33,8 +33,8 @@ import numpy as np
 #: Below this many elements a second thread is not worth starting (the serial kernel
 #: takes about 1 ms per 1,000 tetrahedra with the tangent).
 MIN_ELEMENTS_PER_THREAD = 2000
-#: At most this many threads by default: the two-core machines this was measured on
-#: gain 2.2x; beyond 4 the boundary elements computed twice grow.
+#: At most this many threads by default: two threads gave 1.8-2.1x on the two-core
+#: machine this was measured on; with more parts the boundary elements computed twice grow.
 MAX_AUTO_THREADS = 4
 
 
