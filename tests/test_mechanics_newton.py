@@ -389,6 +389,59 @@ def test_stabilised_increments_end_in_an_undamped_equilibrium(monkeypatch):
     assert "undamped equilibrium" in str(exc.value) and "stabilisation" in str(exc.value)
 
 
+def test_crawl_guard_stops_a_run_of_small_stabilised_increments(monkeypatch):
+    """crawl_guard: from t = 0.3 every new load fails undamped (forced) and the stabilised
+    solve only passes for increments of at most 0.005, so the step crawls in settled
+    stabilised increments.  Unguarded it crawls to t = 1 (the result is still the plain
+    solution); guarded, after ``crawl_increments`` of them in a row the rest, about 0.7 /
+    0.005 = 140 increments > ``crawl_remaining`` = 40, stops the step with SolverCrawlError
+    at the last equilibrium.  A run that would finish in fewer increments is let through."""
+    from regtrack.errors import SolverCrawlError
+
+    pr, g = _hanging_box()
+    real = S._increment
+    opts = SolverOptions(initial_increment=0.25, min_increment=1e-4, force_tol=1e-10,
+                         disp_tol=1e-10, extrapolation="off")
+    u_ref, _ = S.solve_step(pr, np.zeros_like(pr.X), gravity=g, options=opts)
+    done = {"t": 0.0}
+
+    def crawl_from(t_crawl, size):
+        def fake(newton, u, t, *a, **k):
+            if t > t_crawl + 1e-12 and t > done["t"] + 1e-12:  # a new load past t_crawl
+                if newton.damping is None or t - done["t"] > size + 1e-12:
+                    raise S._Failed("refused (test)")
+            out = real(newton, u, t, *a, **k)
+            done["t"] = t
+            return out
+        return fake
+
+    monkeypatch.setattr(S, "_increment", crawl_from(0.3, 0.005))
+    u, st = S.solve_step(pr, np.zeros_like(pr.X), gravity=g, options=opts)
+    assert st.stabilised_accepted >= 140 and st.longest_stabilised_run == st.stabilised_accepted
+    assert st.settled_increments == st.stabilised_accepted
+    assert np.abs(u - u_ref).max() < 1e-8
+
+    done["t"] = 0.0
+    with pytest.raises(SolverCrawlError, match="crawl_increments") as exc:
+        S.solve_step(pr, np.zeros_like(pr.X), gravity=g, options=opts, crawl_guard=True,
+                     step_name="sag")
+    t_stop = exc.value.load_fraction
+    assert 0.3 < t_stop <= 0.3 + opts.crawl_increments * 0.005 + 1e-9
+    assert "step 'sag' crawls" in str(exc.value)
+    # the kept state is the equilibrium at t_stop (the plain solution there)
+    monkeypatch.setattr(S, "_increment", real)
+    u_t, _ = S.solve_step(pr, np.zeros_like(pr.X), gravity=lambda t: g(t * t_stop),
+                          options=replace(opts, initial_increment=1.0))
+    assert np.abs(exc.value.last_converged - u_t).max() < 1e-8
+
+    # near the end of the step (about 0.1 / 0.005 = 20 left): let through; guard off: 0
+    for start, o in ((0.9, opts), (0.3, replace(opts, crawl_increments=0))):
+        done["t"] = 0.0
+        monkeypatch.setattr(S, "_increment", crawl_from(start, 0.005))
+        u, st = S.solve_step(pr, np.zeros_like(pr.X), gravity=g, options=o, crawl_guard=True)
+        assert st.longest_stabilised_run >= 15 and np.abs(u - u_ref).max() < 1e-8
+
+
 def test_polish_damps_less_after_each_proximal_solve_that_converges(monkeypatch):
     """The polish at t = 1 halves the proximal weight after each proximal solve that
     converges (a state creeping towards a distant equilibrium gets there in fewer rounds;

@@ -189,17 +189,97 @@ def test_a_failed_plate_move_is_retried_once_with_a_lower_penalty_growth_cap():
     assert sm["upper_body_force_N"] == pytest.approx(rep["normal_force_N"]
                                                      - rep["edge_normal_force_N"], abs=1e-12)
 
-    with pytest.raises(SolverDidNotConvergeError, match="also after a retry"):
+    with pytest.raises(SolverDidNotConvergeError, match="also after a retry") as ei:
         _run(shipped_protocol("cc"), fail_at="compression")
+    # a non-convergence: the penalty retry first, then the plate-increment one
+    assert ("a retry with [contact] penalty_growth_max = 16 and a retry with [contact] "
+            "max_plate_increment_mm = 5; the first attempt: mock") in str(ei.value)
     body = _body()
     with pytest.raises(SolverDidNotConvergeError, match="mock") as ei:
         ProtocolRunner(body, shipped_protocol("cc"), mock_solver(body.points, body.fixed,
                                                                  fail_at="compression"),
-                       config=ContactConfig(retry_penalty_growth_max=0.0)).run()
+                       config=ContactConfig(retry_penalty_growth_max=0.0,
+                                            retry_plate_increment_mm=0.0)).run()
     assert "retry" not in str(ei.value)
     with pytest.raises(SolverDidNotConvergeError) as ei:
         _run(shipped_protocol("cc"), fail_at="standing-gravity")
     assert "retry" not in str(ei.value)
+
+
+def _crawling_solver(body, *, crawls):
+    """A step solver with the real adapter's keywords (``takes_increment``): the
+    compression "crawls" (SolverCrawlError) whenever ``crawls(kw)`` says so for a guarded
+    solve; every call's keywords are logged."""
+    from regtrack.errors import SolverCrawlError
+
+    inner = mock_solver(body.points, body.fixed)
+    calls = []
+
+    def solve(u0, g0, g1, contribs, name, **kw):
+        if name == "compression":
+            calls.append(kw)
+            if kw.get("crawl_guard") and crawls(kw):
+                raise SolverCrawlError("mock: step 'compression' crawls", load_fraction=0.45)
+        return inner(u0, g0, g1, contribs, name)
+    solve.takes_increment = True
+    return solve, calls
+
+
+def test_a_crawling_plate_move_is_retried_with_a_plate_increment_cap_first():
+    """A plate move that crawls is stopped by the crawl guard and run again from its
+    start with the plate travel per increment capped at retry_plate_increment_mm (the
+    solver's max_increment = cap / travel), before the penalty retry; the last attempt
+    runs unguarded; gravity steps are never guarded; a user cap at or below the retry's
+    is halved; no retry configured, no guard."""
+    body = _body()
+    # crawls unless the plate travel is capped (the first 2 mm part is one increment)
+    solve, calls = _crawling_solver(body, crawls=lambda kw: "initial_increment" not in kw
+                                    and "max_increment" not in kw)
+    cfg = ContactConfig(friction=0.1)
+    runner = ProtocolRunner(body, shipped_protocol("cc"), solve, config=cfg)
+    res = runner.run()
+    assert res.complete
+    # the move's two parts: a first 2 mm travel (one increment), then the rest, which crawls
+    first, retry = calls[1], calls[2:]
+    assert len(calls) == 4 and calls[0]["initial_increment"] == 1.0
+    assert first["crawl_guard"] is True and "max_increment" not in first
+    assert [c.get("crawl_guard") for c in retry] == [True, True]  # a retry still follows
+    assert "initial_increment" in retry[0]
+    travel = res.steps[-1].T0_mm - res.steps[-1].gap_mm - cfg.first_plate_increment_mm
+    assert retry[1]["max_increment"] == pytest.approx(5.0 / travel, rel=1e-12)
+    info = res.steps[-1].solver["retry"]
+    assert info["max_plate_increment_mm"] == 5.0 and "penalty_growth_max" not in info
+    assert "crawls" in info["first_attempt"]
+    assert [f["remedy"] for f in info["failed_attempts"]] == [None]
+    assert all(c.config is cfg for c in runner.contacts.values()) and runner._plate_cap is None
+
+    # crawls whatever the cap: plate retry (guarded), then the penalty retry, unguarded
+    body = _body()
+    solve, calls = _crawling_solver(body, crawls=lambda kw: "initial_increment" not in kw)
+    res = ProtocolRunner(body, shipped_protocol("cc"), solve, config=cfg).run()
+    info = res.steps[-1].solver["retry"]
+    assert info["penalty_growth_max"] == 16
+    assert [f["remedy"] for f in info["failed_attempts"]] == [None, {"max_plate_increment_mm": 5.0}]
+    assert not any(c.get("crawl_guard") for c in calls[-2:])  # the last attempt's two parts
+
+    # a user cap of 4 mm: the retry halves it (here only the first attempt crawls)
+    body = _body()
+    rest = []  # the guarded calls for the rest of the move (not its first 2 mm)
+    solve, calls = _crawling_solver(body, crawls=lambda kw: "initial_increment" not in kw
+                                    and (rest.append(kw) or len(rest) == 1))
+    res = ProtocolRunner(body, shipped_protocol("cc"), solve,
+                         config=ContactConfig(friction=0.1, max_plate_increment_mm=4.0)).run()
+    assert res.steps[-1].solver["retry"]["max_plate_increment_mm"] == 2.0
+    assert rest[1]["max_increment"] == pytest.approx(0.5 * rest[0]["max_increment"], rel=1e-12)
+
+    # no retry configured: nothing is guarded
+    body = _body()
+    solve, calls = _crawling_solver(body, crawls=lambda kw: True)
+    res = ProtocolRunner(body, shipped_protocol("cc"), solve,
+                         config=ContactConfig(retry_penalty_growth_max=0.0,
+                                              retry_plate_increment_mm=0.0)).run()
+    assert res.complete and not any("crawl_guard" in c for c in calls)
+    assert "retry" not in res.steps[-1].solver
 
 
 def test_penetration_guard_rejects_soft_penalty():

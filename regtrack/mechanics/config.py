@@ -115,6 +115,19 @@ class SolverOptions:
     stabilisation_polish: int = param(8, "-", "proximal solves at t = 1 before a step whose last "
                                       "increment was stabilised gives up its undamped equilibrium",
                                       ge=1, le=100)
+    crawl_increments: int = param(6, "-", "crawl guard of the protocol engine's plate moves "
+                                  "(only where a retry follows: "
+                                  "ProtocolRunner._run_step_with_retry): after this many "
+                                  "consecutive accepted increments that each needed "
+                                  "stabilisation, a step whose rest would take more than "
+                                  "crawl_remaining further increments of their mean size "
+                                  "stops, to be retried from its start (0: off).  Measured: "
+                                  "Pelicano exam 10's 8.9k-node MLO crawled from t = 0.45 in "
+                                  "stabilised increments of 0.004, 22 s each (session 21)", ge=0)
+    crawl_remaining: float = param(40.0, "-", "crawl guard: the most further increments (of the "
+                                   "stabilised ones' mean size) a stabilised run may still need; "
+                                   "session 9's exam 05 CC, which finished, had about 24 left when "
+                                   "its stabilised run began, exam 10's MLO about 137", gt=0)
     linear_solver: str = param("auto", "", "sparse solver", choices=("auto", "pardiso", "splu"))
     assembly_threads: int = param(0, "-", "threads of the tetrahedron force/tangent kernel (0: the "
                                   "CPUs this process may use, at most 4, and at most a study worker's "

@@ -202,8 +202,18 @@ class ContactConfig:
                                        "max_augmentations)", ge=0, le=1000)
     retry_penalty_growth_max: float = param(16.0, "-", "protocols: a plate move that does not "
                                             "converge is run once more from its start with "
-                                            "penalty_growth_max lowered to this (0: no retry); "
-                                            "see ProtocolRunner._run_step_with_retry", ge=0.0)
+                                            "penalty_growth_max lowered to this (0: no such "
+                                            "retry); see ProtocolRunner._run_step_with_retry",
+                                            ge=0.0)
+    retry_plate_increment_mm: float = param(5.0, "mm", "protocols: a plate move that crawls "
+                                            "([mechanics.solver] crawl_increments) or does not "
+                                            "converge is run once more from its start with "
+                                            "max_plate_increment_mm lowered to this (half the "
+                                            "user's cap if that is smaller; 0: no such retry).  "
+                                            "A crawl is retried so first, a non-convergence "
+                                            "after the penalty retry.  Pelicano exam 10's "
+                                            "8.9k-node MLO, which crawls at the defaults, "
+                                            "completes with 5 mm (session 26)", ge=0.0)
 
 
 def tributary_areas(points: np.ndarray, tris: np.ndarray) -> np.ndarray:

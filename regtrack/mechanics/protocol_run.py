@@ -39,9 +39,11 @@ then it travels to the gap ``(1 - D) T_0`` (degree), the given gap (gap), or unt
 plate force reaches the target within ``force_tol`` (force: marching + secant, each trial
 solved from the last accepted state).  After every step the penetration guard rail
 rejects a state with a node deeper than ``max_penetration_mm`` in a plate.  A plate move
-that does not converge is run once more from its start with a lower cap on the contact
-penalty growth (``[contact] retry_penalty_growth_max``,
-:meth:`ProtocolRunner._run_step_with_retry`).
+that does not converge is run again from its start with a lower cap on the contact
+penalty growth (``[contact] retry_penalty_growth_max``), then with a smaller plate travel
+per increment (``retry_plate_increment_mm``); one that crawls in stabilised increments
+(``[mechanics.solver] crawl_increments``) is stopped and retried in the other order
+(:meth:`ProtocolRunner._run_step_with_retry`).
 """
 
 from __future__ import annotations
@@ -54,7 +56,8 @@ from typing import Any
 
 import numpy as np
 
-from regtrack.errors import ConfigError, ResultCheckError, SolverDidNotConvergeError
+from regtrack.errors import (ConfigError, ResultCheckError, SolverCrawlError,
+                             SolverDidNotConvergeError)
 from regtrack.mechanics import compression as comp
 from regtrack.mechanics.contact import (ContactConfig, PlateContact, automatic_penalty,
                                         mean_edge_length, tributary_areas)
@@ -240,6 +243,9 @@ class ProtocolRunner:
         self.loads: dict[str, np.ndarray] = {}
         self.records: list[StepRecord] = []
         self._tmean0: float | None = None
+        self._contact_configs = {k: c.config for k, c in self.contacts.items()}
+        self._plate_cap: float | None = None  # a retry's [contact] max_plate_increment_mm
+        self._crawl_guard = False  # stop a crawling solve (a retry follows)
 
     # -- one solve ------------------------------------------------------------------
     def _solve(self, g_end: np.ndarray, name: str, *, single: bool = False,
@@ -253,6 +259,8 @@ class ProtocolRunner:
                 kw["initial_increment"] = 1.0
             elif max_increment is not None and max_increment < 1.0:
                 kw["max_increment"] = max_increment
+            if self._crawl_guard:
+                kw["crawl_guard"] = True
         u, stats = self.solve(self.u, self.g, g_end, contribs, name, **kw)
         self.u = np.asarray(u, float).reshape(-1, 3)
         self.g = np.asarray(g_end, float)
@@ -278,7 +286,7 @@ class ProtocolRunner:
         parts = [distance] if abs(distance) <= 1.5 * first else [np.sign(distance) * first,
                                                                  distance - np.sign(distance) * first]
         stats: dict = {}
-        cap = self.config.max_plate_increment_mm
+        cap = self._plate_cap if self._plate_cap is not None else self.config.max_plate_increment_mm
         for k, d in enumerate(parts):
             start = pc.plate.origin.copy()
             pc.set_motion(start, start + d * pc.plate.normal)
@@ -380,55 +388,111 @@ class ProtocolRunner:
                 rec.D_mean = 1.0 - self._mean_thickness() / self._tmean0
         return rec
 
-    def _run_step_with_retry(self, step: Step) -> StepRecord:
-        """:meth:`_run_step`; a plate move that does not converge is run once more from
-        the state at its start with the node-wise contact penalty capped at
-        ``[contact] retry_penalty_growth_max`` times the automatic one (0: no retry).
+    def _remedies(self) -> list[tuple[str, float]]:
+        """The retries of a plate move, each a ``(setting, value)`` of ``[contact]``."""
+        cfg, out = self.config, []
+        if cfg.retry_penalty_growth_max > 0:
+            out.append(("penalty_growth_max", cfg.retry_penalty_growth_max))
+        if cfg.retry_plate_increment_mm > 0:
+            cap = cfg.retry_plate_increment_mm
+            if 0 < cfg.max_plate_increment_mm <= cap:
+                cap = 0.5 * cfg.max_plate_increment_mm
+            out.append(("max_plate_increment_mm", cap))
+        return out
 
-        Why: the penalty growth that speeds up the multiplier updates of skin pinched at
-        the chest wall (``penalty_growth_max``, 256) also stiffens nodes at the rim of the
-        contact zone, and Newton then cycles there.  Measured, Pelicano exam 03 CC at
-        D = 50 % (1,667 nodes): at the rim of the upper plate's contact zone, one skin node
-        went in and out of contact (gap +0.2 / -2.1 mm, |R| 0.2 / 4 N) at every iteration
-        next to pressed nodes 6 mm away with 16 and 64 times the automatic penalty; the
-        step stopped at t = 0.64.  With the cap at 16 the run completes (D = 0.50, 1,540
-        compression iterations); with 64 it stops as well.
-        A lower cap is not the default: at 8.9k nodes it doubled the iterations of exam 10
-        CC (909 against 459).  The retry is recorded in the step's solver statistics
-        (``retry``: the cap, the first attempt's error and wall time; the other figures
-        are the retry's).
+    def _apply_remedy(self, remedy: tuple[str, float] | None) -> None:
+        """Set one retry's setting (None: the configured ones again)."""
+        self._plate_cap = None
+        for k, c in self.contacts.items():
+            c.config = self._contact_configs[k]
+        if remedy is None:
+            return
+        what, value = remedy
+        if what == "max_plate_increment_mm":
+            self._plate_cap = value
+            return
+        for c in self.contacts.values():
+            low = min(value, c.config.penalty_growth_max)
+            c.config = replace(c.config, penalty_growth_max=low)
+            c.eps_node = np.minimum(c.eps_node, low * c.eps_n)
+
+    def _run_step_with_retry(self, step: Step) -> StepRecord:
+        """:meth:`_run_step`; a plate move that does not converge, or crawls, is run again
+        from the state at its start, with one setting changed per retry (``_remedies``):
+
+        * the node-wise contact penalty capped at ``[contact] retry_penalty_growth_max``
+          times the automatic one;
+        * the plate travel per increment capped at ``[contact] retry_plate_increment_mm``.
+
+        A crawl (:class:`SolverCrawlError`, ``[mechanics.solver] crawl_increments``) is
+        retried with the plate cap first, a non-convergence with the penalty cap first.
+        Every attempt but the last runs with the crawl guard; the last may crawl on to
+        the end, as every attempt did before the guard existed.  The last error reports
+        every attempt.
+
+        Why the penalty cap: the penalty growth that speeds up the multiplier updates of skin
+        pinched at the chest wall (``penalty_growth_max``, 256) also stiffens nodes at the
+        rim of the contact zone, and Newton then cycles there.  Measured, Pelicano exam 03 CC
+        at D = 50 % (1,667 nodes): at the rim of the upper plate's contact zone, one skin
+        node went in and out of contact (gap +0.2 / -2.1 mm, |R| 0.2 / 4 N) at every
+        iteration next to pressed nodes 6 mm away with 16 and 64 times the automatic
+        penalty; the step stopped at t = 0.64.  With the cap at 16 the run completes (D =
+        0.50, 1,540 compression iterations); with 64 it stops as well.  A lower cap is not
+        the default: at 8.9k nodes it doubled the iterations of exam 10 CC (909 against
+        459).  Why the plate cap: a crawl is a frictional path stuck in the chest-wall
+        pinch, and the plate travel per increment changes the path (friction is integrated
+        per increment); Pelicano exam 10's 8.9k-node MLO crawls at the defaults and
+        completes with a 5 mm cap (session 26).
+
+        The retry is recorded in the step's solver statistics (``retry``: the setting that
+        worked, the first attempt's error and wall time, and ``failed_attempts``; the
+        other figures are the successful attempt's).
         """
-        cap = self.config.retry_penalty_growth_max
-        if step.action != "move_plate" or cap <= 0:
+        remedies = self._remedies()
+        if step.action != "move_plate" or not remedies:
             return self._run_step(step)
         snap = self._snapshot()
-        t0 = time.perf_counter()
+        failed: list[dict] = []
+        order: list[tuple[str, float] | None] = [None]
         try:
-            return self._run_step(step)
-        except SolverDidNotConvergeError as err:
-            first = err
-        t_first = time.perf_counter() - t0
-        self._restore(snap)
-        log.warning("step '%s' did not converge (%s); retrying it from its start with the "
-                    "contact penalty growth capped at %g", step.name, first, cap)
-        saved = {k: c.config for k, c in self.contacts.items()}
-        try:
-            for c in self.contacts.values():
-                low = min(cap, c.config.penalty_growth_max)
-                c.config = replace(c.config, penalty_growth_max=low)
-                c.eps_node = np.minimum(c.eps_node, low * c.eps_n)
-            try:
-                rec = self._run_step(step)
-            except SolverDidNotConvergeError as err:
-                raise type(err)(f"{err} (also after a retry with [contact] penalty_growth_max = "
-                                f"{cap:g}; the first attempt: {first})",
-                                load_fraction=err.load_fraction,
-                                last_converged=err.last_converged) from err
+            while order:
+                remedy = order.pop(0)
+                self._apply_remedy(remedy)
+                self._crawl_guard = len(failed) < len(remedies)  # not on the last attempt
+                t0 = time.perf_counter()
+                try:
+                    rec = self._run_step(step)
+                    break
+                except SolverDidNotConvergeError as err:
+                    failed.append({"remedy": None if remedy is None else dict([remedy]),
+                                   "error": str(err), "s": time.perf_counter() - t0, "exc": err})
+                self._restore(snap)
+                err = failed[-1]["exc"]
+                if remedy is None:  # the retries, in the order that suits the failure
+                    order = sorted(remedies, key=lambda r: r[0] != "max_plate_increment_mm")
+                    if not isinstance(err, SolverCrawlError):
+                        order.reverse()
+                    log.warning("step '%s' did not converge (%s); retrying it from its start "
+                                "with [contact] %s = %g", step.name, err, *order[0])
+                elif order:
+                    log.warning("step '%s' did not converge after a retry either (%s); "
+                                "retrying it from its start with [contact] %s = %g", step.name,
+                                err, *order[0])
+            else:
+                last = failed[-1]["exc"]
+                tried = " and ".join(f"a retry with [contact] {k} = {v:g}"
+                                     for f in failed[1:] for k, v in f["remedy"].items())
+                raise type(last)(f"{last} (also after {tried}; the first attempt: "
+                                 f"{failed[0]['error']})", load_fraction=last.load_fraction,
+                                 last_converged=last.last_converged) from last
         finally:
-            for k, c in self.contacts.items():
-                c.config = saved[k]
-        rec.solver["retry"] = {"penalty_growth_max": cap, "first_attempt": str(first),
-                               "first_attempt_s": t_first}
+            self._apply_remedy(None)
+            self._crawl_guard = False
+        if failed:
+            rec.solver["retry"] = dict([remedy] if remedy else [], first_attempt=failed[0]["error"],
+                                       first_attempt_s=failed[0]["s"],
+                                       failed_attempts=[{k: v for k, v in f.items() if k != "exc"}
+                                                        for f in failed])
         return rec
 
     def _mean_thickness(self) -> float:
@@ -478,7 +542,8 @@ def solver_from_problem(problem: Any, *, options: Any = None, progress: Any = No
 
     from dataclasses import replace
 
-    def solve(u0, g0, g1, contribs, name, initial_increment=None, max_increment=None):
+    def solve(u0, g0, g1, contribs, name, initial_increment=None, max_increment=None,
+              crawl_guard=False):
         g0 = np.asarray(g0, float)
         g1 = np.asarray(g1, float)
         opts = options
@@ -491,7 +556,7 @@ def solver_from_problem(problem: Any, *, options: Any = None, progress: Any = No
             opts = replace(o, max_increment=cap, initial_increment=min(o.initial_increment, cap))
         u, st = solve_step(problem, u0, gravity=lambda t: g0 + t * (g1 - g0), dirichlet=dirichlet,
                            contributions=contribs, options=opts, progress=progress,
-                           step_name=name, step=name)
+                           step_name=name, step=name, crawl_guard=crawl_guard)
         out = st.to_dict()
         out.pop("reports", None)
         fixed = problem.model.fixed

@@ -126,8 +126,9 @@ def summarise(result: ProtocolResult, timing: dict | None = None) -> dict:
     (pipelines/mesh_convergence.py; issue 5, session-10 note).  ``upper_body_force_N`` is
     the rest, ``upper_force_N - upper_edge_force_N``: the force of the breast between the
     plates, the part that does not grow with mesh refinement.  ``retried_steps``: the
-    plate moves that converged only on their automatic retry
-    (``[contact] retry_penalty_growth_max``); their figures are those of the retry."""
+    plate moves that converged only on an automatic retry (``[contact]
+    retry_penalty_growth_max``, ``retry_plate_increment_mm``; the step's ``solver.retry``
+    says which); their figures are those of the retry."""
     last = result.steps[-1]
     upper = last.contact["upper"]["normal_force_N"]
     edge = last.contact["upper"].get("edge_normal_force_N")

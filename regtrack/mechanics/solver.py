@@ -80,7 +80,10 @@ the predictor) than without it (33.71 N).
 An increment that fails (iterations exhausted, divergence, inversion, NaN) is rolled
 back and cut (``cutback``); easy increments grow the next one (``growth``).  Below
 ``min_increment`` the step stops with :class:`SolverDidNotConvergeError`, which keeps
-the last converged state and the load fraction reached.
+the last converged state and the load fraction reached.  A caller that can retry a step
+another way (the protocol engine's plate moves) asks for the crawl guard
+(``crawl_guard``, :func:`_crawling`): a step that keeps needing stabilisation in small
+increments stops with :class:`SolverCrawlError` rather than crawl for an hour.
 """
 
 from __future__ import annotations
@@ -94,7 +97,7 @@ from typing import Any
 import numpy as np
 import scipy.sparse as sp
 
-from regtrack.errors import ContactDidNotConvergeError, SolverDidNotConvergeError
+from regtrack.errors import ContactDidNotConvergeError, SolverCrawlError, SolverDidNotConvergeError
 from regtrack.mechanics.config import SolverOptions
 from regtrack.mechanics.contributions import Contribution
 from regtrack.mechanics.linsolve import LinearSolveError, LinearSolver, serial_openblas
@@ -165,7 +168,8 @@ class _Newton:
         self.first_solve_iterations = 0
         self.damping: tuple[np.ndarray, np.ndarray] | None = None  # (c per dof (N/mm), u_start)
         self._diag: np.ndarray | None = None
-        self.damped_last = False  # the last accepted increment was stabilised
+        self.damped_last = False  # the last accepted increment stayed damped (settle failed)
+        self.stabilised_last = False  # the last increment needed stabilisation (settled or not)
         self.guess: np.ndarray | None = None  # starting guess of the next undamped solve
 
     def start(self, u: np.ndarray, guess: np.ndarray, fext: np.ndarray, cons: _Constraints) -> np.ndarray:
@@ -471,7 +475,8 @@ def solve_step(problem: Problem, u0: np.ndarray, *, gravity: Gravity | None = No
                dirichlet: Dirichlet | None = None, contributions: Sequence[Contribution] = (),
                options: SolverOptions | None = None, progress: Progress | None = None,
                step_name: str = "", step: Any = None,
-               linear_solver: LinearSolver | None = None) -> tuple[np.ndarray, StepStats]:
+               linear_solver: LinearSolver | None = None,
+               crawl_guard: bool = False) -> tuple[np.ndarray, StepStats]:
     """Solve one load step from ``u0`` (N, 3) mm over pseudo-time t in (0, 1].
 
     Parameters
@@ -485,6 +490,8 @@ def solve_step(problem: Problem, u0: np.ndarray, *, gravity: Gravity | None = No
     options : solver options (default: ``problem.config.solver``).
     progress : callable ``(step_name, t)`` after every converged increment.
     step : object handed to ``Contribution.begin_step``.
+    crawl_guard : stop with :class:`SolverCrawlError` when the step crawls (see
+        :func:`_crawling`; only for callers that retry the step differently).
 
     Returns
     -------
@@ -493,7 +500,8 @@ def solve_step(problem: Problem, u0: np.ndarray, *, gravity: Gravity | None = No
     Raises
     ------
     SolverDidNotConvergeError
-        with ``load_fraction`` (last converged t) and ``last_converged`` (N, 3).
+        with ``load_fraction`` (last converged t) and ``last_converged`` (N, 3);
+        :class:`SolverCrawlError` (a subclass) with ``crawl_guard``.
 
     numpy's OpenBLAS runs on one thread during the step, so the Newton path does not
     depend on the core count (:func:`regtrack.mechanics.linsolve.serial_openblas`).
@@ -512,6 +520,7 @@ def solve_step(problem: Problem, u0: np.ndarray, *, gravity: Gravity | None = No
     u_eq, t_eq = u.copy(), 0.0  # last state that is an undamped equilibrium
     newton.damped_last = False
     prev: tuple[np.ndarray, float] | None = None  # (u, dt) at the start of the last accepted increment
+    run: list[float] = []  # sizes of the current run of increments that needed stabilisation
     while t < 1.0 - 1e-12:
         dt = min(dt, 1.0 - t)
         if 1.0 - (t + dt) < 1e-9:
@@ -538,6 +547,9 @@ def solve_step(problem: Problem, u0: np.ndarray, *, gravity: Gravity | None = No
                           load_fraction=t_eq, last_converged=u_eq.reshape(-1, 3).copy()) from None
             continue
         prev = (u, dt) if not newton.damped_last else None  # no predictor from a damped state
+        run = run + [t_new - t] if newton.stabilised_last else []
+        stats.stabilised_accepted += int(newton.stabilised_last)
+        stats.longest_stabilised_run = max(stats.longest_stabilised_run, len(run))
         u, t = u_new, t_new
         if not newton.damped_last:
             u_eq, t_eq = u, t
@@ -551,6 +563,16 @@ def solve_step(problem: Problem, u0: np.ndarray, *, gravity: Gravity | None = No
             dt = min(dt * o.growth, o.max_increment)
         if progress is not None:
             progress(step_name, t)
+        if crawl_guard and _crawling(run, t, o):
+            for c in newton.contribs:
+                c.rollback()
+            stats.t_total = time.perf_counter() - tstart
+            raise SolverCrawlError(
+                f"step '{step_name}' crawls: the last {len(run)} increments, of {np.mean(run):.3g} "
+                f"of the step on average, each needed stabilisation, and the rest (1 - t = "
+                f"{1 - t:.3g}) would take about {(1 - t) / np.mean(run):.0f} more; stopped at the "
+                f"equilibrium at t = {t_eq:.4g} ([mechanics.solver] crawl_increments = 0 lets it "
+                "crawl on)", load_fraction=t_eq, last_converged=u_eq.reshape(-1, 3).copy())
     if newton.damped_last:
         try:
             u = _polish(newton, u, gravity, dirichlet, o, stats)
@@ -579,6 +601,20 @@ def solve_step(problem: Problem, u0: np.ndarray, *, gravity: Gravity | None = No
     return u.reshape(-1, 3), stats
 
 
+def _crawling(run: list[float], t: float, o: SolverOptions) -> bool:
+    """Crawl test: the last ``crawl_increments`` accepted increments (sizes ``run``, the
+    current run of consecutive ones that needed stabilisation) all did, and the rest of the
+    step, ``1 - t``, would take more than ``crawl_remaining`` increments of their mean size.
+    Then the frictional path is stuck in the chest-wall pinch, and a retry on another path
+    (smaller plate travel per increment) costs less than crawling on: Pelicano exam 10's
+    8.9k-node MLO crawled from t = 0.45 in increments of 0.004 (22 s each, about 130 left:
+    session 21); session 9's exam 05 CC, whose stabilised run from t = 0.86 finished, had
+    about 24 left."""
+    n = o.crawl_increments
+    return (n > 0 and len(run) >= n and t < 1.0 - 1e-12
+            and (1.0 - t) > o.crawl_remaining * float(np.mean(run[-n:])))
+
+
 def _linear_solver(problem: Problem, o: SolverOptions) -> LinearSolver:
     """The problem's cached solver (the analysis of its fixed pattern is re-used across steps)."""
     key = (o.linear_solver, o.reuse_factorisation, o.precision, o.krylov_rtol, o.krylov_max, o.ordering)
@@ -600,7 +636,7 @@ def _increment_with_retries(newton: _Newton, u, t_new, gravity, dirichlet, hist,
     tangent (``swap_tangent``, ``tangent_retries``).  With ``stabilisation = "auto"`` the
     only retry is the stabilised one (:meth:`_Newton.stabilise`), which sets
     ``newton.damped_last``.  Raises the last ``_Failed``."""
-    newton.damped_last = False
+    newton.damped_last = newton.stabilised_last = False
     try:
         return _increment(newton, u, t_new, gravity, dirichlet, hist)
     except _Failed as first:
@@ -616,6 +652,7 @@ def _increment_with_retries(newton: _Newton, u, t_new, gravity, dirichlet, hist,
                      stats.name, t_new, why, again)
             raise
         log.info("%s: increment to t = %.4g stabilised (undamped: %s)", stats.name, t_new, why)
+        newton.stabilised_last = True
         # settle: undamped Newton at the same load from the stabilised state, so that the
         # damping lag does not carry into the next increment (which would then fail too)
         try:

@@ -20,6 +20,8 @@ class StepStats:
     re-used factorisations given up for a fresh one and ``krylov_wasted_iterations`` the
     GMRES iterations spent on them.  ``stabilised_increments``
     counts the stabilised retries of failed increments (successful or not),
+    ``stabilised_accepted`` the accepted increments that needed one (settled or not) and
+    ``longest_stabilised_run`` the most of those in a row (the crawl guard's measure),
     ``settled_increments`` those whose state an undamped solve at the same load then made an
     equilibrium, and
     ``polish_solves`` the undamped solves at t = 1 after a stabilised last increment
@@ -53,6 +55,8 @@ class StepStats:
     merit_retries: int = 0
     tangent_retries: int = 0
     stabilised_increments: int = 0
+    stabilised_accepted: int = 0
+    longest_stabilised_run: int = 0
     settled_increments: int = 0
     polish_solves: int = 0
     extrapolated_increments: int = 0
@@ -77,7 +81,8 @@ class StepStats:
         keys = ("name", "increments", "iterations", "cutbacks", "augmentations", "extra_iterations",
                 "freezes", "stalled_accepts", "stalled_residual_max", "stalled_augmentations",
                 "tightening_solves", "merit_retries", "tangent_retries", "stabilised_increments",
-                "settled_increments", "polish_solves", "extrapolated_increments",
+                "stabilised_accepted", "longest_stabilised_run", "settled_increments",
+                "polish_solves", "extrapolated_increments",
                 "line_search_trials", "inverted_trials", "factorisations", "analyses",
                 "krylov_solves", "krylov_iterations", "reuse_failures", "krylov_wasted_iterations",
                 "t_assembly", "t_contrib", "t_solve", "t_line_search", "t_total", "cpu_total")
