@@ -564,15 +564,15 @@ def solve_step(problem: Problem, u0: np.ndarray, *, gravity: Gravity | None = No
         if progress is not None:
             progress(step_name, t)
         if crawl_guard and _crawling(run, t, o):
-            for c in newton.contribs:
-                c.rollback()
             stats.t_total = time.perf_counter() - tstart
+            size = float(np.mean(run[-o.crawl_increments:]))
             raise SolverCrawlError(
-                f"step '{step_name}' crawls: the last {len(run)} increments, of {np.mean(run):.3g} "
-                f"of the step on average, each needed stabilisation, and the rest (1 - t = "
-                f"{1 - t:.3g}) would take about {(1 - t) / np.mean(run):.0f} more; stopped at the "
-                f"equilibrium at t = {t_eq:.4g} ([mechanics.solver] crawl_increments = 0 lets it "
-                "crawl on)", load_fraction=t_eq, last_converged=u_eq.reshape(-1, 3).copy())
+                f"step '{step_name}' crawls at t = {t:.4g}: the last {len(run)} increments each "
+                f"needed stabilisation, the last {o.crawl_increments} of them {size:.3g} of the "
+                f"step on average, and the rest (1 - t = {1 - t:.3g}) would take about "
+                f"{(1 - t) / size:.0f} more; stopped, keeping the last undamped equilibrium, at "
+                f"t = {t_eq:.4g} ([mechanics.solver] crawl_increments = 0 lets it crawl on)",
+                load_fraction=t_eq, last_converged=u_eq.reshape(-1, 3).copy())
     if newton.damped_last:
         try:
             u = _polish(newton, u, gravity, dirichlet, o, stats)
