@@ -416,6 +416,22 @@ class ProtocolRunner:
             c.config = replace(c.config, penalty_growth_max=low)
             c.eps_node = np.minimum(c.eps_node, low * c.eps_n)
 
+    def _attempt(self, step: Step, remedy: tuple[str, float] | None, snap,
+                 failed: list[dict]) -> StepRecord | None:
+        """One attempt of a plate move with a retry's setting (None: the first attempt,
+        the only one with the crawl guard); a failure is appended to ``failed`` (with the
+        state restored to ``snap``) and gives None."""
+        self._apply_remedy(remedy)
+        self._crawl_guard = remedy is None
+        t0 = time.perf_counter()
+        try:
+            return self._run_step(step)
+        except SolverDidNotConvergeError as err:
+            failed.append({"remedy": None if remedy is None else dict([remedy]),
+                           "error": str(err), "s": time.perf_counter() - t0, "exc": err})
+        self._restore(snap)
+        return None
+
     def _run_step_with_retry(self, step: Step) -> StepRecord:
         """:meth:`_run_step`; a plate move that does not converge, or crawls, is run again
         from the state at its start, with one setting changed per retry (``_remedies``):
@@ -456,43 +472,30 @@ class ProtocolRunner:
             return self._run_step(step)
         snap = self._snapshot()
         failed: list[dict] = []
-        order: list[tuple[str, float] | None] = [None]
         try:
-            while order:
-                remedy = order.pop(0)
-                self._apply_remedy(remedy)
-                self._crawl_guard = remedy is None  # the first attempt only
-                t0 = time.perf_counter()
-                try:
-                    rec = self._run_step(step)
-                    break
-                except SolverDidNotConvergeError as err:
-                    failed.append({"remedy": None if remedy is None else dict([remedy]),
-                                   "error": str(err), "s": time.perf_counter() - t0, "exc": err})
-                self._restore(snap)
-                err = failed[-1]["exc"]
-                if remedy is None:  # the retries, in the order that suits the failure
-                    order = sorted(remedies, key=lambda r: r[0] != "max_plate_increment_mm")
-                    if not isinstance(err, SolverCrawlError):
-                        order.reverse()
+            rec = self._attempt(step, None, snap, failed)
+            if rec is None:  # the retries, in the order that suits the failure
+                order = sorted(remedies, key=lambda r: r[0] != "max_plate_increment_mm")
+                if not isinstance(failed[0]["exc"], SolverCrawlError):
+                    order.reverse()
+                for remedy in order:
                     log.warning("step '%s' did not converge (%s); retrying it from its start "
-                                "with [contact] %s = %g", step.name, err, *order[0])
-                elif order:
-                    log.warning("step '%s' did not converge after a retry either (%s); "
-                                "retrying it from its start with [contact] %s = %g", step.name,
-                                err, *order[0])
-            else:
-                last = failed[-1]["exc"]
-                tried = " and ".join(f"a retry with [contact] {k} = {v:g}"
-                                     for f in failed[1:] for k, v in f["remedy"].items())
-                raise type(last)(f"{last} (also after {tried}; the first attempt: "
-                                 f"{failed[0]['error']})", load_fraction=last.load_fraction,
-                                 last_converged=last.last_converged) from last
+                                "with [contact] %s = %g", step.name, failed[-1]["exc"], *remedy)
+                    rec = self._attempt(step, remedy, snap, failed)
+                    if rec is not None:
+                        break
+                else:
+                    last = failed[-1]["exc"]
+                    tried = " and ".join(f"a retry with [contact] {k} = {v:g}"
+                                         for f in failed[1:] for k, v in f["remedy"].items())
+                    raise type(last)(f"{last} (also after {tried}; the first attempt: "
+                                     f"{failed[0]['error']})", load_fraction=last.load_fraction,
+                                     last_converged=last.last_converged) from last
         finally:
             self._apply_remedy(None)
             self._crawl_guard = False
         if failed:
-            rec.solver["retry"] = dict([remedy] if remedy else [], first_attempt=failed[0]["error"],
+            rec.solver["retry"] = dict([remedy], first_attempt=failed[0]["error"],
                                        first_attempt_s=failed[0]["s"],
                                        failed_attempts=[{k: v for k, v in f.items() if k != "exc"}
                                                         for f in failed])
