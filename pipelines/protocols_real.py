@@ -9,9 +9,10 @@ Models come from ``regtrack mesh`` (e.g. the Pelicano exams of ../shared/data/pe
 Pelicano et al., Sensors 2021 / PLoS One 2024, or sample_cases/phantom01).  Each run uses
 the protocol defaults (friction 0.1, D = 38 % CC / 28 % MLO) and prints one markdown row:
 case, nodes, view, D reached, plate forces (N), largest penetration (mm), increments,
-Newton iterations, augmentations, cut-backs, wall and CPU seconds, and the automatic
-retries of the plate moves (their failed attempts' seconds are in the wall and CPU
-times, their iterations are not).  A failed run prints
+Newton iterations, augmentations, cut-backs, the longest run of stabilised increments in
+a plate move (the crawl guard's measure, ``[mechanics.solver] crawl_increments``), wall
+and CPU seconds, and the automatic retries of the plate moves (their failed attempts'
+seconds are in the wall and CPU times, their iterations are not).  A failed run prints
 its error instead.  CPU time is the process time (on a shared machine the wall-clock
 depends on the other jobs).
 """
@@ -37,7 +38,8 @@ def main() -> None:
     ap.add_argument("models", nargs="+", type=Path)
     ap.add_argument("--views", nargs="+", default=["cc", "mlo"])
     ap.add_argument("--contact", nargs="*", default=[], help="ContactConfig overrides key=value")
-    ap.add_argument("--solver", nargs="*", default=[], help="[mechanics.solver] overrides key=value")
+    ap.add_argument("--solver", nargs="*", default=[],
+                    help="[mechanics.solver] overrides key=value")
     ap.add_argument("--out", type=Path, default=None, help="also write the result files here")
     args = ap.parse_args()
     logging.basicConfig(level=logging.WARNING)
@@ -47,25 +49,27 @@ def main() -> None:
                                                                    where="--solver"))
     except ConfigError as exc:
         ap.error(str(exc))
-    print("| case | nodes | view | D | upper N | lower N | pen. mm | incr. | iter. | aug. | cut | wall s "
-          "| CPU s | retries |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+    print("| case | nodes | view | D | upper N | lower N | pen. mm | incr. | iter. | aug. | cut "
+          "| stab. | wall s | CPU s | retries |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for path in args.models:
         model = load_model(path)
         for view in args.views:
             t, c = time.perf_counter(), time.process_time()
             try:
-                res, timing = run_protocol_on_model(model, shipped_protocol(view), mechanics=mechanics,
-                                                    contact=contact)
+                res, timing = run_protocol_on_model(model, shipped_protocol(view),
+                                                    mechanics=mechanics, contact=contact)
             except Exception as err:  # noqa: BLE001 - a table row per failure
                 print(f"| {path.stem} | {model.n_nodes} | {view} | failed: {str(err)[:160]} |")
                 continue
             sm = summarise(res, timing)
             aug = sum(s.solver.get("augmentations", 0) for s in res.steps)
-            print(f"| {path.stem} | {model.n_nodes} | {view} | {sm['D']:.3f} | {sm['upper_force_N']:.2f} | "
-                  f"{sm['lower_force_N']:.2f} | {sm['max_penetration_mm']:.4f} | {sm['increments']} | "
-                  f"{sm['iterations']} | {aug} | {sm['cutbacks']} | {time.perf_counter() - t:.0f} | "
-                  f"{time.process_time() - c:.0f} | {_retries(res)} |", flush=True)
+            stab = max(s.solver.get("longest_stabilised_run", 0) for s in res.steps)
+            print(f"| {path.stem} | {model.n_nodes} | {view} | {sm['D']:.3f} "
+                  f"| {sm['upper_force_N']:.2f} | {sm['lower_force_N']:.2f} "
+                  f"| {sm['max_penetration_mm']:.4f} | {sm['increments']} | {sm['iterations']} "
+                  f"| {aug} | {sm['cutbacks']} | {stab} | {time.perf_counter() - t:.0f} "
+                  f"| {time.process_time() - c:.0f} | {_retries(res)} |", flush=True)
             if args.out:
                 write_outputs(res, model, args.out, stem=f"{path.stem}_{view}")
 
