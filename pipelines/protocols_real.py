@@ -64,7 +64,8 @@ def main() -> None:
                 continue
             sm = summarise(res, timing)
             aug = sum(s.solver.get("augmentations", 0) for s in res.steps)
-            stab = max(s.solver.get("longest_stabilised_run", 0) for s in res.steps)
+            stab = max((s.solver.get("longest_stabilised_run", 0) for s in res.steps
+                        if s.action == "move_plate"), default=0)
             print(f"| {path.stem} | {model.n_nodes} | {view} | {sm['D']:.3f} "
                   f"| {sm['upper_force_N']:.2f} | {sm['lower_force_N']:.2f} "
                   f"| {sm['max_penetration_mm']:.4f} | {sm['increments']} | {sm['iterations']} "
