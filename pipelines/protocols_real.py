@@ -10,11 +10,13 @@ Pelicano et al., Sensors 2021 / PLoS One 2024, or sample_cases/phantom01).  Each
 the protocol defaults (friction 0.1, D = 38 % CC / 28 % MLO) and prints one markdown row:
 case, nodes, view, D reached, plate forces (N), largest penetration (mm), increments,
 Newton iterations, augmentations, cut-backs, the longest run of stabilised increments in
-a plate move (the crawl guard's measure, ``[mechanics.solver] crawl_increments``), wall
-and CPU seconds, and the automatic retries of the plate moves (their failed attempts'
-seconds are in the wall and CPU times, their iterations are not).  A failed run prints
-its error instead.  CPU time is the process time (on a shared machine the wall-clock
-depends on the other jobs).
+a plate move (the crawl guard's measure, ``[mechanics.solver] crawl_increments``), the
+Newton iterations of undamped solves that failed (first attempts and settles: "lost"), the
+increments that skipped that attempt (``stabilised_first_after``), wall and CPU seconds,
+and the automatic retries of the plate moves (their failed attempts' seconds are in the
+wall and CPU times, their iterations are not).  A failed run prints its error instead.
+CPU time is the process time (on a shared machine the wall-clock depends on the other
+jobs).
 """
 
 from __future__ import annotations
@@ -50,8 +52,8 @@ def main() -> None:
     except ConfigError as exc:
         ap.error(str(exc))
     print("| case | nodes | view | D | upper N | lower N | pen. mm | incr. | iter. | aug. | cut "
-          "| stab. | wall s | CPU s | retries |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+          "| stab. | lost | skipped | wall s | CPU s | retries |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for path in args.models:
         model = load_model(path)
         for view in args.views:
@@ -66,10 +68,13 @@ def main() -> None:
             aug = sum(s.solver.get("augmentations", 0) for s in res.steps)
             stab = max((s.solver.get("longest_stabilised_run", 0) for s in res.steps
                         if s.action == "move_plate"), default=0)
+            lost, skipped = (sum(s.solver.get(k, 0) for s in res.steps)
+                             for k in ("failed_undamped_iterations", "skipped_undamped"))
             print(f"| {path.stem} | {model.n_nodes} | {view} | {sm['D']:.3f} "
                   f"| {sm['upper_force_N']:.2f} | {sm['lower_force_N']:.2f} "
                   f"| {sm['max_penetration_mm']:.4f} | {sm['increments']} | {sm['iterations']} "
-                  f"| {aug} | {sm['cutbacks']} | {stab} | {time.perf_counter() - t:.0f} "
+                  f"| {aug} | {sm['cutbacks']} | {stab} | {lost} | {skipped} "
+                  f"| {time.perf_counter() - t:.0f} "
                   f"| {time.process_time() - c:.0f} | {_retries(res)} |", flush=True)
             if args.out:
                 write_outputs(res, model, args.out, stem=f"{path.stem}_{view}")

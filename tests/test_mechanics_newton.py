@@ -335,7 +335,9 @@ def test_stabilised_increments_end_in_an_undamped_equilibrium(monkeypatch):
     the last undamped equilibrium (here the initial state, t = 0), not a damped state."""
     pr, g = _hanging_box()
     real = S._increment
-    opts = SolverOptions(initial_increment=0.25, min_increment=0.01, force_tol=1e-10, disp_tol=1e-10)
+    # every increment stabilised and settled: no skipping in the run (tested below)
+    opts = SolverOptions(initial_increment=0.25, min_increment=0.01, force_tol=1e-10,
+                         disp_tol=1e-10, stabilised_first_after=0)
     u_ref, _ = S.solve_step(pr, np.zeros_like(pr.X), gravity=g, options=replace(opts, stabilisation="off"))
     free = np.ones(pr.n_nodes, bool)
     free[pr.fixed_dofs // 3] = False
@@ -440,6 +442,67 @@ def test_crawl_guard_stops_a_run_of_small_stabilised_increments(monkeypatch):
         monkeypatch.setattr(S, "_increment", crawl_from(start, 0.005))
         u, st = S.solve_step(pr, np.zeros_like(pr.X), gravity=g, options=o, crawl_guard=True)
         assert st.longest_stabilised_run >= 15 and np.abs(u - u_ref).max() < 1e-8
+
+
+def test_a_stabilised_run_skips_the_undamped_attempts_but_probes(monkeypatch):
+    """stabilised_first_after = 2, stabilised_probe = 4: new loads in t in (0.3, 0.7] fail
+    undamped (forced), so each increment there needs stabilisation.  After two in a row the
+    next increments go straight to the stabilised solve (``skipped_undamped``), but for every
+    fourth from there, which tries undamped first.  Counted exactly, in increments of 0.05:
+    the run's 1st and 2nd (t = 0.35, 0.4) try and fail, the 3rd to 5th skip, the 6th (0.6)
+    is a probe and fails, the 7th to 9th skip (0.75 too, past the refusals: the price of
+    probing), and the probe at 0.8 passes and ends the run.  The result is the plain
+    solution (1e-8 mm).  Off (0), every new load tries undamped first."""
+    pr, g = _hanging_box()
+    real = S._increment
+    opts = SolverOptions(initial_increment=0.05, max_increment=0.05, force_tol=1e-10,
+                         disp_tol=1e-10, extrapolation="off")
+    assert opts.stabilised_first_after == 2 and opts.stabilised_probe == 4  # the defaults
+    u_ref, _ = S.solve_step(pr, np.zeros_like(pr.X), gravity=g, options=opts)
+    tries: list[float] = []  # the loads of the undamped first attempts (not the settles)
+    done = {"t": 0.0}
+
+    def fake(newton, u, t, *a, **k):
+        if newton.damping is None and t > done["t"] + 1e-12:
+            tries.append(t)
+            if 0.3 + 1e-12 < t <= 0.7 + 1e-12:
+                raise S._Failed("refused (test)")
+        out = real(newton, u, t, *a, **k)
+        done["t"] = t
+        return out
+
+    monkeypatch.setattr(S, "_increment", fake)
+    on = replace(opts, stabilised_first_after=2, stabilised_probe=4)
+    u, st = S.solve_step(pr, np.zeros_like(pr.X), gravity=g, options=on)
+    assert np.abs(u - u_ref).max() < 1e-8 and st.cutbacks == 0
+    in_run = [t for t in tries if 0.3 + 1e-12 < t <= 0.8 + 1e-12]
+    assert np.allclose(in_run, [0.35, 0.4, 0.6, 0.8])
+    assert st.skipped_undamped == 6 and st.stabilised_accepted == 9
+    assert st.longest_stabilised_run == 9 and len(tries) == st.increments - 6 == 14
+    assert st.failed_undamped_iterations == 0  # the forced failures are refused at once
+
+    tries.clear()
+    done["t"] = 0.0
+    off = replace(opts, stabilised_first_after=0)
+    u, st = S.solve_step(pr, np.zeros_like(pr.X), gravity=g, options=off)
+    assert st.skipped_undamped == 0 and len(tries) == st.increments == 20
+    assert np.abs(u - u_ref).max() < 1e-8
+
+    # failed_undamped_iterations: attempts that iterate and then fail count their iterations
+    def solved_then_refused(newton, u, t, *a, **k):
+        it0 = newton.stats.iterations
+        out = real(newton, u, t, *a, **k)
+        if newton.damping is None and 0.3 + 1e-12 < t <= 0.4 + 1e-12 and t > done["t"] + 1e-12:
+            spent.append(newton.stats.iterations - it0)
+            raise S._Failed("refused after solving (test)")
+        done["t"] = t
+        return out
+
+    spent: list[int] = []
+    done["t"] = 0.0
+    monkeypatch.setattr(S, "_increment", solved_then_refused)
+    u, st = S.solve_step(pr, np.zeros_like(pr.X), gravity=g, options=off)
+    assert len(spent) == 2 and min(spent) >= 1 and st.failed_undamped_iterations == sum(spent)
 
 
 def test_polish_damps_less_after_each_proximal_solve_that_converges(monkeypatch):

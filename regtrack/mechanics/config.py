@@ -115,6 +115,17 @@ class SolverOptions:
     stabilisation_polish: int = param(8, "-", "proximal solves at t = 1 before a step whose last "
                                       "increment was stabilised gives up its undamped equilibrium",
                                       ge=1, le=100)
+    stabilised_first_after: int = param(2, "-", "in a run of this many or more consecutive "
+                                        "increments that each needed stabilisation, the next "
+                                        "ones skip the undamped attempt (it failed in each of "
+                                        "them) and are solved stabilised at once, but for every "
+                                        "stabilised_probe-th one (0: off).  Pelicano exams 30 "
+                                        "and 18 MLO at 10k nodes: 1,276 / 1,289 Newton "
+                                        "iterations instead of 1,510 / 1,494, the same forces "
+                                        "(session 29; see solver.py)", ge=0)
+    stabilised_probe: int = param(4, "-", "in a stabilised run (stabilised_first_after), every "
+                                  "this-many-th increment tries the undamped solve first, to "
+                                  "find the run's end", ge=1, le=100)
     crawl_increments: int = param(6, "-", "crawl guard of the protocol engine's plate moves "
                                   "(only where a retry follows: "
                                   "ProtocolRunner._run_step_with_retry): after this many "

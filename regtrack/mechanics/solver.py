@@ -531,7 +531,8 @@ def solve_step(problem: Problem, u0: np.ndarray, *, gravity: Gravity | None = No
             # linear predictor from the last two equilibria (growth capped at 2x)
             newton.guess = u + min(dt / prev[1], _EXTRAPOLATION_MAX) * (u - prev[0])
         try:
-            u_new = _increment_with_retries(newton, u, t_new, gravity, dirichlet, hist, o, stats)
+            u_new = _increment_with_retries(newton, u, t_new, gravity, dirichlet, hist, o, stats,
+                                            skip_undamped=_skip_undamped(run, o))
         except _Failed as why:
             for c in newton.contribs:
                 c.rollback()
@@ -615,6 +616,41 @@ def _crawling(run: list[float], t: float, o: SolverOptions) -> bool:
             and (1.0 - t) > o.crawl_remaining * float(np.mean(run[-n:])))
 
 
+def _skip_undamped(run: list[float], o: SolverOptions) -> bool:
+    """Whether the next increment goes straight to the stabilised solve: the current run of
+    consecutive stabilised increments (``run``) has at least ``stabilised_first_after`` of
+    them, so the undamped attempt failed in each, and this is not a probe (every
+    ``stabilised_probe``-th increment from there tries undamped first, to find the run's
+    end).  A skipped attempt is one that would most likely fail after its full Newton
+    budget; the stabilised retry that follows such a failure starts from the same state
+    (no extrapolated guess, the contributions rolled back), so where the attempt would
+    have failed the path is the same but for the linear solver's factorisation re-use.
+
+    Measured (session 29, one thread, whole MLO protocol at the defaults on the 10k-node
+    Pelicano meshes whose compressions needed stabilisation in every increment; "skipped":
+    attempts skipped, and the Newton iterations of the failed first attempts left):
+
+    ============  ===============  ===============  ==============  ===============
+    exam (nodes)  iterations       upper force N    skipped (left)  CPU s
+    ============  ===============  ===============  ==============  ===============
+    30 (8,854)    1,510 -> 1,276   78.03 -> 78.03   18 (136)        1,188 -> 834
+    18 (9,770)    1,494 -> 1,289   51.03 -> 51.03   15 (125)        1,334 -> 1,048
+    ============  ===============  ===============  ==============  ===============
+
+    (the "before" runs, session 28, shared the two cores with one or two others, so their
+    CPU seconds are high by some 10 to 20 %).  The increments, augmentations, cut-backs
+    and forces are the same: the same path.  The benchmark hemisphere never has two
+    stabilised increments in a row, so its path is unchanged (340 and 120 iterations,
+    128.04 and 52.75 N).  Skipping the settle as well where the last one had failed (a
+    prototype, not kept) saved a little more (1,260 and 1,103) but changed the frictional
+    path (88.81 and 84.60 N): a failed settle is not rolled back, and the multipliers it
+    leaves are the ones the commit stores with the stabilised state."""
+    n = o.stabilised_first_after
+    if n <= 0 or o.stabilisation != "auto" or len(run) < n:
+        return False
+    return (len(run) - n + 1) % o.stabilised_probe != 0
+
+
 def _linear_solver(problem: Problem, o: SolverOptions) -> LinearSolver:
     """The problem's cached solver (the analysis of its fixed pattern is re-used across steps)."""
     key = (o.linear_solver, o.reuse_factorisation, o.precision, o.krylov_rtol, o.krylov_max, o.ordering)
@@ -629,18 +665,27 @@ def _linear_solver(problem: Problem, o: SolverOptions) -> LinearSolver:
 
 
 def _increment_with_retries(newton: _Newton, u, t_new, gravity, dirichlet, hist, o: SolverOptions,
-                            stats: StepStats) -> np.ndarray:
+                            stats: StepStats, skip_undamped: bool = False) -> np.ndarray:
     """One increment; before the caller cuts back, a failed increment is solved again
     (from the same start) with, in turn: the residual (Armijo) line search
     (``line_search_merit = "auto"``, ``merit_retries``), then the contributions' other
     tangent (``swap_tangent``, ``tangent_retries``).  With ``stabilisation = "auto"`` the
     only retry is the stabilised one (:meth:`_Newton.stabilise`), which sets
-    ``newton.damped_last``.  Raises the last ``_Failed``."""
+    ``newton.damped_last``.  ``skip_undamped`` (:func:`_skip_undamped`): the stabilised
+    solve at once, from ``u`` without the extrapolated guess, as after a failed attempt
+    (its settle is still tried).  Raises the last ``_Failed``."""
     newton.damped_last = newton.stabilised_last = False
-    try:
-        return _increment(newton, u, t_new, gravity, dirichlet, hist)
-    except _Failed as first:
-        why = first
+    if skip_undamped:
+        newton.guess = None
+        stats.skipped_undamped += 1
+        why = _Failed("undamped attempt skipped in a stabilised run")
+    else:
+        it0 = stats.iterations
+        try:
+            return _increment(newton, u, t_new, gravity, dirichlet, hist)
+        except _Failed as first:
+            why = first
+            stats.failed_undamped_iterations += stats.iterations - it0
     if o.stabilisation == "auto":
         for c in newton.contribs:
             c.rollback()
@@ -655,9 +700,11 @@ def _increment_with_retries(newton: _Newton, u, t_new, gravity, dirichlet, hist,
         newton.stabilised_last = True
         # settle: undamped Newton at the same load from the stabilised state, so that the
         # damping lag does not carry into the next increment (which would then fail too)
+        it0 = stats.iterations
         try:
             u_set = _increment(newton, u_new, t_new, gravity, dirichlet, hist)
         except _Failed:
+            stats.failed_undamped_iterations += stats.iterations - it0
             newton.damped_last = True
             return u_new
         stats.settled_increments += 1

@@ -23,7 +23,11 @@ class StepStats:
     ``stabilised_accepted`` the accepted increments that needed one (settled or not) and
     ``longest_stabilised_run`` the most of those in a row (the crawl guard's measure),
     ``settled_increments`` those whose state an undamped solve at the same load then made an
-    equilibrium, and
+    equilibrium, ``failed_undamped_iterations`` the Newton iterations of undamped solves that
+    failed (first attempts before a stabilised retry, and settles after one),
+    ``skipped_undamped`` the increments of
+    a stabilised run solved stabilised at once (``[mechanics.solver]
+    stabilised_first_after``), and
     ``polish_solves`` the undamped solves at t = 1 after a stabilised last increment
     (:mod:`.solver`); ``stalled_augmentations`` the increments cut back because a
     contribution's multipliers stopped converging (:meth:`.contact.PlateContact.augment`);
@@ -58,6 +62,8 @@ class StepStats:
     stabilised_accepted: int = 0
     longest_stabilised_run: int = 0
     settled_increments: int = 0
+    failed_undamped_iterations: int = 0
+    skipped_undamped: int = 0
     polish_solves: int = 0
     extrapolated_increments: int = 0
     line_search_trials: int = 0
@@ -82,6 +88,7 @@ class StepStats:
                 "freezes", "stalled_accepts", "stalled_residual_max", "stalled_augmentations",
                 "tightening_solves", "merit_retries", "tangent_retries", "stabilised_increments",
                 "stabilised_accepted", "longest_stabilised_run", "settled_increments",
+                "failed_undamped_iterations", "skipped_undamped",
                 "polish_solves", "extrapolated_increments",
                 "line_search_trials", "inverted_trials", "factorisations", "analyses",
                 "krylov_solves", "krylov_iterations", "reuse_failures", "krylov_wasted_iterations",
