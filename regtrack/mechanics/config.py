@@ -119,10 +119,10 @@ class SolverOptions:
                                         "increments that each needed stabilisation, the next "
                                         "ones skip the undamped attempt (it failed in each of "
                                         "them) and are solved stabilised at once, but for every "
-                                        "stabilised_probe-th one (0: off).  Pelicano exams 30 "
-                                        "and 18 MLO at 10k nodes: 1,276 / 1,289 Newton "
-                                        "iterations instead of 1,510 / 1,494, the same forces "
-                                        "(session 29; see solver.py)", ge=0)
+                                        "stabilised_probe-th one (0: off).  Pelicano exams 30, "
+                                        "18 and 11 MLO at 10k nodes: 1,276 / 1,289 / 1,828 "
+                                        "Newton iterations instead of 1,510 / 1,494 / 2,176, "
+                                        "the same forces (session 29; see solver.py)", ge=0)
     stabilised_probe: int = param(4, "-", "in a stabilised run (stabilised_first_after), every "
                                   "this-many-th increment tries the undamped solve first, to "
                                   "find the run's end", ge=1, le=100)
