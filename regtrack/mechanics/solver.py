@@ -639,7 +639,8 @@ def _skip_undamped(run: list[float], o: SolverOptions) -> bool:
     05 (9,468)    904 -> 763       103.72 -> 102.91 3 (139 *)       504 -> 444
     ============  ===============  ===============  ==============  ===============
 
-    (* with the failed settles' iterations, counted since.  The "before" runs, sessions 27
+    (*: with the failed settles' iterations, which were not counted in the first two runs.
+    The "before" runs, sessions 27
     and 28, shared the two cores with one or two others, and so did exam 11's "after" run,
     so compare their CPU seconds loosely).  On exams 30, 18 and 11 the increments,
     augmentations, cut-backs and forces are the same: the same path.  Exam 05 (three

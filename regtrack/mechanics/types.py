@@ -25,9 +25,8 @@ class StepStats:
     ``settled_increments`` those whose state an undamped solve at the same load then made an
     equilibrium, ``failed_undamped_iterations`` the Newton iterations of undamped solves that
     failed (first attempts before a stabilised retry, and settles after one),
-    ``skipped_undamped`` the increments of
-    a stabilised run solved stabilised at once (``[mechanics.solver]
-    stabilised_first_after``), and
+    ``skipped_undamped`` the increments of a stabilised run solved stabilised at once
+    (``[mechanics.solver] stabilised_first_after``), and
     ``polish_solves`` the undamped solves at t = 1 after a stabilised last increment
     (:mod:`.solver`); ``stalled_augmentations`` the increments cut back because a
     contribution's multipliers stopped converging (:meth:`.contact.PlateContact.augment`);
