@@ -640,9 +640,8 @@ def _skip_undamped(run: list[float], o: SolverOptions) -> bool:
     ============  ===============  ===============  ==============  ===============
 
     (*: with the failed settles' iterations, which were not counted in the first two runs.
-    The "before" runs, sessions 27
-    and 28, shared the two cores with one or two others, and so did exam 11's "after" run,
-    so compare their CPU seconds loosely).  On exams 30, 18 and 11 the increments,
+    The "before" runs, sessions 27 and 28, shared the two cores with one or two others, and
+    so did exam 11's "after" run, so compare their CPU seconds loosely).  On exams 30, 18 and 11 the increments,
     augmentations, cut-backs and forces are the same: the same path.  Exam 05 (three
     stabilised increments in a row before) took another path: 24 increments instead of
     27, 0.8 % less force (a skipped attempt that would have passed, or the other
