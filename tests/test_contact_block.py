@@ -269,3 +269,74 @@ def test_debug_log_accounts_for_every_solve_and_multiplier_update(caplog):
     checks = [m for m in caplog.messages if m.startswith("plate 'lower': largest gap violation")]
     assert len(checks) == st.increments + st.augmentations
     assert sum("re-solve" in m for m in checks) == st.augmentations
+
+
+@pytest.mark.parametrize("start", ["stabilised", "committed"])
+def test_a_settle_starts_from_the_stabilised_multipliers_and_a_failed_one_leaves_them(
+        monkeypatch, start):
+    """After a stabilised increment the undamped settle solve at the same load starts from
+    the stabilised solve's multipliers (``settle_multipliers = "stabilised"``) or from the
+    last committed ones (``"committed"``).  Where the settle fails, the state committed
+    with the stabilised displacement must be the stabilised solve's: its multipliers, not
+    those the failed settle's multiplier updates left.  Every undamped first attempt and
+    every settle is refused here (a settle after its real solve and updates), so each
+    increment is committed stabilised and the step ends with the polish; the frictional
+    block press must still end at the plain run's equilibrium (penetration within 1e-3 mm,
+    force within 0.5 %: two 1e-3 mm penetrations on a 0.5 mm press give 0.4 %, plus the
+    friction path's share, measured 0.03 %)."""
+    import regtrack.mechanics.solver as S
+
+    def run(refuse: bool):
+        prob, X, c, top, dofs = _block_on_plate(0.1)
+        opts = SolverOptions(initial_increment=0.25, max_increment=0.25, force_tol=1e-8,
+                             stabilised_first_after=0, settle_multipliers=start)
+        stabilised, settles, commits, tries = [], [], [], {}
+        real_inc, real_stab, real_commit = S._increment, S._stabilised_increment, c.commit
+
+        def increment(newton, u, t, *a, **k):
+            if "multipliers" in k:  # the settle
+                settles.append([c._lam.copy()])  # the committed multipliers
+                if refuse:
+                    real_inc(newton, u, t, *a, **k)
+                    raise S._Failed("settle refused (test)")
+            elif newton.damping is None and refuse:
+                tries[t] = tries.get(t, 0) + 1
+                if tries[t] == 1:  # the increment's own attempt (not the polish at t = 1)
+                    raise S._Failed("undamped attempt refused (test)")
+            return real_inc(newton, u, t, *a, **k)
+
+        def stabilised_increment(*a, **k):
+            out = real_stab(*a, **k)
+            stabilised.append(c.lam.copy())
+            return out
+
+        real_solve = S._Newton.solve_increment
+
+        def solve_increment(newton, *a, **k):
+            if settles and len(settles[-1]) == 1:  # the settle's first solve starts from
+                settles[-1].append(c.lam.copy())
+            return real_solve(newton, *a, **k)
+
+        c.commit = lambda u: commits.append(c.lam.copy()) or real_commit(u)
+        monkeypatch.setattr(S._Newton, "solve_increment", solve_increment)
+        monkeypatch.setattr(S, "_increment", increment)
+        monkeypatch.setattr(S, "_stabilised_increment", stabilised_increment)
+        u, st = solve_step(prob, np.zeros_like(X), contributions=[c], options=opts,
+                           step_name="press",
+                           dirichlet=lambda t: (dofs, np.tile([0.0, 0.0, -0.5 * t], len(top))))
+        monkeypatch.undo()
+        return u, st, stabilised, settles, commits
+
+    u_ref, st_ref, *_ = run(refuse=False)
+    u, st, stabilised, settles, commits = run(refuse=True)
+    assert st.settled_increments == 0 and st.stabilised_accepted == st.increments == 4
+    assert len(settles) == 4 and len(stabilised) >= 4
+    for k, (committed, first) in enumerate(settles):
+        assert np.any(stabilised[k] != committed)  # the multipliers moved in the increment
+        assert np.array_equal(first, stabilised[k] if start == "stabilised" else committed)
+        # every increment's commit stores the stabilised solve's multipliers
+        assert np.array_equal(commits[k], stabilised[k])
+    assert st.polish_solves >= 1
+    rep, rep_ref = st.reports[-1]["lower"], st_ref.reports[-1]["lower"]
+    assert rep["max_penetration_mm"] <= 1e-3
+    assert rep["normal_force_N"] == pytest.approx(rep_ref["normal_force_N"], rel=5e-3)

@@ -420,7 +420,9 @@ def test_crawl_guard_stops_a_run_of_small_stabilised_increments(monkeypatch):
     monkeypatch.setattr(S, "_increment", crawl_from(0.3, 0.005))
     u, st = S.solve_step(pr, np.zeros_like(pr.X), gravity=g, options=opts)
     assert st.stabilised_accepted >= 140 and st.longest_stabilised_run == st.stabilised_accepted
-    assert st.settled_increments == st.stabilised_accepted
+    # every one is settled, but those that skipped their attempt commit it stabilised
+    assert st.settled_increments + st.skipped_settles == st.stabilised_accepted
+    assert 0 < st.skipped_settles <= st.skipped_undamped  # (skips that were cut back too)
     assert np.abs(u - u_ref).max() < 1e-8
 
     done["t"] = 0.0
@@ -451,8 +453,9 @@ def test_a_stabilised_run_skips_the_undamped_attempts_but_probes(monkeypatch):
     fourth from there, which tries undamped first.  Counted exactly, in increments of 0.05:
     the run's 1st and 2nd (t = 0.35, 0.4) try and fail, the 3rd to 5th skip, the 6th (0.6)
     is a probe and fails, the 7th to 9th skip (0.75 too, past the refusals: the price of
-    probing), and the probe at 0.8 passes and ends the run.  The result is the plain
-    solution (1e-8 mm).  Off (0), every new load tries undamped first."""
+    probing), and the probe at 0.8 passes and ends the run; the skipping increments skip
+    their settle too.  The result is the plain solution (1e-8 mm).  Off (0), every new load
+    tries undamped first."""
     pr, g = _hanging_box()
     real = S._increment
     opts = SolverOptions(initial_increment=0.05, max_increment=0.05, force_tol=1e-10,
@@ -480,6 +483,16 @@ def test_a_stabilised_run_skips_the_undamped_attempts_but_probes(monkeypatch):
     assert st.skipped_undamped == 6 and st.stabilised_accepted == 9
     assert st.longest_stabilised_run == 9 and len(tries) == st.increments - 6 == 14
     assert st.failed_undamped_iterations == 0  # the forced failures are refused at once
+    # the skipping increments skip their settle too (stabilised_skip_settle, the default):
+    # committed stabilised, as if it had failed; the others settle (here they all pass)
+    assert st.skipped_settles == 6 and st.settled_increments == 3
+
+    tries.clear()
+    done["t"] = 0.0
+    u, st = S.solve_step(pr, np.zeros_like(pr.X), gravity=g,
+                         options=replace(on, stabilised_skip_settle=False))
+    assert np.abs(u - u_ref).max() < 1e-8 and st.skipped_undamped == 6
+    assert st.skipped_settles == 0 and st.settled_increments == 9
 
     tries.clear()
     done["t"] = 0.0

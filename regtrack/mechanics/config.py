@@ -115,6 +115,13 @@ class SolverOptions:
     stabilisation_polish: int = param(8, "-", "proximal solves at t = 1 before a step whose last "
                                       "increment was stabilised gives up its undamped equilibrium",
                                       ge=1, le=100)
+    settle_multipliers: str = param("stabilised", "", "the undamped settle solve after a "
+                                    "stabilised increment starts from the stabilised solve's "
+                                    "augmented-Lagrangian multipliers ('stabilised') or from the "
+                                    "last committed ones ('committed', as before session 30); "
+                                    "either way a failed settle returns to the stabilised "
+                                    "solve's multipliers (see solver.py)",
+                                    choices=("stabilised", "committed"))
     stabilised_first_after: int = param(2, "-", "in a run of this many or more consecutive "
                                         "increments that each needed stabilisation, the next "
                                         "ones skip the undamped attempt (it failed in each of "
@@ -123,6 +130,9 @@ class SolverOptions:
                                         "18 and 11 MLO at 10k nodes: 1,276 / 1,289 / 1,828 "
                                         "Newton iterations instead of 1,510 / 1,494 / 2,176, "
                                         "the same forces (session 29; see solver.py)", ge=0)
+    stabilised_skip_settle: bool = param(True, "", "an increment that skips its undamped "
+                                         "attempt (stabilised_first_after) skips the settle "
+                                         "solve too and is committed stabilised (see solver.py)")
     stabilised_probe: int = param(4, "-", "in a stabilised run (stabilised_first_after), every "
                                   "this-many-th increment tries the undamped solve first, to "
                                   "find the run's end", ge=1, le=100)

@@ -553,6 +553,26 @@ class PlateContact:
             self.pbar = p.copy()
         self._new_solve()
 
+    def trial_state(self) -> dict:
+        """Copy of the current solve's multipliers, friction bound pressure and held
+        stick/slip state (solver: the settle after a stabilised increment starts from the
+        stabilised solve's multipliers and, if it fails, returns to that whole state)."""
+        def cp(a):
+            return None if a is None else a.copy()
+        return {"lam": self.lam.copy(), "pbar": self.pbar.copy(), "frozen": cp(self._frozen),
+                "held": cp(self._held)}
+
+    def set_trial_state(self, state: dict, *, solve_state: bool = True) -> None:
+        """Restore a :meth:`trial_state`: the multipliers and bound pressure, and with
+        ``solve_state`` the frozen / held stick/slip state too (what :meth:`commit` then
+        stores is that solve's); without it a new solve starts from those multipliers."""
+        self.lam = state["lam"].copy()
+        self.pbar = state["pbar"].copy()
+        self._new_solve()
+        if solve_state:
+            self._frozen = None if state["frozen"] is None else state["frozen"].copy()
+            self._held = None if state["held"] is None else state["held"].copy()
+
     def rollback(self) -> None:
         """Forget the trial multipliers and plate position of a cut-back increment."""
         self.lam = self._lam.copy()

@@ -28,6 +28,12 @@ ends before t = 1 (solver ``augmentation = "final"``, where such increments skip
 ``augment`` re-solves): update the multipliers once, for ``commit`` to carry into the
 next increment.
 
+Optional: ``trial_state() -> state`` and ``set_trial_state(state, *, solve_state=True)``:
+a copy of the current solve's multipliers (and discrete state), and its restoration.
+After a stabilised increment the solver starts the undamped "settle" solve at the same
+load from those multipliers (``solve_state=False``) and, if the settle fails, restores the
+whole state, so that ``commit`` stores the stabilised solve's.
+
 Optional: ``freeze()``, called when Newton stagnates, asks the contribution to hold its
 discrete state (stick/slip) for the rest of the solve and to check it in ``augment``;
 a contribution without it is left alone.

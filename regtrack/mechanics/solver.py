@@ -59,7 +59,14 @@ converges, at most ``stabilisation_polish`` rounds: ``_polish``).  Right after a
 stabilised increment, an undamped solve at the same load ("settle",
 ``settled_increments``) tries to remove the damping lag at once: left in, the
 lag made the next undamped increment fail as well, and on Pelicano exam 10's 10k MLO every
-increment of the compression ended up stabilised and the final polish failed.  The returned state is therefore converged to the same criteria as always;
+increment of the compression ended up stabilised and the final polish failed.  The settle
+starts from the stabilised solve's augmented-Lagrangian multipliers
+(``settle_multipliers = "stabilised"``; ``"committed"``, the behaviour before session 30,
+starts it from the last committed ones, so its first solve has the whole increment's
+pressure change to make up); a settle that fails returns the contributions to the
+stabilised solve's multipliers and stick/slip state, which the commit then stores (before
+session 30 it stored what the failed settle's multiplier updates had left).  The returned
+state is therefore converged to the same criteria as always;
 a failure reports and keeps the last *undamped* equilibrium.  ``"off"`` restores the
 line-search merit and contact-tangent retries (below).  Measured, compression step: phantom
 CC (1,841 nodes) 254 Newton iterations instead of 334; Pelicano exam 03 CC (1.5k nodes)
@@ -704,13 +711,21 @@ def _increment_with_retries(newton: _Newton, u, t_new, gravity, dirichlet, hist,
             raise
         log.info("%s: increment to t = %.4g stabilised (undamped: %s)", stats.name, t_new, why)
         newton.stabilised_last = True
+        if skip_undamped and o.stabilised_skip_settle:  # as if the settle had failed
+            stats.skipped_settles += 1
+            newton.damped_last = True
+            return u_new
         # settle: undamped Newton at the same load from the stabilised state, so that the
         # damping lag does not carry into the next increment (which would then fail too)
+        held = _trial_states(newton)
         it0 = stats.iterations
         try:
-            u_set = _increment(newton, u_new, t_new, gravity, dirichlet, hist)
+            u_set = _increment(newton, u_new, t_new, gravity, dirichlet, hist,
+                               multipliers=held if o.settle_multipliers == "stabilised" else ())
         except _Failed:
             stats.failed_undamped_iterations += stats.iterations - it0
+            for c, state in held:  # the commit stores the stabilised solve's state
+                c.set_trial_state(state)
             newton.damped_last = True
             return u_new
         stats.settled_increments += 1
@@ -737,6 +752,12 @@ def _increment_with_retries(newton: _Newton, u, t_new, gravity, dirichlet, hist,
     finally:
         for c in swapped:
             c.swap_tangent()
+
+
+def _trial_states(newton: _Newton) -> list[tuple[Any, Any]]:
+    """(contribution, :meth:`trial_state`) of the contributions that have one."""
+    return [(c, c.trial_state()) for c in newton.contribs
+            if getattr(c, "trial_state", None) is not None]
 
 
 def _stabilised_increment(newton: _Newton, u: np.ndarray, t: float, gravity, dirichlet, hist,
@@ -786,9 +807,12 @@ def _polish(newton: _Newton, u: np.ndarray, gravity, dirichlet, o: SolverOptions
     raise _Failed(f"no undamped equilibrium after {o.stabilisation_polish} stabilised solves")
 
 
-def _increment(newton: _Newton, u: np.ndarray, t: float, gravity, dirichlet, hist) -> np.ndarray:
+def _increment(newton: _Newton, u: np.ndarray, t: float, gravity, dirichlet, hist,
+               multipliers: Sequence[tuple[Any, Any]] = ()) -> np.ndarray:
     """Newton solve of the increment ending at ``t``, then the augmented-Lagrangian loop:
-    while a contribution updates its multipliers (``augment`` returns False), re-solve; a
+    ``multipliers`` (a settle, see :func:`_increment_with_retries`): (contribution,
+    trial state) pairs whose multipliers the solve starts from instead of the committed
+    ones.  While a contribution updates its multipliers (``augment`` returns False), re-solve; a
     contribution whose multipliers have stopped converging (its ``stalled`` message, see
     :meth:`.contact.PlateContact._check_stall`) fails the increment at once (cut-back),
     counted in ``stalled_augmentations``.
@@ -850,6 +874,8 @@ def _increment(newton: _Newton, u: np.ndarray, t: float, gravity, dirichlet, his
     p, o = newton.p, newton.o
     for c in newton.contribs:
         c.set_time(t)
+    for c, state in multipliers:  # a settle: the stabilised solve's multipliers
+        c.set_trial_state(state, solve_state=False)
     fext = body_force(p, gravity(t)) if gravity is not None else np.zeros(p.n_dofs)
     dofs, vals = _constraint_targets(p, u, dirichlet, t)
     it0 = newton.stats.iterations

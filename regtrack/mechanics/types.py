@@ -26,7 +26,8 @@ class StepStats:
     equilibrium, ``failed_undamped_iterations`` the Newton iterations of undamped solves that
     failed (first attempts before a stabilised retry, and settles after one),
     ``skipped_undamped`` the increments of a stabilised run solved stabilised at once
-    (``[mechanics.solver] stabilised_first_after``), and
+    (``[mechanics.solver] stabilised_first_after``), ``skipped_settles`` those of them
+    committed stabilised without a settle (``stabilised_skip_settle``), and
     ``polish_solves`` the undamped solves at t = 1 after a stabilised last increment
     (:mod:`.solver`); ``stalled_augmentations`` the increments cut back because a
     contribution's multipliers stopped converging (:meth:`.contact.PlateContact.augment`);
@@ -62,6 +63,7 @@ class StepStats:
     longest_stabilised_run: int = 0
     settled_increments: int = 0
     failed_undamped_iterations: int = 0
+    skipped_settles: int = 0
     skipped_undamped: int = 0
     polish_solves: int = 0
     extrapolated_increments: int = 0
@@ -87,7 +89,7 @@ class StepStats:
                 "freezes", "stalled_accepts", "stalled_residual_max", "stalled_augmentations",
                 "tightening_solves", "merit_retries", "tangent_retries", "stabilised_increments",
                 "stabilised_accepted", "longest_stabilised_run", "settled_increments",
-                "failed_undamped_iterations", "skipped_undamped",
+                "failed_undamped_iterations", "skipped_undamped", "skipped_settles",
                 "polish_solves", "extrapolated_increments",
                 "line_search_trials", "inverted_trials", "factorisations", "analyses",
                 "krylov_solves", "krylov_iterations", "reuse_failures", "krylov_wasted_iterations",
