@@ -656,8 +656,11 @@ def _skip_undamped(run: list[float], o: SolverOptions) -> bool:
     increments in a row, so its path is unchanged (340 and 120 iterations, 128.04 and
     52.75 N).  Skipping the settle as well where the last one had failed (a
     prototype, not kept) saved a little more (1,260 and 1,103) but changed the frictional
-    path (88.81 and 84.60 N): a failed settle is not rolled back, and the multipliers it
-    leaves are the ones the commit stores with the stabilised state."""
+    path (88.81 and 84.60 N): a failed settle was not rolled back then, and the commit
+    stored the multipliers it left.  Since session 30 a failed settle returns to the
+    stabilised solve's state, so a skipped settle is one that failed, and the increments
+    that skip their attempt skip their settle too (``stabilised_skip_settle``; measured
+    with ``settle_multipliers = "stabilised"`` in README "Status")."""
     n = o.stabilised_first_after
     if n <= 0 or o.stabilisation != "auto" or len(run) < n:
         return False
