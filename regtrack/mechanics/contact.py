@@ -253,6 +253,10 @@ def automatic_penalty(config: ContactConfig, *, young_mpa: float, h_mm: float) -
     return float(config.penalty_factor * young_mpa / h_mm)
 
 
+def _copy(a: np.ndarray | None) -> np.ndarray | None:
+    return None if a is None else a.copy()
+
+
 def _outer(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.einsum("ni,nj->nij", a, b)
 
@@ -557,10 +561,8 @@ class PlateContact:
         """Copy of the current solve's multipliers, friction bound pressure and held
         stick/slip state (solver: the settle after a stabilised increment starts from the
         stabilised solve's multipliers and, if it fails, returns to that whole state)."""
-        def cp(a):
-            return None if a is None else a.copy()
-        return {"lam": self.lam.copy(), "pbar": self.pbar.copy(), "frozen": cp(self._frozen),
-                "held": cp(self._held)}
+        return {"lam": self.lam.copy(), "pbar": self.pbar.copy(),
+                "frozen": _copy(self._frozen), "held": _copy(self._held)}
 
     def set_trial_state(self, state: dict, *, solve_state: bool = True) -> None:
         """Restore a :meth:`trial_state`: the multipliers and bound pressure, and with
@@ -570,8 +572,7 @@ class PlateContact:
         self.pbar = state["pbar"].copy()
         self._new_solve()
         if solve_state:
-            self._frozen = None if state["frozen"] is None else state["frozen"].copy()
-            self._held = None if state["held"] is None else state["held"].copy()
+            self._frozen, self._held = _copy(state["frozen"]), _copy(state["held"])
 
     def rollback(self) -> None:
         """Forget the trial multipliers and plate position of a cut-back increment."""
