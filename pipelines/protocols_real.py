@@ -8,7 +8,8 @@ Usage::
 Models come from ``regtrack mesh`` (e.g. the Pelicano exams of ../shared/data/pelicano,
 Pelicano et al., Sensors 2021 / PLoS One 2024, or sample_cases/phantom01).  Each run uses
 the protocol defaults (friction 0.1, D = 38 % CC / 28 % MLO) and prints one markdown row:
-case, nodes, view, D reached, plate forces (N), largest penetration (mm), increments,
+case, nodes, view, D reached, plate forces (N), largest penetration (mm), the deepest node
+behind the chest-wall plane at the end of a step (mm; ``behind_chest_wall_mm``), increments,
 Newton iterations, augmentations, cut-backs, the longest run of stabilised increments in
 a plate move (the crawl guard's measure, ``[mechanics.solver] crawl_increments``), the
 Newton iterations of undamped solves that failed (first attempts and settles: "lost"), the
@@ -51,9 +52,9 @@ def main() -> None:
                                                                    where="--solver"))
     except ConfigError as exc:
         ap.error(str(exc))
-    print("| case | nodes | view | D | upper N | lower N | pen. mm | incr. | iter. | aug. | cut "
-          "| stab. | lost | skipped | wall s | CPU s | retries |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+    print("| case | nodes | view | D | upper N | lower N | pen. mm | behind mm | incr. | iter. "
+          "| aug. | cut | stab. | lost | skipped | wall s | CPU s | retries |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for path in args.models:
         model = load_model(path)
         for view in args.views:
@@ -72,12 +73,17 @@ def main() -> None:
                              for k in ("failed_undamped_iterations", "skipped_undamped"))
             print(f"| {path.stem} | {model.n_nodes} | {view} | {sm['D']:.3f} "
                   f"| {sm['upper_force_N']:.2f} | {sm['lower_force_N']:.2f} "
-                  f"| {sm['max_penetration_mm']:.4f} | {sm['increments']} | {sm['iterations']} "
+                  f"| {sm['max_penetration_mm']:.4f} | {_mm(sm['behind_chest_wall_mm'])} "
+                  f"| {sm['increments']} | {sm['iterations']} "
                   f"| {aug} | {sm['cutbacks']} | {stab} | {lost} | {skipped} "
                   f"| {time.perf_counter() - t:.0f} "
                   f"| {time.process_time() - c:.0f} | {_retries(res)} |", flush=True)
             if args.out:
                 write_outputs(res, model, args.out, stem=f"{path.stem}_{view}")
+
+
+def _mm(x: float | None) -> str:
+    return "-" if x is None else f"{x:.1f}"
 
 
 def _retries(res) -> str:

@@ -359,3 +359,40 @@ def test_chest_wall_contact_pushes_skin_back_in_front_of_the_wall():
                             config=ContactConfig(chest_wall_contact=True))
     assert set(runner.contacts) == {"lower", "upper", "chest-wall"}
     assert set(runner.plates) == {"lower", "upper"}
+
+
+def test_behind_chest_wall_depth_is_measured_from_the_most_posterior_node():
+    """Known answer: the plane is x = min X (here -40 mm); node depths x_cw - (X + u)_x."""
+    from regtrack.mechanics.protocol_run import behind_chest_wall
+
+    X = np.array([[-40.0, 0, 0], [-35.0, 0, 0], [-30.0, 0, 0], [0.0, 0, 0]])
+    fixed = np.array([True, False, False, False])
+    u = np.zeros_like(X)
+    assert behind_chest_wall(X, u, fixed) == (0.0, 0)
+    u[1, 0], u[2, 0] = -12.5, -10.5  # 7.5 and 0.5 mm behind the plane
+    assert behind_chest_wall(X, u, fixed) == (pytest.approx(7.5), 1)
+    assert behind_chest_wall(X, u, fixed, over_mm=0.25)[1] == 2
+    assert behind_chest_wall(X, u, np.zeros(4, bool)) == (None, None)  # no wall, no report
+
+
+@pytest.mark.parametrize("factor, warned", [(1.0, False), (100.0, True)])
+def test_a_step_reports_tissue_behind_the_chest_wall_and_warns_past_the_limit(factor, warned):
+    """A gravity step along -x (posterior) pulls the mock body's free nodes back by
+    u = W g / k: 0.4 mm at 9.81 m/s^2 (the first free plane, x = -35 mm, stays 4.6 mm in
+    front of the wall), 40 mm at 100 g: the x = -35 plane ends 35 mm behind it (over the
+    10 mm warning limit), and the planes x = -35 ... -5 mm more than 1 mm behind."""
+    table = {"name": "pull", "view": "CC",
+             "steps": [{"name": "pull", "action": "gravity", "load": "pull",
+                        "direction": [-1.0, 0.0, 0.0], "factor": factor}]}
+    res, runner = _run(parse_protocol(table, where="pull.toml"))
+    rec = res.steps[-1]
+    depth = WEIGHT * 9.81 * factor / K_SPRING - 5.0
+    assert rec.behind_chest_wall_mm == pytest.approx(max(depth, 0.0), rel=1e-9)
+    X = runner.body.points
+    behind = ~runner.body.fixed & (X[:, 0] - WEIGHT * 9.81 * factor / K_SPRING < -41.0)
+    assert rec.behind_chest_wall_nodes == int(behind.sum()) == (7 * 49 if warned else 0)
+    assert bool(rec.warnings) is warned
+    d = rec.to_dict()
+    assert d["behind_chest_wall_mm"] == rec.behind_chest_wall_mm and d["warnings"] == rec.warnings
+    if warned:
+        assert "behind_wall_warn_mm" in rec.warnings[0] and "'pull'" in rec.warnings[0]

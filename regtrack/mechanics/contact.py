@@ -181,6 +181,11 @@ class ContactConfig:
                                      "posterior_edge_mm >= edge_radius_mm + 5.  Experimental: "
                                      "so set, Pelicano exam 10 CC at 8.9k nodes stopped at "
                                      "t = 0.86 of the compression")
+    behind_wall_warn_mm: float = param(10.0, "mm", "reports: warn (log and the step's "
+                                       "'warnings') when a node ends a protocol step deeper "
+                                       "than this behind the chest-wall plane (the torso is "
+                                       "there; see chest_wall_contact); every step reports the "
+                                       "depth as behind_chest_wall_mm", gt=0.0)
     edge_band_mm: float = param(10.0, "mm", "reports: the plate force carried by the skin "
                                 "that lay (reference configuration) within this distance in "
                                 "front of the plate's chest-wall edge, or behind it, is "

@@ -112,13 +112,19 @@ class StepRecord:
     D_mean: float | None = None
     max_penetration_mm: float = 0.0
     solver: dict = field(default_factory=dict)
+    behind_chest_wall_mm: float | None = None
+    behind_chest_wall_nodes: int | None = None
+    warnings: list[str] = field(default_factory=list)
 
     def to_dict(self) -> dict:
         """JSON-ready figures (no displacement)."""
         return {"name": self.name, "action": self.action, "gravity_ms2": self.gravity_ms2.tolist(),
                 "plates": self.plates, "contact": self.contact, "plate_gap_mm": self.gap_mm,
                 "T0_mm": self.T0_mm, "D": self.D, "D_mean": self.D_mean,
-                "max_penetration_mm": self.max_penetration_mm, "solver": self.solver}
+                "max_penetration_mm": self.max_penetration_mm,
+                "behind_chest_wall_mm": self.behind_chest_wall_mm,
+                "behind_chest_wall_nodes": self.behind_chest_wall_nodes,
+                "warnings": self.warnings, "solver": self.solver}
 
 
 @dataclass
@@ -155,6 +161,29 @@ def chest_wall(body: BodySetup, config: ContactConfig) -> PlateContact | None:
                       normal=(1.0, 0.0, 0.0), e1=(0.0, 1.0, 0.0))
     return PlateContact(wall, body.points, nodes, areas, config=replace(config, friction=0.0),
                         penalty=eps)
+
+
+def behind_chest_wall(points: np.ndarray, u: np.ndarray, fixed: np.ndarray,
+                      *, over_mm: float = 1.0) -> tuple[float | None, int | None]:
+    """How far the deformed body lies behind the chest-wall plane: ``(depth_mm, nodes)``.
+
+    The plane is the one :func:`chest_wall` uses, ``x_cw = min_i X_i`` (model frame, ``x``
+    posterior -> anterior; the chest-wall nodes of a model cut from an MRI lie within
+    0.3 mm of it).  With ``x_i = X_i + u_i``,
+
+    .. math::
+
+        \\mathrm{depth} = \\max\\bigl(0, \\max_i (x_{cw} - x_{i,x})\\bigr),
+
+    and ``nodes`` counts the nodes more than ``over_mm`` behind it.  Tissue there would be
+    inside the torso: the paper's model (fixed chest wall, no wall contact) lets the tissue
+    pinched by a plate's rounded edge go there.  ``(None, None)`` for a body without
+    chest-wall nodes (no wall to be behind)."""
+    if not np.any(fixed):
+        return None, None
+    x_cw = float(np.min(points[:, 0]))
+    behind = x_cw - (points[:, 0] + u[:, 0])
+    return max(0.0, float(behind.max())), int(np.count_nonzero(behind > over_mm))
 
 
 def _skin_contact(body: BodySetup, config: ContactConfig) -> tuple[np.ndarray, np.ndarray, float]:
@@ -381,6 +410,16 @@ class ProtocolRunner:
         rec = StepRecord(name=step.name, action=step.action, u=self.u.copy(), gravity_ms2=self.g.copy(),
                          plates={k: c.plate.to_dict() for k, c in self.plates.items()},
                          contact=reps, gap_mm=gap, max_penetration_mm=pen, solver=stats)
+        depth, count = behind_chest_wall(self.body.points, self.u, self.body.fixed)
+        rec.behind_chest_wall_mm, rec.behind_chest_wall_nodes = depth, count
+        if depth is not None and depth > self.config.behind_wall_warn_mm:
+            msg = (f"step '{step.name}': {count} nodes end more than 1 mm behind the chest-wall "
+                   f"plane, the deepest {depth:.1f} mm (over [contact] behind_wall_warn_mm = "
+                   f"{self.config.behind_wall_warn_mm:g}): tissue inside the torso; its plate "
+                   "force and shape near the wall are not physical (see [contact] "
+                   "chest_wall_contact)")
+            log.warning(msg)
+            rec.warnings.append(msg)
         if T0 is not None:
             rec.T0_mm = T0
             rec.D = comp.compression_degree(T0, gap)

@@ -128,7 +128,11 @@ def summarise(result: ProtocolResult, timing: dict | None = None) -> dict:
     plates, the part that does not grow with mesh refinement.  ``retried_steps``: the
     plate moves that converged only on an automatic retry (``[contact]
     retry_penalty_growth_max``, ``retry_plate_increment_mm``; the step's ``solver.retry``
-    says which); their figures are those of the retry."""
+    says which); their figures are those of the retry.  ``behind_chest_wall_mm``: the
+    deepest any node ended a step behind the chest-wall plane
+    (:func:`regtrack.mechanics.protocol_run.behind_chest_wall`); ``warnings``: every step's
+    warnings (``[contact] behind_wall_warn_mm``)."""
+    behind = [s.behind_chest_wall_mm for s in result.steps if s.behind_chest_wall_mm is not None]
     last = result.steps[-1]
     upper = last.contact["upper"]["normal_force_N"]
     edge = last.contact["upper"].get("edge_normal_force_N")
@@ -144,6 +148,8 @@ def summarise(result: ProtocolResult, timing: dict | None = None) -> dict:
             "iterations": sum(s.solver.get("iterations", 0) for s in result.steps),
             "cutbacks": sum(s.solver.get("cutbacks", 0) for s in result.steps),
             "retried_steps": [s.name for s in result.steps if "retry" in s.solver],
+            "behind_chest_wall_mm": max(behind) if behind else None,
+            "warnings": [w for s in result.steps for w in s.warnings],
             "tissue": result.materials, "timing_s": timing or {}}
 
 

@@ -225,6 +225,7 @@ def align_stage(ctx, mesh: MeshOutput, sim: SimOutput, vm, real, view: str) -> V
         "breast_dist_p95_mm": md["breast_distance"]["p95"],
         "breast_hausdorff_mm": md["breast_distance"]["hausdorff"],
         "max_penetration_mm": sim.summary.get("max_penetration_mm"),
+        "behind_chest_wall_mm": sim.summary.get("behind_chest_wall_mm"),
         "newton_iterations": sim.summary.get("iterations"),
     }
     if m.tumour_distance is not None:
@@ -242,6 +243,7 @@ def virtual_only(ctx, sim: SimOutput, vm, view: str) -> ViewOutcome:
     row = {"case_id": ctx.case.id, "view": view, "D": sim.summary.get("D"),
            "force_N": sim.summary.get("upper_force_N"),
            "max_penetration_mm": sim.summary.get("max_penetration_mm"),
+           "behind_chest_wall_mm": sim.summary.get("behind_chest_wall_mm"),
            "newton_iterations": sim.summary.get("iterations")}
     return ViewOutcome(view, sim.key, row, None, vm, None, None, sim)
 
@@ -271,7 +273,8 @@ def report_stage(ctx, mesh: MeshOutput, results: list[ViewOutcome], out: Path, p
             _io.write_bytes(vdir / f"compression{p.suffix}", p.read_bytes())
         steps = [{"step": s.get("name"), "D": s.get("D"), "force_N": (s.get("contact") or {})
                   .get("upper", {}).get("normal_force_N"), "max_penetration_mm":
-                  s.get("max_penetration_mm"), "increments": (s.get("solver") or {}).get("increments"),
+                  s.get("max_penetration_mm"), "behind_wall_mm": s.get("behind_chest_wall_mm"),
+                  "increments": (s.get("solver") or {}).get("increments"),
                   "iterations": (s.get("solver") or {}).get("iterations"),
                   "seconds": (s.get("solver") or {}).get("seconds")} for s in r.sim.steps]
         views.append(ViewReport(r.view, r.row, r.real, r.virtual.view, r.alignment, steps,

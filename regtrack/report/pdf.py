@@ -161,8 +161,9 @@ def write_pdf(report: CaseReport, path: str | Path) -> Path:
             if v.steps:
                 fig = plt.figure(figsize=(8.27, 11.69))
                 fig.text(0.06, 0.95, f"{v.view}: simulation steps", fontsize=13, weight="bold")
-                keys = [k for k in ("step", "D", "force_N", "max_penetration_mm", "increments",
-                                    "iterations", "seconds") if any(k in s for s in v.steps)]
+                keys = [k for k in ("step", "D", "force_N", "max_penetration_mm", "behind_wall_mm",
+                                    "increments", "iterations", "seconds")
+                        if any(k in s for s in v.steps)]
                 cells = [[_fmt(s.get(k), "{:.4g}" if k != "step" else "{}") for k in keys] for s in v.steps]
                 _table(fig.add_axes([0.04, 0.5, 0.92, 0.4]), keys, cells)
                 pdf.savefig(fig)
