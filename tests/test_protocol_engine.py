@@ -191,9 +191,10 @@ def test_a_failed_plate_move_is_retried_once_with_a_lower_penalty_growth_cap():
 
     with pytest.raises(SolverDidNotConvergeError, match="also after a retry") as ei:
         _run(shipped_protocol("cc"), fail_at="compression")
-    # a non-convergence: the penalty retry first, then the plate-increment one
+    # a non-convergence: the penalty retry first, then the plate-increment one, at half
+    # the default 2.5 mm cap (below retry_plate_increment_mm = 5)
     assert ("a retry with [contact] penalty_growth_max = 16 and a retry with [contact] "
-            "max_plate_increment_mm = 5; the first attempt: mock") in str(ei.value)
+            "max_plate_increment_mm = 1.25; the first attempt: mock") in str(ei.value)
     body = _body()
     with pytest.raises(SolverDidNotConvergeError, match="mock") as ei:
         ProtocolRunner(body, shipped_protocol("cc"), mock_solver(body.points, body.fixed,
@@ -229,13 +230,13 @@ def test_a_crawling_plate_move_is_retried_with_a_plate_increment_cap_first():
     """A plate move that crawls is stopped by the crawl guard and run again from its
     start with the plate travel per increment capped at retry_plate_increment_mm (the
     solver's max_increment = cap / travel), before the penalty retry; every retry runs
-    unguarded; a user cap at or below the retry's is halved; no retry
-    configured, no guard."""
+    unguarded; a user cap at or below the retry's (the default 2.5 mm too) is halved; no
+    retry configured, no guard."""
     body = _body()
     # crawls unless the plate travel is capped (the first 2 mm part is one increment)
     solve, calls = _crawling_solver(body, crawls=lambda kw: "initial_increment" not in kw
                                     and "max_increment" not in kw)
-    cfg = ContactConfig(friction=0.1)
+    cfg = ContactConfig(friction=0.1, max_plate_increment_mm=0.0)  # uncapped first attempt
     runner = ProtocolRunner(body, shipped_protocol("cc"), solve, config=cfg)
     res = runner.run()
     assert res.complete
@@ -260,13 +261,16 @@ def test_a_crawling_plate_move_is_retried_with_a_plate_increment_cap_first():
     info = res.steps[-1].solver["retry"]
     assert info["max_plate_increment_mm"] == 5.0 and len(calls) == 4
 
-    # a user cap of 4 mm: the retry halves it (here only the first attempt crawls)
-    body = _body()
-    solve, calls = _crawling_solver(body, crawls=lambda kw: "initial_increment" not in kw)
-    res = ProtocolRunner(body, shipped_protocol("cc"), solve,
-                         config=ContactConfig(friction=0.1, max_plate_increment_mm=4.0)).run()
-    assert res.steps[-1].solver["retry"]["max_plate_increment_mm"] == 2.0
-    assert calls[3]["max_increment"] == pytest.approx(0.5 * calls[1]["max_increment"], rel=1e-12)
+    # a user cap of 4 mm, or the default 2.5: the retry halves it (here only the first
+    # attempt crawls)
+    for cap in (4.0, None):
+        body = _body()
+        solve, calls = _crawling_solver(body, crawls=lambda kw: "initial_increment" not in kw)
+        c = ContactConfig(friction=0.1, **({} if cap is None else {"max_plate_increment_mm": cap}))
+        res = ProtocolRunner(body, shipped_protocol("cc"), solve, config=c).run()
+        assert res.steps[-1].solver["retry"]["max_plate_increment_mm"] == 0.5 * (cap or 2.5)
+        assert calls[3]["max_increment"] == pytest.approx(0.5 * calls[1]["max_increment"],
+                                                          rel=1e-12)
 
     # no retry configured: nothing is guarded
     body = _body()

@@ -145,23 +145,14 @@ class ContactConfig:
                                             "first increment of a plate move (the first "
                                             "contact of a plate is the hardest increment)",
                                             gt=0.0)
-    max_plate_increment_mm: float = param(0.0, "mm", "protocols: largest plate travel per "
-                                          "increment of a plate move (0, the default: the "
-                                          "solver's own max_increment only).  Friction is "
-                                          "integrated by a return mapping per increment, so the "
-                                          "slip path, and with it the plate force, depends on "
-                                          "the increment.  Phantom CC (1.8k nodes), upper-plate "
-                                          "force: 39.4 N uncapped (up to 12 mm increments), "
-                                          "43.59 N at 5 mm, 43.45 N at 2.5 mm; Pelicano exam 03 "
-                                          "CC (1.5k nodes): 20.8 to 25.5 N whatever the cap "
-                                          "(the chest-wall pinch), and 196 Newton iterations at "
-                                          "5 mm instead of 344.  Not the default: with 5 mm the "
-                                          "phantom's recovered CC rotation moved by 0.9 deg, "
-                                          "friction on or off (see the session-7 note).  For "
-                                          "plate-force figures use 2.5: the force then does not "
-                                          "depend on the solver's path (phantom CC 36.78 N with "
-                                          "or without the predictor; uncapped 33.7 or 36.8 N)",
-                                          ge=0.0)
+    max_plate_increment_mm: float = param(
+        2.5, "mm", "protocols: largest plate travel per increment of a plate move (0: the "
+        "solver's own max_increment only).  Long increments land on another equilibrium of "
+        "the compressed breast (friction is integrated per increment, and the result moves "
+        "even without friction).  Session 31, uncapped -> 2.5 -> 1.25 mm: phantom CC (1.8k "
+        "nodes) theta_p 4.65 -> 3.81 -> 3.81 deg (frictionless: 5.18 -> 3.81); Pelicano exam "
+        "30 MLO (8.9k nodes) upper force 93.4 -> 42.7 -> 45.6 N, nipple-relative in-plane "
+        "node positions 5.4 and 1.6 mm (median) off the 1.25 mm run", ge=0.0)
     predictor: bool = param(False, "", "extrapolate multipliers and friction bound from the "
                             "last two increments of a step")
     curvature_tangent: bool = param(False, "", "include the rounded-edge curvature term "

@@ -309,7 +309,8 @@ class ProtocolRunner:
         A move longer than ``first_plate_increment_mm`` is solved in two parts: that first
         travel on its own (where contact spreads from a few nodes to many: DESIGN.md,
         "first-contact blow-up"), then the rest with the solver's own load stepping, in
-        increments of at most ``max_plate_increment_mm`` of travel (friction accuracy).
+        increments of at most ``max_plate_increment_mm`` of travel (2.5 mm by default: longer
+        increments land on another equilibrium, see that option).
         """
         first = self.config.first_plate_increment_mm
         parts = [distance] if abs(distance) <= 1.5 * first else [np.sign(distance) * first,
