@@ -208,8 +208,9 @@ class ContactConfig:
                                             "user's cap if that is smaller; 0: no such retry).  "
                                             "A crawl is retried so first, a non-convergence "
                                             "after the penalty retry.  Pelicano exam 10's "
-                                            "8.9k-node MLO, which crawls at the defaults, "
-                                            "completes with 5 mm (session 26)", ge=0.0)
+                                            "8.9k-node MLO crawled uncapped and completed "
+                                            "with 5 mm (session 26); at the 2.5 mm default "
+                                            "it needs no retry (session 31)", ge=0.0)
 
 
 def tributary_areas(points: np.ndarray, tris: np.ndarray) -> np.ndarray:
