@@ -88,7 +88,10 @@ class SolverOptions:
                               "criteria.  Measured (session 12, one thread): 27 % fewer Newton "
                               "iterations over CC + MLO on three 1.5-3k-node models; at 10k nodes "
                               "as many in Pelicano exam 10's CC compression and twice as many in "
-                              "exam 03's; see solver.py",
+                              "exam 03's.  With the 2.5 mm plate cap (session 32): benchmark "
+                              "hemisphere CC 165 against 300, exams 10 and 03 CC 299 and 1,048 "
+                              "against 397 and 1,586, but exam 30's MLO 1,117 against 955 and "
+                              "48.8 N against 42.7 N; see solver.py",
                               choices=("every", "final"))
     augmentation_force_tol: float = param(0.0, "-", "relative residual tolerance (like force_tol) "
                                           "of the Newton solves of an increment while its contact "
@@ -100,7 +103,9 @@ class SolverOptions:
                                           "(benchmark hemisphere CC 175 instead of 316), but "
                                           "Pelicano exam 10's 8.9k-node CC took another "
                                           "frictional path and 3.7x the iterations (session "
-                                          "19; see solver.py)", ge=0.0, lt=1.0)
+                                          "19; with the 2.5 mm plate cap, session 32: "
+                                          "hemisphere CC 197 against 300; see solver.py)",
+                                          ge=0.0, lt=1.0)
     stabilisation: str = param("auto", "", "'auto': an increment that fails is solved again with "
                                "proximal (viscous-like) stabilisation before it is cut back, then "
                                "settled by an undamped solve at the same load; a step whose last "

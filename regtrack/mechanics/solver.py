@@ -847,7 +847,13 @@ def _increment(newton: _Newton, u: np.ndarray, t: float, gravity, dirichlet, his
     and the chest wall); exam 03's compression took twice as many.  A first version, which
     called ``augment`` once instead (it keeps a frozen stick/slip state when no multiplier
     needs updating), took 1,180 compression iterations on exam 10: the paths are chaotic.
-    Hence opt-in, for studies on coarse meshes.
+    Hence opt-in, for studies on coarse meshes.  Measured again in session 32 with the
+    2.5 mm cap on the plate travel per increment (whole protocol, one thread, "every" /
+    "final", upper-plate force in N): benchmark hemisphere CC 300 / 165 (128.05 / 128.13);
+    Pelicano exam 10's CC 397 / 299 (88.58 / 88.31), exam 03's CC 1,586 / 1,048 (80.55 /
+    80.82), exam 30's MLO 955 / 1,117 (42.74 / 48.82).  Three of the four gain 25 to 45 %
+    now, but one real MLO loses and its force moves by 14 %, more than between the 2.5
+    and 1.25 mm caps (45.61 N); it stays opt-in until all sixteen real runs are compared.
 
     With ``augmentation_force_tol > 0`` (opt-in, session 19) the solves of an increment
     stop at that looser relative residual while its multipliers are still being updated
