@@ -109,8 +109,11 @@ def _hertz(formulation: str, tol: float):
     c = _plate_contact(model, _off_planes(X, model.skin, (0, 1, 2)), plate, tol=tol)
     c.set_motion((0, 0, 50), (0, 0, 49))
     roll = _rollers(X, (0, 1, 2))
+    # the force history is read at every increment, so every increment iterates its
+    # multipliers to the tolerance ("every"; the default "final" does so at t = 1 only)
+    opts = SolverOptions(initial_increment=0.1, max_increment=0.1, augmentation="every")
     u, st = solve_step(prob, np.zeros_like(X), dirichlet=lambda t: (roll, 0.0), contributions=[c],
-                       options=SolverOptions(initial_increment=0.1, max_increment=0.1))
+                       options=opts)
     hist = [(r["t"], 4 * r["upper"]["normal_force_N"]) for r in st.reports]  # full sphere
     return model, u, c, hist
 

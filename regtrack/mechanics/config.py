@@ -79,19 +79,19 @@ class SolverOptions:
                                "residual is below that of u_n and no element inverts; 'off': start "
                                "from u_n", choices=("linear", "off"))
     max_augmentations: int = param(20, "-", "augmented-Lagrangian updates per increment", ge=1)
-    augmentation: str = param("every", "", "when augmented-Lagrangian multipliers are iterated: "
+    augmentation: str = param("final", "", "when augmented-Lagrangian multipliers are iterated: "
                               "'every' increment re-solves until penetration_tol_mm is met; "
                               "'final' (Uzawa across increments): an increment before the end of a "
                               "step takes one multiplier update after it converges, with no "
                               "re-solve, and carries it into the next; the last increment (t = 1) "
                               "iterates to the tolerance, so the returned state meets the same "
-                              "criteria.  Measured (session 12, one thread): 27 % fewer Newton "
-                              "iterations over CC + MLO on three 1.5-3k-node models; at 10k nodes "
-                              "as many in Pelicano exam 10's CC compression and twice as many in "
-                              "exam 03's.  With the 2.5 mm plate cap (session 32): benchmark "
-                              "hemisphere CC 165 against 300, exams 10 and 03 CC 299 and 1,048 "
-                              "against 397 and 1,586, but exam 30's MLO 1,117 against 955 and "
-                              "48.8 N against 42.7 N; see solver.py",
+                              "criteria.  The default since session 33 (with the 2.5 mm plate "
+                              "cap): over 15 Pelicano runs (8.8k-13.5k nodes) 9,350 Newton "
+                              "iterations against 11,938 with 'every' (CPU -8 %), and exam 02's "
+                              "CC completes in 437 (with 'every' it failed); benchmark "
+                              "hemisphere CC + MLO 174.5 s against 237.3 s.  Four runs took 2-17 "
+                              "% more iterations; plate forces moved by 0.1-5 %, exams 11 and 30 "
+                              "MLO by 13 and 14 %; see solver.py",
                               choices=("every", "final"))
     augmentation_force_tol: float = param(0.0, "-", "relative residual tolerance (like force_tol) "
                                           "of the Newton solves of an increment while its contact "

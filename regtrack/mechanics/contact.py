@@ -11,10 +11,11 @@ Normal contact (augmented Lagrangian, or pure penalty with ``lambda = 0``)
 
     p_i = \\max(0,\\; \\lambda_i - \\varepsilon_N\\, g_i)
 
-with the multipliers updated after each converged increment (Uzawa):
-``lambda_i <- p_i`` until the largest penetration is below ``penetration_tol_mm``.  The
-penetration is then bounded by the tolerance whatever the tissue stiffness; plain penalty
-leaves ``|g| ~ p / eps_N``.
+with the multipliers updated after each converged solve (Uzawa): ``lambda_i <- p_i``
+until the largest penetration is below ``penetration_tol_mm``.  The penetration is then
+bounded by the tolerance whatever the tissue stiffness; plain penalty leaves ``|g| ~ p /
+eps_N``.  By default (solver ``augmentation = "final"``) that loop runs in a step's last
+increment; each increment before it takes one update and carries it on (no re-solve).
 
 Automatic penalty (pressure per mm of penetration, MPa/mm)
 

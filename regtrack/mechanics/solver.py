@@ -847,13 +847,36 @@ def _increment(newton: _Newton, u: np.ndarray, t: float, gravity, dirichlet, his
     and the chest wall); exam 03's compression took twice as many.  A first version, which
     called ``augment`` once instead (it keeps a frozen stick/slip state when no multiplier
     needs updating), took 1,180 compression iterations on exam 10: the paths are chaotic.
-    Hence opt-in, for studies on coarse meshes.  Measured again in session 32 with the
-    2.5 mm cap on the plate travel per increment (whole protocol, one thread, "every" /
-    "final", upper-plate force in N): benchmark hemisphere CC 300 / 165 (128.05 / 128.13);
-    Pelicano exam 10's CC 397 / 299 (88.58 / 88.31), exam 03's CC 1,586 / 1,048 (80.55 /
-    80.82), exam 30's MLO 955 / 1,117 (42.74 / 48.82).  Three of the four gain 25 to 45 %
-    now, but one real MLO loses and its force moves by 14 %, more than between the 2.5
-    and 1.25 mm caps (45.61 N); it stays opt-in until all sixteen real runs are compared.
+    Hence opt-in then, for studies on coarse meshes.  With the 2.5 mm cap on the plate
+    travel per increment (session 31) the balance changed, and ``"final"`` is the default
+    since session 33.  Whole-protocol Newton iterations, one thread, ``"every"`` /
+    ``"final"`` (upper-plate force, N), the Pelicano meshes of ``regtrack mesh``
+    (sessions 31-33):
+
+    =========  ====================================  ======================================
+    exam       CC                                    MLO
+    =========  ====================================  ======================================
+    02         failed / 437 (148.51)                 392 / 241 (78.10 / 78.00)
+    03         1,586 / 1,048 (80.55 / 80.82)         351 / 305 (43.00 / 44.77)
+    05         887 / 916 (87.37 / 86.52)             395 / 422 (54.09 / 54.37)
+    10         397 / 299 (88.58 / 88.31)             805 / 464 (49.20 / 51.63)
+    11         768 / 298 (116.95 / 119.25)           1,006 / 987 (54.05 / 60.97)
+    18         1,023 / 509 (90.90 / 90.10)           1,682 / 1,723 (45.34 / 45.26)
+    30         476 / 346 (94.70 / 94.02)             955 / 1,117 (42.74 / 48.82)
+    41         815 / 384 (215.33 / 214.90)           400 / 291 (71.32 / 70.19)
+    =========  ====================================  ======================================
+
+    Over the 15 runs both finish: 11,938 / 9,350 iterations (-22 %); the CPU seconds of
+    the 13 with a figure for both fell by 8 % only (the saved re-solves were presumably the
+    cheap iterations on re-used factorisations; not counted).  Exam 02's CC failed with
+    ``"every"`` at t = 0.74 and in both automatic retries (uncapped, session 30, it had
+    completed in 806).  Four runs take 2 to 17 % more.  The forces move by 0.1 to 5 %, as the chaotic frictional paths of the
+    pinch move them, but exams 11 and 30 MLO by 13 and 14 % (exam 30's MLO gave 45.61 N
+    with ``"every"`` and a 1.25 mm cap: "final" lands 7 % beyond the cap-converged value
+    there).  Benchmark hemisphere (``pipelines/bench_protocols.py``, 2 threads, idle
+    machine): CC 300 / 165 iterations, 149.4 / 104.5 s (128.05 / 128.13 N); MLO 186 /
+    107, 87.9 / 70.0 s (52.75 / 52.76 N).  The phantom's recovered CC rotation (issue 7)
+    moved from 3.77 to 3.68 deg.
 
     With ``augmentation_force_tol > 0`` (opt-in, session 19) the solves of an increment
     stop at that looser relative residual while its multipliers are still being updated
