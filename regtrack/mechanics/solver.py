@@ -870,13 +870,15 @@ def _increment(newton: _Newton, u: np.ndarray, t: float, gravity, dirichlet, his
     the 13 with a figure for both fell by 8 % only (the saved re-solves were presumably the
     cheap iterations on re-used factorisations; not counted).  Exam 02's CC failed with
     ``"every"`` at t = 0.74 and in both automatic retries (uncapped, session 30, it had
-    completed in 806).  Four runs take 2 to 17 % more.  The forces move by 0.1 to 5 %, as the chaotic frictional paths of the
-    pinch move them, but exams 11 and 30 MLO by 13 and 14 % (exam 30's MLO gave 45.61 N
-    with ``"every"`` and a 1.25 mm cap: "final" lands 7 % beyond the cap-converged value
-    there).  Benchmark hemisphere (``pipelines/bench_protocols.py``, 2 threads, idle
-    machine): CC 300 / 165 iterations, 149.4 / 104.5 s (128.05 / 128.13 N); MLO 186 /
-    107, 87.9 / 70.0 s (52.75 / 52.76 N).  The phantom's recovered CC rotation (issue 7)
-    moved from 3.77 to 3.72 deg (phantom regenerated with "final" too).
+    completed in 806).  Four runs take 2 to 17 % more.  The forces move by 0.1 to 5 %, as
+    the chaotic frictional paths of the pinch move them, but exams 11 and 30 MLO by 13 and
+    14 %.  Halving the cap to 1.25 mm moved exam 30's MLO force by 0.4 % with ``"final"``
+    (48.82 -> 49.03 N) but by 7 % with ``"every"`` (42.74 -> 45.61 N, session 31): the
+    ``"final"`` path is the better converged in the plate increment there. Benchmark
+    hemisphere (``pipelines/bench_protocols.py``, 2 threads, idle machine): CC 300 / 165
+    iterations, 149.4 / 104.5 s (128.05 / 128.13 N); MLO 186 / 107, 87.9 / 70.0 s (52.75 /
+    52.76 N). The phantom's recovered CC rotation (issue 7) moved from 3.77 to 3.72 deg
+    (phantom regenerated with "final" too).
 
     With ``augmentation_force_tol > 0`` (opt-in, session 19) the solves of an increment
     stop at that looser relative residual while its multipliers are still being updated
