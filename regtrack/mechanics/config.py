@@ -91,8 +91,9 @@ class SolverOptions:
                               "CC completes in 437 (with 'every' it failed); benchmark "
                               "hemisphere CC + MLO 174.5 s against 237.3 s.  Four runs took 2-17 "
                               "% more iterations; plate forces moved by 0.1-5 %, exams 11 and 30 "
-                              "MLO by 13 and 14 % (exam 30's: 0.4 % between the 2.5 and 1.25 mm "
-                              "caps with 'final', 7 % with 'every'); see solver.py",
+                              "MLO by 13 and 14 % (halving the cap moved exam 30's by 0.4 % with "
+                              "'final', 7 % with 'every', and exam 11's by 8 % with 'final'); "
+                              "see solver.py",
                               choices=("every", "final"))
     augmentation_force_tol: float = param(0.0, "-", "relative residual tolerance (like force_tol) "
                                           "of the Newton solves of an increment while its contact "
