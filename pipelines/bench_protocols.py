@@ -4,6 +4,12 @@ Usage::
 
     .venv/bin/python pipelines/bench_protocols.py [--lc 3.0] [--views cc mlo] [--out DIR]
     .venv/bin/python pipelines/bench_protocols.py --model out/model.vtu   # a meshed case
+    .venv/bin/python pipelines/bench_protocols.py --concurrent   # views at the same time
+
+``--concurrent`` runs the views in two processes at the same time, as ``regtrack run``
+does on two or more cores (:func:`regtrack.pipeline.stages.simulate_concurrently`); each
+view's table is then printed when both are done, and "all views" is the wall-clock time
+of the pair.
 
 Prints one table row per protocol step (increments, Newton iterations, augmentations,
 line-search trials rejected for inverted elements, assembly / contact / linear-solve /
@@ -38,6 +44,32 @@ from regtrack.mechanics.protocol import shipped_protocol
 from regtrack.mechanics.run_view import run_protocol_on_model, summarise, write_outputs
 
 
+def _run_view(model, view: str, out) -> tuple[str, float, float]:
+    """One view's protocol; returns (its printed table, total wall s, process CPU s)."""
+    c0 = time.process_time()
+    res, timing = run_protocol_on_model(model, shipped_protocol(view), mechanics=MechanicsConfig())
+    cpu = time.process_time() - c0
+    hdr = (f"{'view':5} {'step':22} {'incr':>4} {'iter':>4} {'aug':>3} {'inv':>4} {'asm s':>7} "
+           f"{'cont s':>7} {'solve s':>7} {'total s':>7}")
+    lines = [hdr]
+    for st in res.steps:
+        s = st.solver
+        lines.append(f"{view:5} {st.name:22} {s.get('increments', 0):4d} {s.get('iterations', 0):4d} "
+                     f"{s.get('augmentations', 0):3d} {s.get('inverted_trials', 0):4d} "
+                     f"{s.get('t_assembly', 0):7.2f} {s.get('t_contrib', 0):7.2f} "
+                     f"{s.get('t_solve', 0):7.2f} {s.get('t_total', 0):7.2f}")
+    sm = summarise(res, timing)
+    tot = timing["total_s"]
+    solve = sum(st.solver.get("t_solve", 0) for st in res.steps)
+    lines.append(f"{view}: D = {100 * sm['D']:.1f} %, upper force {sm['upper_force_N']:.2f} N, penetration "
+                 f"{sm['max_penetration_mm']:.4f} mm, {sm['iterations']} iterations, total {tot:.1f} s "
+                 f"(setup {timing['setup_s']:.1f} s; linear solves {100 * solve / tot:.0f} %); "
+                 f"CPU {cpu:.1f} s\n")
+    if out:
+        write_outputs(res, model, out, stem=f"bench_{view}")
+    return "\n".join(lines), tot, cpu
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--lc", type=float, default=3.0, help="mesh size (mm); 3.0 gives ~10k nodes")
@@ -45,6 +77,8 @@ def main() -> None:
     ap.add_argument("--out", type=Path, default=None, help="also write the result files here")
     ap.add_argument("--model", type=Path, default=None, help="a model .vtu (regtrack mesh) "
                     "instead of the hemisphere")
+    ap.add_argument("--concurrent", action="store_true", help="run the views at the same time, "
+                    "one process each, as `regtrack run` does on two or more cores")
     args = ap.parse_args()
     logging.basicConfig(level=logging.WARNING)
     t = time.perf_counter()
@@ -55,32 +89,22 @@ def main() -> None:
         model = hemisphere_model(50.0, args.lc, tumour_radius=8.0)
     t_mesh = time.perf_counter() - t
     print(f"model: {model.n_nodes} nodes, {model.n_tets} tets (meshing/loading {t_mesh:.1f} s)")
-    hdr = (f"{'view':5} {'step':22} {'incr':>4} {'iter':>4} {'aug':>3} {'inv':>4} {'asm s':>7} "
-           f"{'cont s':>7} {'solve s':>7} {'total s':>7}")
-    grand = grand_cpu = 0.0
-    for view in args.views:
-        c0 = time.process_time()
-        res, timing = run_protocol_on_model(model, shipped_protocol(view), mechanics=MechanicsConfig())
-        cpu = time.process_time() - c0
-        print(hdr)
-        for st in res.steps:
-            s = st.solver
-            print(f"{view:5} {st.name:22} {s.get('increments', 0):4d} {s.get('iterations', 0):4d} "
-                  f"{s.get('augmentations', 0):3d} {s.get('inverted_trials', 0):4d} "
-                  f"{s.get('t_assembly', 0):7.2f} {s.get('t_contrib', 0):7.2f} "
-                  f"{s.get('t_solve', 0):7.2f} {s.get('t_total', 0):7.2f}")
-        sm = summarise(res, timing)
-        tot = timing["total_s"]
-        grand += tot
-        solve = sum(st.solver.get("t_solve", 0) for st in res.steps)
-        print(f"{view}: D = {100 * sm['D']:.1f} %, upper force {sm['upper_force_N']:.2f} N, penetration "
-              f"{sm['max_penetration_mm']:.4f} mm, {sm['iterations']} iterations, total {tot:.1f} s "
-              f"(setup {timing['setup_s']:.1f} s; linear solves {100 * solve / tot:.0f} %); "
-              f"CPU {cpu:.1f} s\n")
-        grand_cpu += cpu
-        if args.out:
-            write_outputs(res, model, args.out, stem=f"bench_{view}")
-    print(f"all views: {grand:.1f} s wall, {grand_cpu:.1f} s CPU")
+    t0 = time.perf_counter()
+    if args.concurrent and len(args.views) > 1:
+        import concurrent.futures as cf
+        import multiprocessing
+
+        with cf.ProcessPoolExecutor(len(args.views), mp_context=multiprocessing.get_context("spawn")) as pool:
+            runs = list(pool.map(_run_view, [model] * len(args.views), args.views,
+                                 [args.out] * len(args.views)))
+    else:
+        runs = [_run_view(model, view, args.out) for view in args.views]
+    wall = time.perf_counter() - t0
+    for text, _, _ in runs:
+        print(text)
+    how = "at the same time" if args.concurrent and len(args.views) > 1 else "one after the other"
+    print(f"all views ({how}): {wall:.1f} s wall (sum of the protocols {sum(r[1] for r in runs):.1f} s), "
+          f"{sum(r[2] for r in runs):.1f} s CPU")
 
 
 if __name__ == "__main__":

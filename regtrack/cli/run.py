@@ -21,6 +21,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--keep-identifiers", action="store_true",
                    help="copy the DICOM patient identifiers into provenance.json (default: none "
                         "reaches any output, log or figure; the case id is checked too)")
+    p.add_argument("--serial-views", action="store_true",
+                   help="simulate the views one after the other (default: at the same time, one "
+                        "process each, when two or more cores are free)")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -52,7 +55,8 @@ def run(args: argparse.Namespace) -> int:
         logging.getLogger("regtrack").setLevel(logging.WARNING)
     rows = run_case(args.case, overrides=parse_sets(args.set), views=views, cache_dir=args.cache,
                     out_dir=out, progress=progress, report=not args.no_report,
-                    keep_identifiers=args.keep_identifiers)
+                    keep_identifiers=args.keep_identifiers,
+                    concurrent=False if args.serial_views else None)
     for r in rows:
         def f(k, fmt):
             v = r.get(k)

@@ -99,7 +99,8 @@ def _virtual_config_class():
 def run_case(case_dir: str | Path, *, overrides: dict | None = None,
              views: tuple[str, ...] | list[str] | None = None, cache_dir: str | Path | None = None,
              out_dir: str | Path | None = None, progress: Progress | None = None,
-             report: bool = True, keep_identifiers: bool = False) -> list[dict]:
+             report: bool = True, keep_identifiers: bool = False,
+             concurrent: bool | None = None) -> list[dict]:
     """Run the whole pipeline on a case; return one flat metrics row per view.
 
     Parameters
@@ -123,6 +124,11 @@ def run_case(case_dir: str | Path, *, overrides: dict | None = None,
         By default (False) no identifier of the inputs (:mod:`regtrack.privacy`) reaches
         an output, a progress line or a log record, and a case id that contains one is
         replaced by a pseudonym.
+    concurrent : bool, optional
+        Simulate the views that are not cached at the same time, one process each
+        (:func:`regtrack.pipeline.stages.simulate_concurrently`).  Default (None): when this
+        process may use two or more cores and may start processes (not a daemon, such as
+        a Dask worker).  Studies pass False: they already run cases side by side.
     """
     t_start = time.perf_counter()
     found = identifiers_of_case_folder(case_dir)
@@ -130,11 +136,21 @@ def run_case(case_dir: str | Path, *, overrides: dict | None = None,
     with scrub_logs(ids):  # the loader's messages name the case's files
         return _run_case(case_dir, found, ids, overrides=overrides, views=views,
                          cache_dir=cache_dir, out_dir=out_dir, progress=progress, report=report,
-                         keep_identifiers=keep_identifiers, t_start=t_start)
+                         keep_identifiers=keep_identifiers, t_start=t_start,
+                         concurrent=_concurrent_default() if concurrent is None else concurrent)
+
+
+def _concurrent_default() -> bool:
+    """Simulate views at the same time: two or more usable cores and not a daemon process."""
+    import multiprocessing
+
+    from regtrack.mechanics.parallel import thread_count
+
+    return thread_count(0) >= 2 and not multiprocessing.current_process().daemon
 
 
 def _run_case(case_dir, found: Identifiers, ids: Identifiers, *, overrides, views, cache_dir,
-              out_dir, progress, report, keep_identifiers, t_start) -> list[dict]:
+              out_dir, progress, report, keep_identifiers, t_start, concurrent) -> list[dict]:
     from regtrack.case import load_case
 
     case = load_case(case_dir)
@@ -167,8 +183,11 @@ def _run_case(case_dir, found: Identifiers, ids: Identifiers, *, overrides, view
     # computed or cached
     reals = {view: stages.real_stage(ctx, view) for view in views if view in case.views}
     mesh_out = stages.mesh_stage(ctx)
+    failed = stages.simulate_concurrently(ctx, mesh_out, views) if concurrent else {}
     results = []
     for view in views:
+        if view in failed:
+            raise failed[view]
         sim = stages.simulate_stage(ctx, mesh_out, view)
         virtual = stages.virtual_stage(ctx, mesh_out, sim, view)
         if view in reals:

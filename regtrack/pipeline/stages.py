@@ -8,6 +8,7 @@ simulation, so changing a registration setting never re-simulates.
 from __future__ import annotations
 
 import json
+import logging
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -17,7 +18,10 @@ import numpy as np
 
 from regtrack import _io
 from regtrack.config import to_table
+from regtrack.errors import RegtrackError
 from regtrack.pipeline.cache import file_digest, fingerprint
+
+log = logging.getLogger(__name__)
 
 
 @dataclass
@@ -151,6 +155,67 @@ def simulate_stage(ctx, mesh: MeshOutput, view: str) -> SimOutput:
     angle = (doc.get("plate_frame") or {}).get("angle_deg")
     _timed(ctx, f"simulate_{view}", t0)
     return SimOutput(view, key, hit, doc["summary"], doc["steps"], positions, angle)
+
+
+def simulate_concurrently(ctx, mesh: MeshOutput, views, *, worker=None) -> dict[str, Exception]:
+    """Simulate the ``views`` that are not in the cache at the same time, one process each
+    (they are independent), so that :func:`simulate_stage` then finds every one there.
+
+    Returns the error of each view whose simulation failed; the caller raises it when it
+    reaches that view, and the other views' results are in the cache by then (nothing is
+    lost).  A worker that dies or cannot send its error back leaves its view to be
+    simulated again in this process (logged).  Does nothing when fewer than two views
+    need simulating.  ``worker(ctx, mesh, view)`` (tests): a picklable function run in
+    each process instead of :func:`_simulate_worker`; it returns seconds.
+
+    Why: the Newton solver of one simulation keeps the two cores of the benchmark machine
+    only partly busy (its GMRES solves on a stored factorisation are single-threaded and
+    memory-bound, 36 % of the CC compression).  Measured on the 9,496-node benchmark
+    hemisphere (``pipelines/bench_protocols.py``, session 34, 2 cores): CC + MLO one after
+    the other 160-175 s, at the same time 126 s, the same Newton paths and forces (PARDISO
+    in strict CNR mode, :mod:`regtrack.mechanics.linsolve`).
+    """
+    import concurrent.futures as cf
+    import dataclasses
+    import multiprocessing
+
+    todo = [v for v in views if ctx.cache.lookup("simulate", simulate_key(ctx, mesh.key, v)) is None]
+    if len(todo) < 2:
+        return {}
+    t0 = time.perf_counter()
+    ctx.say(f"simulate {' and '.join(todo)} at the same time ({len(todo)} processes)")
+    lite = dataclasses.replace(ctx, progress=None, timings={})
+    failed: dict[str, Exception] = {}
+    with cf.ProcessPoolExecutor(max_workers=len(todo),
+                                mp_context=multiprocessing.get_context("spawn")) as pool:
+        futures = {pool.submit(worker or _simulate_worker, lite, mesh, v): v for v in todo}
+        for fut in cf.as_completed(futures):
+            view = futures[fut]
+            try:
+                seconds = fut.result()
+                ctx.say(f"simulate {view}: done ({seconds:.0f} s)")
+            except RegtrackError as exc:
+                failed[view] = exc
+                ctx.say(f"simulate {view}: failed")
+            except Exception as exc:  # a dead worker, an error that did not pickle
+                log.warning("simulate %s: the worker process failed (%s: %s); simulating it "
+                            "again in this process", view, type(exc).__name__, exc)
+    _timed(ctx, "simulate_concurrent", t0)
+    return failed
+
+
+def _simulate_worker(ctx, mesh: MeshOutput, view: str) -> float:
+    """One view's :func:`simulate_stage` in a worker process of
+    :func:`simulate_concurrently`; warnings go to stderr, scrubbed like the caller's."""
+    import logging
+
+    from regtrack.privacy import scrub_logs
+
+    logging.basicConfig(level=logging.WARNING, format=f"[{view}] %(levelname)s %(name)s: %(message)s")
+    t0 = time.perf_counter()
+    with scrub_logs(ctx.ids):
+        simulate_stage(ctx, mesh, view)
+    return time.perf_counter() - t0
 
 
 def _checked_result(ctx, folder: Path, mesh: MeshOutput, view: str) -> tuple[dict, np.ndarray]:

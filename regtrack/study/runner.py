@@ -79,7 +79,7 @@ def pipeline_runner(spec: RunSpec) -> list[dict]:
 
     return run_case(Path(spec.case_dir), overrides=spec.overrides, views=spec.views,
                     cache_dir=Path(spec.cache_dir),
-                    out_dir=Path(spec.out_dir) if spec.out_dir else None)
+                    out_dir=Path(spec.out_dir) if spec.out_dir else None, concurrent=False)
 
 
 def resolve_runner(ref: str) -> Callable[[RunSpec], list[dict]]:
