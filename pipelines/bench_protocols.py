@@ -54,15 +54,17 @@ def _run_view(model, view: str, out) -> tuple[str, float, float]:
     lines = [hdr]
     for st in res.steps:
         s = st.solver
-        lines.append(f"{view:5} {st.name:22} {s.get('increments', 0):4d} {s.get('iterations', 0):4d} "
+        lines.append(f"{view:5} {st.name:22} {s.get('increments', 0):4d} "
+                     f"{s.get('iterations', 0):4d} "
                      f"{s.get('augmentations', 0):3d} {s.get('inverted_trials', 0):4d} "
                      f"{s.get('t_assembly', 0):7.2f} {s.get('t_contrib', 0):7.2f} "
                      f"{s.get('t_solve', 0):7.2f} {s.get('t_total', 0):7.2f}")
     sm = summarise(res, timing)
     tot = timing["total_s"]
     solve = sum(st.solver.get("t_solve", 0) for st in res.steps)
-    lines.append(f"{view}: D = {100 * sm['D']:.1f} %, upper force {sm['upper_force_N']:.2f} N, penetration "
-                 f"{sm['max_penetration_mm']:.4f} mm, {sm['iterations']} iterations, total {tot:.1f} s "
+    lines.append(f"{view}: D = {100 * sm['D']:.1f} %, upper force {sm['upper_force_N']:.2f} N, "
+                 f"penetration {sm['max_penetration_mm']:.4f} mm, {sm['iterations']} iterations, "
+                 f"total {tot:.1f} s "
                  f"(setup {timing['setup_s']:.1f} s; linear solves {100 * solve / tot:.0f} %); "
                  f"CPU {cpu:.1f} s\n")
     if out:
@@ -94,7 +96,8 @@ def main() -> None:
         import concurrent.futures as cf
         import multiprocessing
 
-        with cf.ProcessPoolExecutor(len(args.views), mp_context=multiprocessing.get_context("spawn")) as pool:
+        spawn = multiprocessing.get_context("spawn")
+        with cf.ProcessPoolExecutor(len(args.views), mp_context=spawn) as pool:
             runs = list(pool.map(_run_view, [model] * len(args.views), args.views,
                                  [args.out] * len(args.views)))
     else:
@@ -103,8 +106,8 @@ def main() -> None:
     for text, _, _ in runs:
         print(text)
     how = "at the same time" if args.concurrent and len(args.views) > 1 else "one after the other"
-    print(f"all views ({how}): {wall:.1f} s wall (sum of the protocols {sum(r[1] for r in runs):.1f} s), "
-          f"{sum(r[2] for r in runs):.1f} s CPU")
+    print(f"all views ({how}): {wall:.1f} s wall (sum of the protocols "
+          f"{sum(r[1] for r in runs):.1f} s), {sum(r[2] for r in runs):.1f} s CPU")
 
 
 if __name__ == "__main__":

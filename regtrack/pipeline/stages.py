@@ -179,7 +179,8 @@ def simulate_concurrently(ctx, mesh: MeshOutput, views, *, worker=None) -> dict[
     import dataclasses
     import multiprocessing
 
-    todo = [v for v in views if ctx.cache.lookup("simulate", simulate_key(ctx, mesh.key, v)) is None]
+    todo = [v for v in views
+            if ctx.cache.lookup("simulate", simulate_key(ctx, mesh.key, v)) is None]
     if len(todo) < 2:
         return {}
     t0 = time.perf_counter()
@@ -211,7 +212,8 @@ def _simulate_worker(ctx, mesh: MeshOutput, view: str) -> float:
 
     from regtrack.privacy import scrub_logs
 
-    logging.basicConfig(level=logging.WARNING, format=f"[{view}] %(levelname)s %(name)s: %(message)s")
+    logging.basicConfig(level=logging.WARNING,
+                        format=f"[{view}] %(levelname)s %(name)s: %(message)s")
     t0 = time.perf_counter()
     with scrub_logs(ctx.ids):
         simulate_stage(ctx, mesh, view)
