@@ -137,10 +137,10 @@ def run_case(case_dir: str | Path, *, overrides: dict | None = None,
         return _run_case(case_dir, found, ids, overrides=overrides, views=views,
                          cache_dir=cache_dir, out_dir=out_dir, progress=progress, report=report,
                          keep_identifiers=keep_identifiers, t_start=t_start,
-                         concurrent=_concurrent_default() if concurrent is None else concurrent)
+                         concurrent=concurrent_default() if concurrent is None else concurrent)
 
 
-def _concurrent_default() -> bool:
+def concurrent_default() -> bool:
     """Simulate views at the same time: two or more usable cores and not a daemon process."""
     import multiprocessing
 

@@ -129,7 +129,7 @@ def open_case(case_dir: str | Path, *, views: tuple[str, ...] | list[str] | None
     from regtrack.case import load_case
     from regtrack.pipeline import stages
     from regtrack.pipeline.cache import StageCache
-    from regtrack.pipeline.run import RunContext, effective_configs
+    from regtrack.pipeline.run import RunContext, concurrent_default, effective_configs
 
     case = load_case(case_dir)
     names = tuple(str(v).upper() for v in (views or tuple(case.views)))
@@ -156,7 +156,10 @@ def open_case(case_dir: str | Path, *, views: tuple[str, ...] | list[str] | None
     cfg = config or TrackingConfig()
     session = TrackingSession(case, mesh.model, {}, config=cfg, stage_keys={"mesh": mesh.key},
                               simulated_now=todo)
+    failed = stages.simulate_concurrently(ctx, mesh, names) if concurrent_default() else {}
     for v in names:
+        if v in failed:
+            raise failed[v]
         sim = stages.simulate_stage(ctx, mesh, v)
         vm = stages.virtual_stage(ctx, mesh, sim, v)
         real = stages.real_stage(ctx, v)
