@@ -189,3 +189,30 @@ def test_killed_study_resumes_with_only_missing_runs(tmp_path):
     all_keys = {r.run_key for r in make_runs(load_study(p))}
     assert sorted(new_calls) == sorted(all_keys - done_before)  # only the missing runs ran
     assert len(read_csv(tmp_path / "s_results" / "table.csv")) == 12
+
+
+def _exit_now():
+    os._exit(3)
+
+
+def test_a_broken_pool_hands_a_new_run_back_as_died(tmp_path):
+    """The race a clean-clone CI run hit (session 34): a worker dies while the engine is
+    collecting another run, and the engine submits to the broken pool before it sees the
+    death.  The submit must not raise; the run comes back as died (the engine's retry
+    path), and ``recover`` then starts a fresh pool."""
+    import concurrent.futures as cf
+
+    from regtrack.study.backends import LocalBackend
+
+    be = LocalBackend(workers=1)
+    try:
+        dead = be._ensure().submit(_exit_now)
+        with pytest.raises(cf.process.BrokenProcessPool):
+            dead.result(timeout=120)
+        fut = be.submit("tests._study_fakes:fake_runner", None, 0)  # no raise here
+        assert fut.done() and be.died(fut.exception())
+        be.recover()
+        assert be._ensure().submit(os.getpid).result(timeout=120) != os.getpid()
+        assert be.pools_started == 2
+    finally:
+        be.close()
