@@ -171,8 +171,9 @@ def simulate_concurrently(ctx, mesh: MeshOutput, views, *, worker=None) -> dict[
     Why: the Newton solver of one simulation keeps the two cores of the benchmark machine
     only partly busy (its GMRES solves on a stored factorisation are single-threaded and
     memory-bound, 36 % of the CC compression).  Measured on the 9,496-node benchmark
-    hemisphere (``pipelines/bench_protocols.py``, session 34, 2 cores): CC + MLO one after
-    the other 160-175 s, at the same time 126 s, the same Newton paths and forces (PARDISO
+    hemisphere (``pipelines/bench_protocols.py`` with and without ``--concurrent``, back
+    to back, session 34, 2 cores): CC + MLO one after the other 180.2 s, at the same time
+    140.0 s (another pair: 146.9 and 128.6 s), the same Newton paths and forces (PARDISO
     in strict CNR mode, :mod:`regtrack.mechanics.linsolve`).
     """
     import concurrent.futures as cf
@@ -208,8 +209,6 @@ def simulate_concurrently(ctx, mesh: MeshOutput, views, *, worker=None) -> dict[
 def _simulate_worker(ctx, mesh: MeshOutput, view: str) -> float:
     """One view's :func:`simulate_stage` in a worker process of
     :func:`simulate_concurrently`; warnings go to stderr, scrubbed like the caller's."""
-    import logging
-
     from regtrack.privacy import scrub_logs
 
     logging.basicConfig(level=logging.WARNING,
