@@ -13,7 +13,8 @@ of the pair.
 
 Prints one table row per protocol step (increments, Newton iterations, augmentations,
 line-search trials rejected for inverted elements, assembly / contact / linear-solve /
-total seconds) and the totals: wall-clock and the process CPU time (on a shared machine
+total seconds), a line for a plate move that converged only on an automatic retry (its
+row is the retry's; the failed attempts' time is in the total) and the totals: wall-clock and the process CPU time (on a shared machine
 the CPU time is the figure that does not depend on the other jobs; the wall-clock is what
 a user waits).  Timings depend on machine load: compare ratios, not absolute figures
 across runs.  With other jobs on the CPU, set MKL_NUM_THREADS=1 (PARDISO's threads
@@ -59,6 +60,15 @@ def _run_view(model, view: str, out) -> tuple[str, float, float]:
                      f"{s.get('augmentations', 0):3d} {s.get('inverted_trials', 0):4d} "
                      f"{s.get('t_assembly', 0):7.2f} {s.get('t_contrib', 0):7.2f} "
                      f"{s.get('t_solve', 0):7.2f} {s.get('t_total', 0):7.2f}")
+    for st in res.steps:  # a retried plate move: its table row is the retry's
+        retry = st.solver.get("retry")
+        if retry:
+            tried = ", ".join(f"{k} = {v:g}" for k, v in retry.items()
+                              if k not in ("first_attempt", "first_attempt_s", "failed_attempts"))
+            lines.append(f"{view:5} {st.name}: converged on a retry ({tried}) after "
+                         f"{len(retry['failed_attempts'])} failed attempt(s); the first took "
+                         f"{retry['first_attempt_s']:.1f} s and stopped with: "
+                         f"{retry['first_attempt']}")
     sm = summarise(res, timing)
     tot = timing["total_s"]
     solve = sum(st.solver.get("t_solve", 0) for st in res.steps)
