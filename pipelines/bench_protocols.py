@@ -14,11 +14,11 @@ of the pair.
 Prints one table row per protocol step (increments, Newton iterations, augmentations,
 line-search trials rejected for inverted elements, assembly / contact / linear-solve /
 total seconds), a line for a plate move that converged only on an automatic retry (its
-row is the retry's; the failed attempts' time is in the total) and the totals: wall-clock and the process CPU time (on a shared machine
-the CPU time is the figure that does not depend on the other jobs; the wall-clock is what
-a user waits).  Timings depend on machine load: compare ratios, not absolute figures
-across runs.  With other jobs on the CPU, set MKL_NUM_THREADS=1 (PARDISO's threads
-otherwise spin against them).
+row is the retry's; the failed attempts' time is in the total) and the totals:
+wall-clock and the process CPU time (on a shared machine the CPU time is the figure that
+does not depend on the other jobs; the wall-clock is what a user waits). Timings depend
+on machine load: compare ratios, not absolute figures across runs. With other jobs on
+the CPU, set MKL_NUM_THREADS=1 (PARDISO's threads otherwise spin against them).
 
 Threads and paths: the frictional Newton path (and with it the iteration count) depends on
 round-off.  PARDISO in MKL's strict CNR mode (set by :mod:`regtrack.mechanics.linsolve`)
