@@ -42,7 +42,8 @@ from pathlib import Path
 from regtrack.mechanics.config import MechanicsConfig
 from regtrack.mechanics.meshes import hemisphere_model
 from regtrack.mechanics.protocol import shipped_protocol
-from regtrack.mechanics.run_view import run_protocol_on_model, summarise, write_outputs
+from regtrack.mechanics.run_view import (retry_summary, run_protocol_on_model, summarise,
+                                         write_outputs)
 
 
 def _run_view(model, view: str, out) -> tuple[str, float, float]:
@@ -60,15 +61,8 @@ def _run_view(model, view: str, out) -> tuple[str, float, float]:
                      f"{s.get('augmentations', 0):3d} {s.get('inverted_trials', 0):4d} "
                      f"{s.get('t_assembly', 0):7.2f} {s.get('t_contrib', 0):7.2f} "
                      f"{s.get('t_solve', 0):7.2f} {s.get('t_total', 0):7.2f}")
-    for st in res.steps:  # a retried plate move: its table row is the retry's
-        retry = st.solver.get("retry")
-        if retry:
-            tried = ", ".join(f"{k} = {v:g}" for k, v in retry.items()
-                              if k not in ("first_attempt", "first_attempt_s", "failed_attempts"))
-            lines.append(f"{view:5} {st.name}: converged on a retry ({tried}) after "
-                         f"{len(retry['failed_attempts'])} failed attempt(s); the first took "
-                         f"{retry['first_attempt_s']:.1f} s and stopped with: "
-                         f"{retry['first_attempt']}")
+    if any("retry" in st.solver for st in res.steps):  # its table row is the retry's
+        lines.append(f"{view:5} retried: {retry_summary(res, errors=True)}")
     sm = summarise(res, timing)
     tot = timing["total_s"]
     solve = sum(st.solver.get("t_solve", 0) for st in res.steps)

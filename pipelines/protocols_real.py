@@ -32,7 +32,8 @@ from regtrack.config import config_from_assignments
 from regtrack.errors import ConfigError
 from regtrack.mechanics.contact import ContactConfig
 from regtrack.mechanics.protocol import shipped_protocol
-from regtrack.mechanics.run_view import run_protocol_on_model, summarise, write_outputs
+from regtrack.mechanics.run_view import (retry_summary, run_protocol_on_model, summarise,
+                                         write_outputs)
 from regtrack.model.io import load_model
 
 
@@ -77,28 +78,13 @@ def main() -> None:
                   f"| {sm['increments']} | {sm['iterations']} "
                   f"| {aug} | {sm['cutbacks']} | {stab} | {lost} | {skipped} "
                   f"| {time.perf_counter() - t:.0f} "
-                  f"| {time.process_time() - c:.0f} | {_retries(res)} |", flush=True)
+                  f"| {time.process_time() - c:.0f} | {retry_summary(res)} |", flush=True)
             if args.out:
                 write_outputs(res, model, args.out, stem=f"{path.stem}_{view}")
 
 
 def _mm(x: float | None) -> str:
     return "-" if x is None else f"{x:.1f}"
-
-
-def _retries(res) -> str:
-    """The automatic retries of the plate moves (ProtocolRunner._run_step_with_retry): the
-    setting that worked and each failed attempt's wall seconds; the figures of the table
-    (increments, iterations, ...) are the successful attempt's."""
-    out = []
-    for s in res.steps:
-        r = s.solver.get("retry")
-        if r:
-            won = ", ".join(f"{k} = {v:g}" for k, v in r.items()
-                            if k in ("penalty_growth_max", "max_plate_increment_mm"))
-            lost = " + ".join(f"{f['s']:.0f} s" for f in r.get("failed_attempts", []))
-            out.append(f"{s.name}: {won} (failed attempts {lost})")
-    return "; ".join(out) or "none"
 
 
 if __name__ == "__main__":

@@ -7,6 +7,8 @@ The mock "body" is a grid of nodes each tied to its reference position by a spri
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 from scipy.spatial import Delaunay
@@ -181,9 +183,16 @@ def test_a_failed_plate_move_is_retried_once_with_a_lower_penalty_growth_cap():
     assert last.solver["retry"]["first_attempt_s"] >= 0
     assert all(c.config is cfg for c in runner.contacts.values())
     assert "retry" not in res.steps[0].solver
-    from regtrack.mechanics.run_view import summarise
+    from regtrack.mechanics.run_view import retry_summary, summarise
     sm = summarise(res)
     assert sm["retried_steps"] == ["compression"]
+    # the benchmark's and the real-exam table's line: the setting that worked, each failed
+    # attempt's seconds, and (errors=True) the first attempt's error; only the retried step
+    text = retry_summary(res, errors=True)
+    assert text.startswith("compression: penalty_growth_max = 16 (failed attempts ")
+    assert "mock: cycling" in text and "gravity" not in text and ";" in text
+    assert "mock: cycling" not in retry_summary(res)
+    assert retry_summary(dataclasses.replace(res, steps=res.steps[:1])) == "none"
     rep = res.steps[-1].contact["upper"]
     assert sm["upper_edge_force_N"] == rep["edge_normal_force_N"]
     assert sm["upper_body_force_N"] == pytest.approx(rep["normal_force_N"]

@@ -153,6 +153,23 @@ def summarise(result: ProtocolResult, timing: dict | None = None) -> dict:
             "tissue": result.materials, "timing_s": timing or {}}
 
 
+def retry_summary(result: ProtocolResult, *, errors: bool = False) -> str:
+    """The automatic retries of the plate moves (``ProtocolRunner._run_step_with_retry``),
+    one per retried step: the setting that worked and each failed attempt's wall seconds
+    (``errors``: and the first attempt's error), or ``"none"``.  The step's other figures
+    (increments, iterations, ...) are the successful attempt's."""
+    out = []
+    for s in result.steps:
+        r = s.solver.get("retry")
+        if r:
+            won = ", ".join(f"{k} = {v:g}" for k, v in r.items()
+                            if k in ("penalty_growth_max", "max_plate_increment_mm"))
+            lost = " + ".join(f"{f['s']:.0f} s" for f in r.get("failed_attempts", []))
+            first = f"; the first stopped with: {r.get('first_attempt')}" if errors else ""
+            out.append(f"{s.name}: {won} (failed attempts {lost}{first})")
+    return "; ".join(out) or "none"
+
+
 def write_outputs(result: ProtocolResult, model: BreastModel, out_dir: Path, *, stem: str,
                   configs: dict | None = None, timing: dict | None = None) -> dict[str, Path]:
     """Write the .vtu, .json and .png of a protocol result (atomically)."""
