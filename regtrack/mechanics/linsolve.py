@@ -108,6 +108,15 @@ With the operation estimate a re-used factorisation was kept for up to 60 GMRES
 iterations per solve (about 1.7 factorisations' worth) and never marked stale: on
 Pelicano exam 05's 10k CC compression, 26,773 GMRES iterations in 855 re-used solves (31
 per solve) made 860 of the step's 970 s.
+
+Krylov subspace recycling was tried (session 36, offline on 60 consecutive compression
+systems of the benchmark CC, with the same re-use and refactorisation rules): GCRO, each
+solve minimising over the recycled space ``U`` (``A U`` recomputed for the new matrix)
+plus its own Krylov space, ``U`` the last 20 or 60 preconditioned Krylov vectors of the
+solves before.  562 and 501 GMRES iterations against 519 without (25, 22 and 21
+factorisations), and 1,404 and 3,689 extra products to form ``A U``: no gain.  With the
+matrix changing over the whole displacement block at every Newton iteration, the
+directions that the stale factors miss are not those of the previous Krylov spaces.
 """
 
 from __future__ import annotations
