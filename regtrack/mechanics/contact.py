@@ -90,8 +90,8 @@ with the term alone) completes in 537 iterations, both default views in 569 / 61
 Why most compression solves take five to eight Newton iterations (session 36, benchmark
 hemisphere CC, residual histories): the first iterations of an increment fall by only
 3 to 10x each, as nodes enter contact and change stick/slip state; without friction the
-rates are similar (178 iterations in all, against 165 with friction).  The term only slows the last
-iterations: switched on inside a solve once its residual had fallen below 2 % of the
+rates are similar (178 iterations in all, against 165 with friction).  The term only
+slows the last iterations: switched on inside a solve once its residual had fallen below 2 % of the
 solve's first (the exact tangent near the solution), the solves ended quadratically
 (e.g. 4.3e-3 -> 2.2e-4 -> 6.2e-7 N) but took as many iterations, and the path changed
 further on (172 in all).  Not kept.
