@@ -127,6 +127,7 @@ import logging
 import os
 import threading
 import time
+from typing import Any
 
 import numpy as np
 import scipy.sparse as sp
@@ -364,7 +365,7 @@ class LinearSolver:
         self._upper: tuple | None = None
         self._full: tuple | None = None
         self._lu_needed = False
-        self._pre: sp.csr_matrix | None = None  # the preconditioning matrix of this solve
+        self._pre: Any = None  # this solve's preconditioning matrix, or a function making it
         self.n_analyses = self.n_factorisations = self.n_krylov_solves = self.krylov_iterations = 0
         self.n_reuse_failures = self.krylov_wasted_iterations = 0
         self.time_analysis = self.time_factor_solve = self.time_krylov = 0.0
@@ -398,21 +399,17 @@ class LinearSolver:
         (its default); ``refactor`` forces a fresh factorisation.
         ``preconditioner``: for an unsymmetric ``A``, a matrix of the same pattern whose
         symmetric part is factorised (LDL^T) in place of ``A``'s own symmetric part
-        (ignored when the patterns differ, or once LU is in use).
+        (ignored when the patterns differ, or once LU is in use), or a function that
+        assembles it, called only if this solve factorises.
         Raises :class:`LinearSolveError` when the factorisation fails.
         """
         b = np.asarray(b, float)
         tol = self.krylov_rtol if rtol is None else max(rtol, self.krylov_rtol)
         key = self._key(A)
-        self._pre = None
-        if preconditioner is not None and not symmetric:
-            if self._key(preconditioner) == key:
-                self._pre = preconditioner
-            else:
-                log.debug("preconditioning matrix of another pattern: ignored")
-            self._key(A)  # A's arrays are the ones remembered for the next call
+        self._pre = None if symmetric else preconditioner
         # handle True: LDL^T of the symmetric part (A itself when symmetric); False: LU
-        sym = self.kind == "pardiso" and (symmetric or (not self._lu_needed and self._upper_sym(A, key) is not None))
+        sym = self.kind == "pardiso" and (symmetric or (not self._lu_needed
+                                                        and self._upper_map(A, key)[4] is not None))
         same = self._keys[sym] == key and self._factored[sym]
         if self.reuse and same and not refactor and not self._stale[sym]:
             k0 = self.krylov_iterations
@@ -500,10 +497,11 @@ class LinearSolver:
         M.has_sorted_indices = True
         return M
 
-    def _upper_sym(self, A: sp.csr_matrix, key: tuple) -> sp.csr_matrix | None:
-        """Upper triangle of the symmetric part ``(A + A^T) / 2`` on A's own pattern less
-        the entries of :meth:`_drop`, or None when that pattern is not structurally
-        symmetric (maps cached per pattern)."""
+    def _upper_map(self, A: sp.csr_matrix, key: tuple) -> tuple:
+        """``(key, up, indices, indptr, tmap)`` of the upper triangle of A's pattern less
+        the entries of :meth:`_drop`: ``up`` the positions of its entries in ``A.data``,
+        ``tmap`` those of their transposes (None when the pattern is not structurally
+        symmetric); cached per pattern."""
         if self._upper is None or self._upper[0] != key:
             n = A.shape[0]
             rows = np.repeat(np.arange(n, dtype=np.int64), np.diff(A.indptr))
@@ -516,7 +514,13 @@ class LinearSolver:
             tpos = np.minimum(tpos, len(keys) - 1)
             tmap = tpos if np.array_equal(keys[tpos], cols[up] * n + rows[up]) else None
             self._upper = (key, up, cols[up].astype(np.int32), indptr, tmap)
-        _, up, idx, ptr, tmap = self._upper
+        return self._upper
+
+    def _upper_sym(self, A: sp.csr_matrix, key: tuple) -> sp.csr_matrix | None:
+        """Upper triangle of the symmetric part ``(A + A^T) / 2`` on A's own pattern less
+        the entries of :meth:`_drop`, or None when that pattern is not structurally
+        symmetric."""
+        _, up, idx, ptr, tmap = self._upper_map(A, key)
         if tmap is None:
             return None
         U = sp.csr_matrix((_half_sum(A.data, up, tmap), idx, ptr), shape=A.shape, copy=False)
@@ -531,10 +535,25 @@ class LinearSolver:
             self._factored[sym] = False
         self.precision = "double"
 
+    def _preconditioner(self, key: tuple) -> sp.csr_matrix | None:
+        """The caller's preconditioning matrix (assembled now if given as a function), or
+        None when there is none or its pattern is not ``key``'s."""
+        pre = self._pre
+        if callable(pre):
+            pre = self._pre = pre()
+        if pre is None:
+            return None
+        if self._key(pre) != key:
+            log.debug("preconditioning matrix of another pattern: ignored")
+            pre = self._pre = None
+        return pre
+
     def _factorise(self, A: sp.csr_matrix, sym: bool, key: tuple) -> None:
         be = self._backends[sym]
+        pre = self._preconditioner(key) if sym else None
+        self._key(A)  # A's arrays are the ones remembered for the next call
         if sym:
-            M = self._upper_sym(A if self._pre is None else self._pre, key)
+            M = self._upper_sym(A if pre is None else pre, key)
         else:
             M = self._pruned(A, key)
         if key != self._keys[sym]:
