@@ -17,7 +17,10 @@ total seconds), a line for a plate move that converged only on an automatic retr
 row is the retry's; the failed attempts' time is in the total) and the totals:
 wall-clock and the process CPU time (on a shared machine the CPU time is the figure that
 does not depend on the other jobs; the wall-clock is what a user waits). Timings depend
-on machine load: compare ratios, not absolute figures across runs. With other jobs on
+on machine load: compare ratios, not absolute figures across runs.  The last line gives
+each protocol's time in units of a reference Newton iteration measured on the same model
+before and after the runs (:func:`reference_iteration`), a figure that the host's drift
+(10-25 % between runs here) does not move. With other jobs on
 the CPU, set MKL_NUM_THREADS=1 (PARDISO's threads otherwise spin against them).
 
 Threads and paths: the frictional Newton path (and with it the iteration count) depends on
@@ -44,6 +47,54 @@ from regtrack.mechanics.meshes import hemisphere_model
 from regtrack.mechanics.protocol import shipped_protocol
 from regtrack.mechanics.run_view import (retry_summary, run_protocol_on_model, summarise,
                                          write_outputs)
+
+
+def reference_iteration(model, repeats: int = 5) -> float:
+    """Wall seconds of one average Newton iteration's work on ``model`` at rest (median of
+    ``repeats``): the tissue and skin evaluation with the tangent and without it (a line
+    search), the system matrix, a third of a factorisation and eight re-used GMRES
+    iterations (PARDISO solve + product), the proportions of the benchmark's CC
+    (165 iterations, 54 factorisations, 1,329 GMRES iterations).  The host's speed drifts by
+    10-25 % between runs here; a protocol's time in these units (printed as "ref. it.")
+    does not, so runs made at different times compare."""
+    import numpy as np
+
+    from regtrack.mechanics import problem as P
+    from regtrack.mechanics import solver as S
+    from regtrack.mechanics.linsolve import LinearSolver
+
+    pr = S.build_problem(model, MechanicsConfig())
+    o = pr.config.solver
+    cons = S._Constraints(pr, pr.fixed_dofs)
+    u = np.zeros_like(pr.X)
+    ls = LinearSolver(o.linear_solver, reuse_factorisation=False, precision=o.precision,
+                      ordering=o.ordering, dof_nodes=P.dof_nodes(pr), decoupled=pr.fixed_dofs)
+
+    def system():
+        A = P.system_matrix(pr, P.evaluate(pr, u))
+        A.data[cons.zero] = 0.0
+        A.data[cons.diag] = 1.0
+        return A
+
+    A = system()
+    b = np.ones(A.shape[0])
+    ls.solve(A, b, symmetric=True)  # analysis, JIT and MKL warm-up
+    be = ls._backends[True]
+    times = []
+    for _ in range(repeats):
+        t = time.perf_counter()
+        P.evaluate(pr, u, want_k=False)
+        A = system()
+        t_asm = time.perf_counter() - t
+        t = time.perf_counter()
+        ls.solve(A, b, symmetric=True)
+        t_fac = time.perf_counter() - t
+        t = time.perf_counter()
+        for _ in range(8):
+            A @ be.solve(b)
+        times.append(t_asm + t_fac / 3 + time.perf_counter() - t)
+    ls.release()
+    return float(np.median(times))
 
 
 def _run_view(model, view: str, out) -> tuple[str, float, float]:
@@ -95,6 +146,7 @@ def main() -> None:
         model = hemisphere_model(50.0, args.lc, tumour_radius=8.0)
     t_mesh = time.perf_counter() - t
     print(f"model: {model.n_nodes} nodes, {model.n_tets} tets (meshing/loading {t_mesh:.1f} s)")
+    ref0 = reference_iteration(model)
     t0 = time.perf_counter()
     if args.concurrent and len(args.views) > 1:
         import concurrent.futures as cf
@@ -110,8 +162,13 @@ def main() -> None:
     for text, _, _ in runs:
         print(text)
     how = "at the same time" if args.concurrent and len(args.views) > 1 else "one after the other"
+    ref = 0.5 * (ref0 + reference_iteration(model))  # the host's speed before and after
     print(f"all views ({how}): {wall:.1f} s wall (sum of the protocols "
           f"{sum(r[1] for r in runs):.1f} s), {sum(r[2] for r in runs):.1f} s CPU")
+    print(f"reference iteration {1e3 * ref0:.0f} ms before, {2e3 * ref - 1e3 * ref0:.0f} ms after "
+          f"the runs: " + ", ".join(f"{v} {r[1] / ref:.0f}" for v, r in zip(args.views, runs))
+          + f", all views {wall / ref:.0f} ref. it. (the targets: 60 s and 120 s are "
+          f"{60 / ref:.0f} and {120 / ref:.0f} at this speed)")
 
 
 if __name__ == "__main__":
