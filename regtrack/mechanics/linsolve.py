@@ -117,6 +117,11 @@ solves before.  562 and 501 GMRES iterations against 519 without (25, 22 and 21
 factorisations), and 1,404 and 3,689 extra products to form ``A U``: no gain.  With the
 matrix changing over the whole displacement block at every Newton iteration, the
 directions that the stale factors miss are not those of the previous Krylov spaces.
+Nor did the previous Newton correction help as a starting guess (session 37: GMRES from
+the multiple of it that minimises the residual, benchmark CC: 1,407 GMRES iterations and
+62 factorisations against 1,329 and 54).  The 18 failed re-uses of that run (324 GMRES
+iterations) cannot be cut short either: solves that end up converging start as slowly
+(README, session 37).
 """
 
 from __future__ import annotations
