@@ -154,6 +154,39 @@ def test_edge_band_force_is_the_force_of_the_nodes_near_the_plate_edge(band, sha
                                                            abs=1e-12)
 
 
+def test_a_stall_at_t_1_on_the_same_node_twice_ends_a_guarded_step():
+    """``stall_guard`` (the protocol engine's plate moves that have a retry after them):
+    the last increment fails with the multipliers stalled on the pinned node, is cut back,
+    and fails the same way again; cutting back further only shortens the way to the same
+    state at t = 1 (seen on the lc 2.9 mm hemisphere's CC: six cut-backs from t = 0.9949 to
+    0.9998, about 150 s).  Guarded, the step stops at the second such stall with
+    SolverCrawlError and its last equilibrium; unguarded it cuts back to min_increment
+    (ContactDidNotConvergeError), with more multiplier updates."""
+    from regtrack.errors import ContactDidNotConvergeError, SolverCrawlError
+
+    updates, errors = {}, {}
+    for guard in (True, False):
+        prob, X, c, top, dofs = _block_on_plate(0.0)
+        calls = []
+        real = c.augment
+        c.augment = lambda u, real=real, calls=calls: calls.append(1) or real(u)
+        pin = int(c.nodes[0])
+        pdofs = np.concatenate([dofs, [3 * pin + 2]])
+        opts = SolverOptions(initial_increment=0.5, max_increment=0.5, min_increment=0.01)
+        with pytest.raises(ContactDidNotConvergeError if not guard else SolverCrawlError) as err:
+            solve_step(prob, np.zeros_like(X), contributions=[c], options=opts, step_name="press",
+                       dirichlet=lambda t: (pdofs, np.concatenate([np.zeros(len(dofs)), [-0.2]])),
+                       stall_guard=guard)
+        errors[guard], updates[guard] = err.value, len(calls)
+    g = errors[True]
+    assert not isinstance(errors[False], SolverCrawlError)
+    assert "failed twice" in str(g) and f"node {pin}" in str(g) and "'press'" in str(g)
+    # t = 0.5 accepted, t = 1 stalls, cut back to 0.75, t = 1 stalls again: stop at 0.75
+    assert g.load_fraction == pytest.approx(0.75) and g.last_converged.shape == X.shape
+    assert 0.75 < errors[False].load_fraction < 1.0
+    assert updates[True] < updates[False]
+
+
 def _press(augmentation: str, augmentation_force_tol: float = 0.0):
     """The block of _press_and_shear, pressed 0.5 mm without friction in 10 increments."""
     prob, X, c, top, dofs = _block_on_plate(0.0)

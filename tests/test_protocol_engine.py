@@ -291,6 +291,45 @@ def test_a_crawling_plate_move_is_retried_with_a_plate_increment_cap_first():
     assert "retry" not in res.steps[-1].solver
 
 
+def test_every_attempt_of_a_plate_move_but_the_last_has_the_stall_guard():
+    """The stall guard (a multiplier stall at t = 1 repeated after a cut-back ends the
+    solve, :func:`regtrack.mechanics.solver.solve_step`) is asked for by every attempt of a
+    plate move that has a retry after it, and by no other solve: the last retry, the other
+    steps, and a run without retries run to their ends as before."""
+    body = _body()
+    inner = mock_solver(body.points, body.fixed)
+    calls = []
+
+    def solve(u0, g0, g1, contribs, name, **kw):
+        calls.append((name, kw))
+        if name == "compression" and "initial_increment" not in kw:  # every attempt fails
+            raise SolverDidNotConvergeError("mock: stalled", load_fraction=0.5)
+        return inner(u0, g0, g1, contribs, name)
+    solve.takes_increment = True
+    with pytest.raises(SolverDidNotConvergeError, match="also after a retry"):
+        ProtocolRunner(body, shipped_protocol("cc"), solve,
+                       config=ContactConfig(friction=0.1)).run()
+    rest = [kw for n, kw in calls if n == "compression" and "initial_increment" not in kw]
+    assert len(rest) == 3  # the first attempt and two retries (penalty cap, plate cap)
+    assert [kw.get("stall_guard", False) for kw in rest] == [True, True, False]
+    assert not any(kw.get("stall_guard") for n, kw in calls if n != "compression")
+
+    body = _body()
+    calls.clear()
+    res = ProtocolRunner(body, shipped_protocol("cc"), _no_fail(inner, calls),
+                         config=ContactConfig(friction=0.1, retry_penalty_growth_max=0.0,
+                                              retry_plate_increment_mm=0.0)).run()
+    assert res.complete and calls and not any("stall_guard" in kw for _, kw in calls)
+
+
+def _no_fail(inner, calls):
+    def solve(u0, g0, g1, contribs, name, **kw):
+        calls.append((name, kw))
+        return inner(u0, g0, g1, contribs, name)
+    solve.takes_increment = True
+    return solve
+
+
 def test_penetration_guard_rejects_soft_penalty():
     body = _body()
     runner = ProtocolRunner(body, shipped_protocol("cc"), mock_solver(body.points, body.fixed),

@@ -311,6 +311,7 @@ class PlateContact:
         self._viol_last: np.ndarray | None = None  # violation at the last multiplier update
         self._stalled_updates = 0  # consecutive capped updates without progress (augment)
         self.stalled: str = ""  # why the multipliers cannot converge (solver cuts back), or ""
+        self.stalled_at: tuple[str, int] | None = None  # (plate, skin node) of that stall
         # committed state (end of the last converged increment)
         self._lam = np.zeros(m)
         self._pconv = np.zeros(m)  # pressure of the last converged increment (MPa)
@@ -381,6 +382,7 @@ class PlateContact:
         self._viol_last = None
         self._stalled_updates = 0
         self.stalled = ""
+        self.stalled_at = None
         self._fric_resolves = 0
         self.lam = self._lam.copy()
         self.pbar = self._pconv.copy()
@@ -658,6 +660,7 @@ class PlateContact:
         else:
             self._stalled_updates = 0
         if self._stalled_updates >= c.stalled_uzawa_updates:
+            self.stalled_at = (self.name, int(self.nodes[i]))
             self.stalled = (f"augmented-Lagrangian multipliers stalled on plate '{self.name}': skin node "
                             f"{int(self.nodes[i])} stays {v[i]:.3g} mm deep at the penalty cap")
 

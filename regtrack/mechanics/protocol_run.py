@@ -275,6 +275,7 @@ class ProtocolRunner:
         self._contact_configs = {k: c.config for k, c in self.contacts.items()}
         self._plate_cap: float | None = None  # a retry's [contact] max_plate_increment_mm
         self._crawl_guard = False  # stop a crawling solve (a retry follows)
+        self._stall_guard = False  # stop a repeated multiplier stall at t = 1 (a retry follows)
 
     # -- one solve ------------------------------------------------------------------
     def _solve(self, g_end: np.ndarray, name: str, *, single: bool = False,
@@ -290,6 +291,8 @@ class ProtocolRunner:
                 kw["max_increment"] = max_increment
             if self._crawl_guard:
                 kw["crawl_guard"] = True
+            if self._stall_guard:
+                kw["stall_guard"] = True
         u, stats = self.solve(self.u, self.g, g_end, contribs, name, **kw)
         self.u = np.asarray(u, float).reshape(-1, 3)
         self.g = np.asarray(g_end, float)
@@ -457,12 +460,14 @@ class ProtocolRunner:
             c.eps_node = np.minimum(c.eps_node, low * c.eps_n)
 
     def _attempt(self, step: Step, remedy: tuple[str, float] | None, snap,
-                 failed: list[dict]) -> StepRecord | None:
+                 failed: list[dict], *, last: bool = False) -> StepRecord | None:
         """One attempt of a plate move with a retry's setting (None: the first attempt,
-        the only one with the crawl guard); a failure is appended to ``failed`` (with the
-        state restored to ``snap``) and gives None."""
+        the only one with the crawl guard; every attempt but the ``last`` has the stall
+        guard); a failure is appended to ``failed`` (with the state restored to ``snap``)
+        and gives None."""
         self._apply_remedy(remedy)
         self._crawl_guard = remedy is None
+        self._stall_guard = not last
         t0 = time.perf_counter()
         try:
             return self._run_step(step)
@@ -486,8 +491,11 @@ class ProtocolRunner:
         every attempt did before the guard existed, because a run of small stabilised
         increments may recover (measured, session 27: Pelicano exam 10's 8.9k-node MLO with
         the 5 mm cap had 17 stabilised increments in a row by t = 0.62, the last 6 of less
-        than 0.01 on average, yet completes when let run: session 26).  The last error
-        reports every attempt.
+        than 0.01 on average, yet completes when let run: session 26).  Every attempt but
+        the last runs with the stall guard (``stall_guard`` of
+        :func:`regtrack.mechanics.solver.solve_step`: the last increment failing twice in a
+        row with the multipliers stalled on the same node), whose cut-backs cannot change
+        the state at t = 1.  The last error reports every attempt.
 
         Why the penalty cap: the penalty growth that speeds up the multiplier updates of skin
         pinched at the chest wall (``penalty_growth_max``, 256) also stiffens nodes at the
@@ -518,10 +526,10 @@ class ProtocolRunner:
                 order = sorted(remedies, key=lambda r: r[0] != "max_plate_increment_mm")
                 if not isinstance(failed[0]["exc"], SolverCrawlError):
                     order.reverse()
-                for remedy in order:
+                for k, remedy in enumerate(order):
                     log.warning("step '%s' did not converge (%s); retrying it from its start "
                                 "with [contact] %s = %g", step.name, failed[-1]["exc"], *remedy)
-                    rec = self._attempt(step, remedy, snap, failed)
+                    rec = self._attempt(step, remedy, snap, failed, last=k == len(order) - 1)
                     if rec is not None:
                         break
                 else:
@@ -533,7 +541,7 @@ class ProtocolRunner:
                                      last_converged=last.last_converged) from last
         finally:
             self._apply_remedy(None)
-            self._crawl_guard = False
+            self._crawl_guard = self._stall_guard = False
         if failed:
             rec.solver["retry"] = dict([remedy], first_attempt=failed[0]["error"],
                                        first_attempt_s=failed[0]["s"],
@@ -589,7 +597,7 @@ def solver_from_problem(problem: Any, *, options: Any = None, progress: Any = No
     from dataclasses import replace
 
     def solve(u0, g0, g1, contribs, name, initial_increment=None, max_increment=None,
-              crawl_guard=False):
+              crawl_guard=False, stall_guard=False):
         g0 = np.asarray(g0, float)
         g1 = np.asarray(g1, float)
         opts = options
@@ -602,7 +610,8 @@ def solver_from_problem(problem: Any, *, options: Any = None, progress: Any = No
             opts = replace(o, max_increment=cap, initial_increment=min(o.initial_increment, cap))
         u, st = solve_step(problem, u0, gravity=lambda t: g0 + t * (g1 - g0), dirichlet=dirichlet,
                            contributions=contribs, options=opts, progress=progress,
-                           step_name=name, step=name, crawl_guard=crawl_guard)
+                           step_name=name, step=name, crawl_guard=crawl_guard,
+                           stall_guard=stall_guard)
         out = st.to_dict()
         out.pop("reports", None)
         fixed = problem.model.fixed
