@@ -591,7 +591,7 @@ def solve_step(problem: Problem, u0: np.ndarray, *, gravity: Gravity | None = No
                         f"cut-back to t = {t:.4g}; cutting back further only shortens the "
                         f"way to the same state; stopped, keeping the last undamped "
                         f"equilibrium, at t = {t_eq:.4g}", load_fraction=t_eq,
-                        last_converged=u_eq.reshape(-1, 3).copy())
+                        last_converged=u_eq.reshape(-1, 3).copy()) from None
                 t1_stall = where
             stats.cutbacks += 1
             log.info("%s: increment t = %.4g -> %.4g failed (%s); cutting back", step_name, t, t_new, why)
