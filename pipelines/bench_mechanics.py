@@ -78,9 +78,7 @@ def one(lc: float, formulation: str, with_step: bool = True, model_path: str = "
 
     def system(uu, prob=pr):
         A = P.system_matrix(prob, P.evaluate(prob, uu))
-        A.data[cons.zero] = 0.0
-        A.data[cons.diag] = 1.0
-        return A
+        return cons.apply(A)
 
     # the same assembly on one thread (assembly_threads = 1), alternated with the default
     pr1 = S.build_problem(model, MechanicsConfig(formulation=formulation,

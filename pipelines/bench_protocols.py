@@ -72,9 +72,7 @@ def reference_iteration(model, repeats: int = 5) -> float:
 
     def system():
         A = P.system_matrix(pr, P.evaluate(pr, u))
-        A.data[cons.zero] = 0.0
-        A.data[cons.diag] = 1.0
-        return A
+        return cons.apply(A)
 
     A = system()
     b = np.ones(A.shape[0])

@@ -162,6 +162,13 @@ class _Constraints:
         diag = problem.pattern.dof_positions(dofs, dofs)
         self.diag = diag if lay.k_pos is None else lay.k_pos[diag]
 
+    def apply(self, M: sp.csr_matrix) -> sp.csr_matrix:
+        """Replace, in place, the constrained rows and columns of a system matrix of the
+        fixed layout by the identity; returns ``M``."""
+        M.data[self.zero] = 0.0
+        M.data[self.diag] = 1.0
+        return M
+
 
 def _constraint_targets(problem: Problem, u_start: np.ndarray, dirichlet: Dirichlet | None, t: float):
     dofs = problem.fixed_dofs
@@ -178,15 +185,9 @@ def _constraint_targets(problem: Problem, u_start: np.ndarray, dirichlet: Dirich
     return dofs, vals
 
 
-def _with_constraint_rows(assemble: Callable[[], sp.csr_matrix], cons: _Constraints):
-    """A function assembling the preconditioning matrix with the constraint rows and
-    columns replaced by the identity, as the system matrix's."""
-    def build() -> sp.csr_matrix:
-        M = assemble()
-        M.data[cons.zero] = 0.0
-        M.data[cons.diag] = 1.0
-        return M
-    return build
+def _constrained(assemble: Callable[[], sp.csr_matrix], cons: _Constraints):
+    """``assemble`` followed by :meth:`_Constraints.apply` (not called until needed)."""
+    return lambda: cons.apply(assemble())
 
 
 class _Newton:
@@ -399,10 +400,9 @@ class _Newton:
                 rhs -= K @ np.concatenate([ducon, np.zeros(n - n3)])
             rhs[:n3][cons.mask] = ducon[cons.mask]
             if fixed_layout:
-                K.data[cons.zero] = 0.0
-                K.data[cons.diag] = 1.0
-                if P is not None:
-                    P = _with_constraint_rows(P, cons)
+                cons.apply(K)
+                if P is not None:  # assembled by the linear solver only if it factorises
+                    P = _constrained(P, cons)
             else:
                 keep = (~cons.system_mask).astype(float)
                 K = (sp.diags(keep) @ K @ sp.diags(keep) + sp.diags(1.0 - keep)).tocsr()
