@@ -42,6 +42,13 @@ fixed chest wall, its multiplier rising by the same amount at every update) woul
 ``max_augmentations``; once the worst node's penalty is at the cap and its violation has
 fallen by less than 1 % in ``stalled_uzawa_updates`` updates in a row, the increment is
 cut back instead (:meth:`PlateContact._check_stall`).
+A Newton update of the multipliers was also tried (session 38, README). It solved ``C dlambda
+= -g`` over the violating nodes, with the compliance ``C`` taken from the factorised
+tangent; Uzawa is its diagonal approximation ``1 / eps``. On the benchmark CC's last
+increment it took the violation from 6.51 to 0.81 mm in one update, but then stagnated
+at 0.2 to 0.8 mm. That tangent leaves out the sliding nodes' friction term and the edge
+curvature term, and the pinched nodes are strongly nonlinear, so the linear prediction
+misses. It took 182 iterations against 165, and was not kept.
 
 Regularised Coulomb friction (stick/slip return mapping, :mod:`.friction`): with the
 stick point ``a_i`` (plate-local, committed at the end of each converged increment) and

@@ -122,6 +122,13 @@ the multiple of it that minimises the residual, benchmark CC: 1,407 GMRES iterat
 62 factorisations against 1,329 and 54).  The 18 failed re-uses of that run (324 GMRES
 iterations) cannot be cut short either: solves that end up converging start as slowly
 (README, session 37).
+Session 38 replayed the CC's 165 systems offline; the replay gives the run's counts exactly.
+A PARDISO solve of one vector (17.4 ms, 21.4 M float32 factor entries, about 10 GB/s where
+numpy reads 24 GB/s) is bound by latency rather than memory bandwidth: 4 right-hand sides
+cost 19.5 ms.  Block GMRES with random extra start vectors could use that, but it cut the
+GMRES iterations only from 1,329 to 1,252 (block of 2) and 1,160 (block of 4).  Deflating
+the 40 eigenvectors of the factored matrix nearest zero barely helped (e.g. 39 -> 32 and
+59 -> 58 iterations on stale factors): the spectrum near zero has no gap.
 """
 
 from __future__ import annotations
