@@ -91,6 +91,29 @@ def test_factorisation_is_reused_until_stale():
     assert ls3.n_reuse_failures == 1 and ls3.krylov_wasted_iterations == 1  # the one iteration
 
 
+def test_reuse_budget_sets_the_gmres_iterations_before_refactorising():
+    """A state 4x further from the factorised one needs 12 GMRES iterations on the old
+    factors (measured; the cost ratio of this small system is at its floor, 16).  With the
+    default budget of half the cost ratio (8 iterations) the re-use fails after its 8
+    iterations and the matrix is refactorised; with a budget of one cost ratio (16) the
+    old factors solve it.  Both give the solution."""
+    A0, b = anp_system(0.002, seed=3)
+    A1, _ = anp_system(0.008, seed=3)
+    runs = {}
+    for budget in (0.5, 1.0):
+        ls = LinearSolver(reuse_budget=budget)
+        ls.solve(A0, b, symmetric=True)
+        x = ls.solve(A1, b, symmetric=True, rtol=1e-8)
+        assert relres(A1, x, b) <= 1e-8 and ls.cost_ratio == 16.0
+        runs[budget] = ls
+    half, one = runs[0.5], runs[1.0]
+    assert half.n_reuse_failures == 1 and half.krylov_wasted_iterations == 8
+    assert half.n_factorisations == 2 and half.n_krylov_solves == 0
+    assert one.n_reuse_failures == 0 and one.n_factorisations == 1 and one.n_krylov_solves == 1
+    assert 8 < one.krylov_iterations - 1 <= 16  # its first solve took one iteration
+    assert SolverOptions().reuse_budget == 0.5 == LinearSolver().reuse_budget
+
+
 def test_mixed_precision_falls_back_to_double_when_too_inaccurate():
     """With one GMRES iteration allowed, float32 factors (error ~1e-6) cannot reach 1e-10:
     the solver switches to float64 factors for good and still solves.  (1e-10, not 1e-12:

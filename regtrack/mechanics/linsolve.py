@@ -74,9 +74,10 @@ true one) to the tolerance the Newton solver asks for (inexact Newton, :mod:`.so
 It is refactorised when
 
 * GMRES does not reach ``rtol`` within ``k_max`` iterations, where ``k_max`` follows
-  the estimated cost ratio ``rho`` of a factorisation to a GMRES iteration so that a
-  failed attempt wastes at most half a factorisation (``k_max = clip(rho / 2, 4,
-  krylov_max)``), or
+  the estimated cost ratio ``rho`` of a factorisation to a GMRES iteration,
+  ``k_max = clip(b rho, 4, krylov_max)`` with the budget ``b = reuse_budget`` (default
+  0.5: a failed attempt wastes at most half a factorisation; 1.0 measured in session 39,
+  below), or
 * the previous re-used solve already cost more than a quarter of a factorisation
   (``k > rho / 4``: the preconditioner has gone stale, refactorise at once).
 
@@ -336,6 +337,8 @@ class LinearSolver:
     krylov_rtol : relative residual of a solve when the caller gives none, and the floor
         of the caller's tolerance.
     krylov_max : cap of the GMRES iterations before refactorising.
+    reuse_budget : GMRES budget of a solve on a re-used factorisation, as a fraction of the
+        cost ratio (``k_max = clip(reuse_budget * rho, 4, krylov_max)``).
     dof_nodes : mesh node of each unknown (``3 p + k`` -> ``p``; an ANP pressure -> its
         node); with ``ordering = "nodes"`` the fill-reducing ordering is METIS nested
         dissection of the node graph, each node's unknowns kept together
@@ -359,7 +362,8 @@ class LinearSolver:
     """
 
     def __init__(self, kind: str = "auto", *, reuse_factorisation: bool = True, precision: str = "mixed",
-                 krylov_rtol: float = 1e-10, krylov_max: int = 60, ordering: str = "nodes",
+                 krylov_rtol: float = 1e-10, krylov_max: int = 60, reuse_budget: float = 0.5,
+                 ordering: str = "nodes",
                  dof_nodes: np.ndarray | None = None, decoupled: np.ndarray | None = None) -> None:
         self.kind = kind
         self.decoupled = None if decoupled is None else np.unique(np.asarray(decoupled, np.int64))
@@ -370,6 +374,7 @@ class LinearSolver:
         self.precision = precision
         self.krylov_rtol = krylov_rtol
         self.krylov_max = krylov_max
+        self.reuse_budget = reuse_budget
         self._backends: dict[bool, object] = {}
         self._keys: dict[bool, tuple | None] = {True: None, False: None}
         self._factored: dict[bool, bool] = {True: False, False: False}
@@ -607,7 +612,7 @@ class LinearSolver:
     def _k_max(self, fresh: bool) -> int:
         if fresh:
             return self.krylov_max
-        return int(np.clip(0.5 * self.cost_ratio, 4, self.krylov_max))
+        return int(np.clip(self.reuse_budget * self.cost_ratio, 4, self.krylov_max))
 
     def _krylov(self, A: sp.csr_matrix, b: np.ndarray, sym: bool, rtol: float, *,
                 fresh: bool) -> np.ndarray | None:

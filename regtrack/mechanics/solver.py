@@ -719,11 +719,13 @@ def _skip_undamped(run: list[float], o: SolverOptions) -> bool:
 
 def _linear_solver(problem: Problem, o: SolverOptions) -> LinearSolver:
     """The problem's cached solver (the analysis of its fixed pattern is re-used across steps)."""
-    key = (o.linear_solver, o.reuse_factorisation, o.precision, o.krylov_rtol, o.krylov_max, o.ordering)
+    key = (o.linear_solver, o.reuse_factorisation, o.precision, o.krylov_rtol, o.krylov_max,
+           o.reuse_budget, o.ordering)
     cached = getattr(problem, "_linear_solver", None)
     if cached is None or cached[0] != key:
         cached = (key, LinearSolver(o.linear_solver, reuse_factorisation=o.reuse_factorisation,
                                     precision=o.precision, krylov_rtol=o.krylov_rtol, krylov_max=o.krylov_max,
+                                    reuse_budget=o.reuse_budget,
                                     ordering=o.ordering, dof_nodes=dof_nodes(problem),
                                     decoupled=problem.fixed_dofs))
         problem._linear_solver = cached  # type: ignore[attr-defined]
