@@ -130,6 +130,15 @@ cost 19.5 ms.  Block GMRES with random extra start vectors could use that, but i
 GMRES iterations only from 1,329 to 1,252 (block of 2) and 1,160 (block of 4).  Deflating
 the 40 eigenvectors of the factored matrix nearest zero barely helped (e.g. 39 -> 32 and
 59 -> 58 iterations on stale factors): the spectrum near zero has no gap.
+Session 39 (README): on the same replay a budget ``reuse_budget = 1.0`` cut the failed
+re-uses from 18 to 2 and the factorisations from 54 to 43 at about the same GMRES count,
+but the real runs then take other Newton paths (nine runs on seven models: 5 % less CPU
+over the eight timed side by side, from -19 % to +15 % per run; 179 Newton iterations
+instead of 165 on the benchmark CC), so the default stays 0.5.
+Neither a background factorisation on the second core (the factors it can deliver are two
+or more Newton iterations old: 2,475 GMRES iterations on the replay instead of 1,329) nor
+a two-subdomain solve through PARDISO's Schur-complement mode (its own ordering: 22.7 M
+factor entries in the two halves against 19.8 M) pays on this two-core host.
 """
 
 from __future__ import annotations
