@@ -184,12 +184,11 @@ class SolverOptions:
                                "(Eisenstat-Walker forcing term cap)", gt=0, lt=1)
     krylov_rtol: float = param(1e-10, "-", "smallest relative linear-solve tolerance of a re-used "
                                "factorisation", gt=0, lt=1e-3)
-    reuse_budget: float = param(1.0, "-", "GMRES budget of a solve on a re-used factorisation "
+    reuse_budget: float = param(0.5, "-", "GMRES budget of a solve on a re-used factorisation "
                                 "before it is refactorised, as a fraction of the estimated cost "
                                 "ratio rho of a factorisation to a GMRES iteration: k_max = "
-                                "clip(reuse_budget * rho, 4, krylov_max) (linsolve.py; 0.5 until "
-                                "session 39, which took 8 % more CPU time over 16 paired protocol runs "
-                                "of ~10k-node models, README)", gt=0.0, le=10.0)
+                                "clip(reuse_budget * rho, 4, krylov_max) (linsolve.py; 1.0 was "
+                                "measured in session 39: README)", gt=0.0, le=10.0)
     krylov_max: int = param(60, "-", "cap of the GMRES iterations on a re-used factorisation before "
                             "refactorising (the actual limit follows the estimated cost ratio and "
                             "reuse_budget)", ge=1, le=500)

@@ -76,8 +76,8 @@ It is refactorised when
 * GMRES does not reach ``rtol`` within ``k_max`` iterations, where ``k_max`` follows
   the estimated cost ratio ``rho`` of a factorisation to a GMRES iteration,
   ``k_max = clip(b rho, 4, krylov_max)`` with the budget ``b = reuse_budget`` (default
-  1.0: a failed attempt wastes at most one factorisation's CPU time; 0.5 until session
-  39, below), or
+  0.5: a failed attempt wastes at most half a factorisation; 1.0 measured in session 39,
+  below), or
 * the previous re-used solve already cost more than a quarter of a factorisation
   (``k > rho / 4``: the preconditioner has gone stale, refactorise at once).
 
@@ -130,14 +130,11 @@ cost 19.5 ms.  Block GMRES with random extra start vectors could use that, but i
 GMRES iterations only from 1,329 to 1,252 (block of 2) and 1,160 (block of 4).  Deflating
 the 40 eigenvectors of the factored matrix nearest zero barely helped (e.g. 39 -> 32 and
 59 -> 58 iterations on stale factors): the spectrum near zero has no gap.
-Session 39 (README): on the same replay the budget ``reuse_budget = 1.0`` (0.5 before)
-cut the failed re-uses from 18 to 2 and the factorisations from 54 to 43 at about the same
-GMRES count: most re-uses that fail after ``rho / 2`` iterations converge by ``rho``.  The
-real runs then take other Newton paths, so it was judged on 17 protocol runs of 8.6k to
-9.6k-node models (hemispheres meshed at lc 2.95 to 3.1 mm, CC and MLO, and Pelicano exam
-03): 7 % less CPU time over the 16 runs timed in pairs side by side, faster in 14 of
-them (-19 % to +15 % per run), but slower on the benchmark CC itself (179 Newton
-iterations instead of 165).  The budget is now 1.0.
+Session 39 (README): on the same replay a budget ``reuse_budget = 1.0`` cut the failed
+re-uses from 18 to 2 and the factorisations from 54 to 43 at about the same GMRES count,
+but the real runs then take other Newton paths (nine runs on seven models: 5 % less CPU
+over the eight timed side by side, from -19 % to +15 % per run; 179 Newton iterations
+instead of 165 on the benchmark CC), so the default stays 0.5.
 Neither a background factorisation on the second core (the factors it can deliver are two
 or more Newton iterations old: 2,475 GMRES iterations on the replay instead of 1,329) nor
 a two-subdomain solve through PARDISO's Schur-complement mode (its own ordering: 22.7 M
@@ -374,7 +371,7 @@ class LinearSolver:
     """
 
     def __init__(self, kind: str = "auto", *, reuse_factorisation: bool = True, precision: str = "mixed",
-                 krylov_rtol: float = 1e-10, krylov_max: int = 60, reuse_budget: float = 1.0,
+                 krylov_rtol: float = 1e-10, krylov_max: int = 60, reuse_budget: float = 0.5,
                  ordering: str = "nodes",
                  dof_nodes: np.ndarray | None = None, decoupled: np.ndarray | None = None) -> None:
         self.kind = kind
