@@ -53,8 +53,9 @@ def reference_iteration(model, repeats: int = 5) -> float:
     """Wall seconds of one average Newton iteration's work on ``model`` at rest (median of
     ``repeats``): the tissue and skin evaluation with the tangent and without it (a line
     search), the system matrix, a third of a factorisation and eight re-used GMRES
-    iterations (PARDISO solve + product), the proportions of the benchmark's CC
-    (165 iterations, 54 factorisations, 1,329 GMRES iterations).  The host's speed drifts by
+    iterations (PARDISO solve + product), the proportions of the benchmark's CC with
+    session 38's defaults (165 iterations, 54 factorisations, 1,329 GMRES iterations; kept
+    as the yardstick when the defaults change).  The host's speed drifts by
     10-25 % between runs here; a protocol's time in these units (printed as "ref. it.")
     does not, so runs made at different times compare."""
     import numpy as np

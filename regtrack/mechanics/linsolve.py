@@ -132,9 +132,11 @@ the 40 eigenvectors of the factored matrix nearest zero barely helped (e.g. 39 -
 59 -> 58 iterations on stale factors): the spectrum near zero has no gap.
 Session 39 (README): on the same replay a budget ``reuse_budget = 1.0`` cut the failed
 re-uses from 18 to 2 and the factorisations from 54 to 43 at about the same GMRES count,
-but the real runs then take other Newton paths (nine runs on seven models: 5 % less CPU
-over the eight timed side by side, from -19 % to +15 % per run; 179 Newton iterations
-instead of 165 on the benchmark CC), so the default stays 0.5.
+but the real runs then take other Newton paths: over 16 protocol runs of 8.6k to 9.6k-node
+models timed in pairs it took 7 % less CPU time (faster in 14, -19 % to +15 % per run),
+yet 179 Newton iterations instead of 165 on the benchmark CC, and with it as the default
+one test's MLO at D = 50 % ended on a stalled increment with a 1 % force-balance error.
+So the default stays 0.5.
 Neither a background factorisation on the second core (the factors it can deliver are two
 or more Newton iterations old: 2,475 GMRES iterations on the replay instead of 1,329) nor
 a two-subdomain solve through PARDISO's Schur-complement mode (its own ordering: 22.7 M
