@@ -115,6 +115,78 @@ def test_reuse_budget_sets_the_gmres_iterations_before_refactorising():
     assert SolverOptions().reuse_budget == 0.5 == LinearSolver().reuse_budget
 
 
+class _FlakyReuse(LinearSolver):
+    """A linear solver whose re-used solves fail on chosen calls: the call counts a re-use
+    failure and refactorises, as after a real failure (so a forced refactorisation and a
+    failed re-use give the same solution, and the Newton path does not change)."""
+
+    def __init__(self, fail=()):
+        super().__init__()
+        self.fail, self.forced = set(fail), []
+
+    def solve(self, A, b, *, refactor=False, **kw):
+        failed = not refactor and len(self.forced) in self.fail
+        self.n_reuse_failures += int(failed)
+        self.forced.append(bool(refactor))
+        return super().solve(A, b, refactor=refactor or failed, **kw)
+
+
+_SOLVE_INCREMENT = S._Newton.solve_increment
+
+
+def _sheared_box_in_increments(mode, fail, monkeypatch):
+    """A box sheared and compressed in five increments, solved with ``_FlakyReuse(fail)``;
+    returns (u, stats, forced flag of every linear solve, indices of increment starts)."""
+    m = box_model((3.0, 2.0, 2.0), (4, 3, 3))
+    pr = S.build_problem(m, MechanicsConfig(nu=0.49))
+    X = pr.X
+    bottom, top = np.flatnonzero(X[:, 2] < 1e-9), np.flatnonzero(X[:, 2] > 2 - 1e-9)
+    dofs = np.concatenate([(3 * bottom[:, None] + np.arange(3)).ravel(),
+                           (3 * top[:, None] + np.arange(3)).ravel()])
+    target = np.concatenate([np.zeros(3 * len(bottom)), np.tile([1.2, 0.0, -0.6], len(top))])
+    ls, starts = _FlakyReuse(fail), []
+
+    def spy(self, *a, **k):
+        if self.increment_start:
+            starts.append(len(ls.forced))
+        return _SOLVE_INCREMENT(self, *a, **k)
+
+    monkeypatch.setattr(S._Newton, "solve_increment", spy)
+    o = SolverOptions(initial_increment=0.2, max_increment=0.2, increment_refactor=mode)
+    u, st = S.solve_step(pr, np.zeros_like(X), dirichlet=lambda t: (dofs, t * target), options=o,
+                         linear_solver=ls)
+    return u, st, ls.forced, starts
+
+
+def test_increment_refactor_modes(monkeypatch):
+    """``increment_refactor``: 'never' forces no factorisation; 'always' forces one at the
+    first linear solve of every increment; 'adaptive' forces one at the first solve of
+    every increment after the first increment whose first solve failed on re-used
+    factors, and none after a failure elsewhere in an increment.  Every mode reaches the
+    state: to the bit where a forced factorisation replaces a failed re-use (the same solve),
+    else within 1e-6 of the largest displacement (the Newton solves stop once a correction
+    is below ``disp_tol`` = 1e-4 of the increment's motion, and what is left is about the
+    next, quadratically smaller correction)."""
+    u_ref, st, forced, starts = _sheared_box_in_increments("never", (), monkeypatch)
+    assert st.increments == 5 and len(starts) == 5 and not any(forced)
+    assert st.increment_refactors == 0
+    # a failure at the second increment's first solve: forced from the third increment on
+    u, st, forced, starts2 = _sheared_box_in_increments("adaptive", {starts[1]}, monkeypatch)
+    assert starts2 == starts and st.reuse_failures == 1
+    assert [i for i, f in enumerate(forced) if f] == starts[2:]
+    assert st.increment_refactors == 3
+    assert np.array_equal(u, u_ref)
+    # a failure at the second solve of an increment: nothing forced
+    u, st, forced, _ = _sheared_box_in_increments("adaptive", {starts[1] + 1}, monkeypatch)
+    assert not any(forced) and st.reuse_failures == 1 and st.increment_refactors == 0
+    assert np.abs(u - u_ref).max() <= 1e-6 * np.abs(u_ref).max()
+    u, st, forced, starts3 = _sheared_box_in_increments("always", (), monkeypatch)
+    assert [i for i, f in enumerate(forced) if f] == starts3 == starts
+    assert st.increment_refactors == 5
+    assert SolverOptions().increment_refactor == "adaptive"
+    assert np.abs(u - u_ref).max() <= 1e-6 * np.abs(u_ref).max()
+
+
 def test_mixed_precision_falls_back_to_double_when_too_inaccurate():
     """With one GMRES iteration allowed, float32 factors (error ~1e-6) cannot reach 1e-10:
     the solver switches to float64 factors for good and still solves.  (1e-10, not 1e-12:

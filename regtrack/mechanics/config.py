@@ -189,6 +189,14 @@ class SolverOptions:
                                 "ratio rho of a factorisation to a GMRES iteration: k_max = "
                                 "clip(reuse_budget * rho, 4, krylov_max) (linsolve.py; 1.0 was "
                                 "measured in session 39: README)", gt=0.0, le=10.0)
+    increment_refactor: str = param("adaptive", "", "fresh factorisation at the first Newton "
+                                    "iteration of an increment (not of a re-solve after a "
+                                    "multiplier update): 'adaptive' in every later increment of "
+                                    "a step once an increment's first solve has failed on the "
+                                    "re-used factors (plate moves: they fail there as a rule; "
+                                    "solver.py, session 40), 'never' (the behaviour before "
+                                    "session 40) or 'always'",
+                                    choices=("never", "adaptive", "always"))
     krylov_max: int = param(60, "-", "cap of the GMRES iterations on a re-used factorisation before "
                             "refactorising (the actual limit follows the estimated cost ratio and "
                             "reuse_budget)", ge=1, le=500)

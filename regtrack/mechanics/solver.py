@@ -84,6 +84,38 @@ frictional path, and with it the plate force, depends on the increments (return 
 per increment): on the phantom CC the force with the predictor (36.76 N) is closer to the
 path-converged one (plate travel capped at 2.5 mm per increment: 36.78 N with or without
 the predictor) than without it (33.71 N).
+Fresh factorisation at an increment's start (``increment_refactor = "adaptive"``, the
+default since session 40): the linear solver re-uses its last factorisation while GMRES
+converges on it within its budget (:mod:`.linsolve`).  In a plate move the first Newton
+iteration of an increment meets a plate 2.5 mm further on, new contact nodes and the
+predictor's state, and the factors of the last increment fail there as a rule (benchmark
+CC: 12 of the run's 18 failed re-uses, each 18 wasted GMRES iterations); the matrix
+change does not announce it (the relative Frobenius change of the failing systems, 7e-5
+to 2e-3, overlaps that of the converging ones, 8e-7 to 2e-3).  So once an increment's
+first solve has failed on re-used factors, each later increment of the step factorises
+at its first iteration (``increment_refactors``); the re-solves after a multiplier update
+keep re-using.  Gravity steps, whose first solves converge on old factors, are
+unchanged.  ``"always"`` factorises at every increment's start (session 38: 166
+iterations, 63 factorisations, 63.5 s on the benchmark CC against 165, 54, 62.2 s);
+``"never"`` restores the behaviour before.  Measured in session 40 (one MKL thread per
+run, ``"never"`` and ``"adaptive"`` side by side; Newton iterations, GMRES iterations, CPU s):
+
+==================================  ==================================  =====================
+model (nodes), view                  never                               adaptive
+==================================  ==================================  =====================
+benchmark hemisphere (9,496), CC     165, 1,329, 86.2                    167, 1,150, 83.3
+benchmark hemisphere, MLO            106, 860, 57.7                      107, 712, 54.0
+hemisphere lc 2.95 / 2.97 mm, CC     184 / 173, 100.8 / 89.6             187 / 157, 96.4 / 83.3
+hemisphere lc 3.05 / 3.1 mm, CC      152 / 157, 67.2 / 68.2              149 / 146, 62.7 / 63.1
+Pelicano exam 03 (8,703), CC / MLO   323 / 171, 132.6 / 66.3             303 / 164, 118.2 / 61.1
+Pelicano exam 10 (8,853), CC         277, 2,604, 138.2                   349, 2,799, 156.0
+==================================  ==================================  =====================
+
+Faster in 8 of those 9 runs (-3 to -11 %); exam 10's CC took another Newton path (+13 %).
+The plate forces agree to 0.04 %.  Exam 10's MLO and exam 05's CC and MLO (9,468 nodes)
+ran identically (no increment's first solve failed on re-used factors: they had gone
+stale before).  All 12 runs: 1,547 against 1,576 CPU s (-1.9 %).  The benchmark CC alone
+on the idle host (``pipelines/bench_protocols.py``): 57.6 s, against 62.2 to 64.3 s.
 An increment that fails (iterations exhausted, divergence, inversion, NaN) is rolled
 back and cut (``cutback``); easy increments grow the next one (``growth``).  Below
 ``min_increment`` the step stops with :class:`SolverDidNotConvergeError`, which keeps
@@ -206,6 +238,8 @@ class _Newton:
         self.damped_last = False  # the last accepted increment stayed damped (settle failed)
         self.stabilised_last = False  # the last increment needed stabilisation (settled or not)
         self.guess: np.ndarray | None = None  # starting guess of the next undamped solve
+        self.increment_start = False  # the next linear solve is an increment's first (_increment)
+        self.refactor_starts = False  # increment_refactor = "adaptive": a first re-use failed
 
     def start(self, u: np.ndarray, guess: np.ndarray, fext: np.ndarray, cons: _Constraints) -> np.ndarray:
         """The start of an increment's Newton iterations: the extrapolated ``guess`` if no
@@ -331,6 +365,7 @@ class _Newton:
         cons = self.constraints(dofs)
         u = u_start.copy()
         base = u_start if u_base is None else u_base
+        first_solve, self.increment_start = self.increment_start, False
         n_hist0 = len(hist)
         frozen = False
         # |f_ext|: the larger of the L2 norm and the resultant (the weight, for gravity)
@@ -407,11 +442,19 @@ class _Newton:
                 keep = (~cons.system_mask).astype(float)
                 K = (sp.diags(keep) @ K @ sp.diags(keep) + sp.diags(1.0 - keep)).tocsr()
             t0 = time.perf_counter()
+            refactor = first_solve and it == 0 and (
+                o.increment_refactor == "always"
+                or (o.increment_refactor == "adaptive" and self.refactor_starts))
+            failures = self.ls.n_reuse_failures
             try:
                 du = self.ls.solve(K, rhs, symmetric=self.symmetric, rtol=self.forcing(hist),
-                                   preconditioner=P)[:n3]
+                                   preconditioner=P, refactor=refactor)[:n3]
             except LinearSolveError as exc:
                 raise _Failed(str(exc)) from None
+            if refactor:
+                self.stats.increment_refactors += 1
+            elif first_solve and it == 0 and self.ls.n_reuse_failures > failures:
+                self.refactor_starts = True  # the re-used factors fail at increment starts
             self.stats.t_solve += time.perf_counter() - t0
             if not np.all(np.isfinite(du)):
                 raise _Failed("linear solve returned non-finite values")
@@ -973,6 +1016,7 @@ def _increment(newton: _Newton, u: np.ndarray, t: float, gravity, dirichlet, his
     # passes the multiplier check is then solved to force_tol and checked again
     loose = (o.augmentation_force_tol if o.augmentation_force_tol > 0 and not final
              and newton.contribs else None)
+    newton.increment_start = True
     u_new = newton.solve_increment(start, fext, dofs, vals, hist, u_base=u, loose_tol=loose)
     newton.first_solve_iterations = newton.stats.iterations - it0
     _log_solve(newton, t, "inexact solve" if loose else "solve", newton.first_solve_iterations,

@@ -32,7 +32,9 @@ class StepStats:
     (:mod:`.solver`); ``stalled_augmentations`` the increments cut back because a
     contribution's multipliers stopped converging (:meth:`.contact.PlateContact.augment`);
     ``tightening_solves`` the solves to ``force_tol`` of increments whose multiplier
-    iterations used inexact solves (``augmentation_force_tol``);
+    iterations used inexact solves (``augmentation_force_tol``); ``increment_refactors``
+    the increments whose first linear solve was factorised afresh by
+    ``[mechanics.solver] increment_refactor`` (:mod:`.solver`);
     ``extrapolated_increments`` counts the increments whose Newton
     iterations started from the linear extrapolation of the previous increment.
     ``line_search_trials`` counts the line-search residual evaluations and
@@ -75,6 +77,7 @@ class StepStats:
     krylov_iterations: int = 0
     reuse_failures: int = 0
     krylov_wasted_iterations: int = 0
+    increment_refactors: int = 0
     t_assembly: float = 0.0
     t_contrib: float = 0.0
     t_solve: float = 0.0
@@ -93,7 +96,8 @@ class StepStats:
                 "polish_solves", "extrapolated_increments",
                 "line_search_trials", "inverted_trials", "factorisations", "analyses",
                 "krylov_solves", "krylov_iterations", "reuse_failures", "krylov_wasted_iterations",
-                "t_assembly", "t_contrib", "t_solve", "t_line_search", "t_total", "cpu_total")
+                "increment_refactors", "t_assembly", "t_contrib", "t_solve", "t_line_search",
+                "t_total", "cpu_total")
         d = {k: getattr(self, k) for k in keys}
         d["reports"] = self.reports[-1:] if self.reports else []
         return d
