@@ -448,3 +448,60 @@ def test_a_step_reports_tissue_behind_the_chest_wall_and_warns_past_the_limit(fa
     assert d["behind_chest_wall_mm"] == rec.behind_chest_wall_mm and d["warnings"] == rec.warnings
     if warned:
         assert "behind_wall_warn_mm" in rec.warnings[0] and "'pull'" in rec.warnings[0]
+
+
+def test_force_balance_is_the_residual_resultant_over_the_free_nodes():
+    """``force_balance``: the resultant of the residual over the free nodes against the
+    largest load (the chest-wall reaction, the weight, each contribution's resultant).
+    Three free nodes with residuals (0.1, 0, 0), (0.2, 0, 0), (0, 0.4, 0) N: resultant
+    |(0.3, 0.4, 0)| = 0.5 N; the fixed node's 3 N reaction is smaller than the 10 N plate
+    force, so the relative imbalance is 0.05: over a tolerance of 0.01, under 0.1."""
+    from types import SimpleNamespace
+
+    from regtrack.mechanics.protocol_run import force_balance
+
+    fixed = np.array([True, False, False, False])
+    problem = SimpleNamespace(model=SimpleNamespace(fixed=fixed),
+                              body_weight=np.full(4, 0.05 / 9.81))  # 0.2 N at 1 g
+    r = np.array([[0.0, 3.0, 0.0], [0.1, 0.0, 0.0], [0.2, 0.0, 0.0], [0.0, 0.4, 0.0]])
+    plate = SimpleNamespace(nodal_forces=lambda u: (np.array([[0.0, -6.0, 0.0],
+                                                              [0.0, -4.0, 0.0]]), {}))
+    u = np.zeros((4, 3))
+    fb = force_balance(problem, u, r, np.array([0.0, -9.81, 0.0]), [plate, object()], 0.01)
+    assert fb["imbalance_N"] == pytest.approx(0.5, rel=1e-12)
+    assert fb["load_N"] == pytest.approx(10.0, rel=1e-12)
+    assert fb["relative"] == pytest.approx(0.05, rel=1e-12) and not fb["ok"]
+    assert force_balance(problem, u, r, np.zeros(3), [plate], 0.1)["ok"]
+
+
+@pytest.mark.parametrize("ok", [True, False])
+def test_a_step_whose_forces_do_not_balance_warns(ok):
+    """A solver whose state misses the force balance by more than its tolerance (an
+    increment accepted at its best iterate, session 39: 0.42 N of a 40.8 N plate force)
+    makes the step warn, naming the step, the figures and the setting; the summary
+    reports the largest relative imbalance of the steps."""
+    from regtrack.mechanics.run_view import summarise
+
+    body = _body()
+    inner = mock_solver(body.points, body.fixed)
+    rel = 0.004 if ok else 0.0103
+    fb = {"imbalance_N": rel * 40.8, "load_N": 40.8, "relative": rel, "tol": 5e-3, "ok": ok}
+
+    def solve(*a, **k):
+        u, st = inner(*a, **k)
+        return u, dict(st, force_balance=fb, stalled_accepts=0 if ok else 1)
+
+    table = {"name": "sag", "view": "CC",
+             "steps": [{"name": "sag", "action": "gravity", "load": "g",
+                        "direction": [0.0, 0.0, -1.0], "factor": 1.0}]}
+    runner = ProtocolRunner(body, parse_protocol(table, where="sag.toml"), solve,
+                            config=ContactConfig(friction=0.1))
+    res = runner.run()
+    rec = res.steps[-1]
+    assert res.complete and rec.solver["force_balance"] == fb
+    warned = [w for w in rec.warnings if "do not balance" in w]
+    assert len(warned) == (0 if ok else 1)
+    if not ok:
+        assert "'sag'" in warned[0] and "0.42 N" in warned[0] and "stall_force_tol" in warned[0]
+        assert "after 1 increment accepted" in warned[0]
+    assert summarise(res)["force_imbalance_rel"] == rel

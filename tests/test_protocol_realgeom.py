@@ -71,6 +71,12 @@ def test_shipped_protocol_on_real_breast(model, view, target):
             tol = (1e-4 if rec.solver.get("stalled_accepts", 0) == 0
                    else MechanicsConfig().solver.stall_force_tol)
             assert np.abs(_balance(model, rec)).max() < tol * max(up, 1.0), rec.name
+            # the step's reported balance is the same figure (the residual's resultant over
+            # the free nodes), computed from the solver's residual instead of the reports
+            fb = rec.solver["force_balance"]
+            assert fb["imbalance_N"] == pytest.approx(np.linalg.norm(_balance(model, rec)),
+                                                      rel=1e-6, abs=1e-9), rec.name
+            assert fb["ok"] and not any("do not balance" in w for w in rec.warnings)
 
 
 @pytest.mark.slow

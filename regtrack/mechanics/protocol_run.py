@@ -44,6 +44,15 @@ penalty growth (``[contact] retry_penalty_growth_max``), then with a smaller pla
 per increment (``retry_plate_increment_mm``); one that crawls in stabilised increments
 (``[mechanics.solver] crawl_increments``) is stopped and retried in the other order
 (:meth:`ProtocolRunner._run_step_with_retry`).
+
+Force balance: every step reports ``solver.force_balance`` (:func:`force_balance`), the
+resultant of the residual over the free nodes (the sum of chest-wall reaction, plate
+forces and weight) against the largest of those loads, and warns when it exceeds
+``[mechanics.solver] stall_force_tol``: a state reached through increments accepted at
+their best iterate can miss the balance although its residual norm passed (session 40:
+Pelicano exam 03, 1,667 nodes, MLO at D = 50 % with ``reuse_budget = 1.0``: 0.51 N, 1.2 %
+of the 42.3 N load; with ``stall_force_tol = 1e-3`` the same run balanced to 2.7e-5 in
+510 Newton iterations instead of 296, plate force 40.58 against 40.78 N).
 """
 
 from __future__ import annotations
@@ -414,6 +423,19 @@ class ProtocolRunner:
         rec = StepRecord(name=step.name, action=step.action, u=self.u.copy(), gravity_ms2=self.g.copy(),
                          plates={k: c.plate.to_dict() for k, c in self.plates.items()},
                          contact=reps, gap_mm=gap, max_penetration_mm=pen, solver=stats)
+        fb = stats.get("force_balance")
+        if isinstance(fb, dict) and not fb.get("ok", True):
+            n_stalled = int(stats.get("stalled_accepts", 0))
+            msg = (f"step '{step.name}': the forces on the breast do not balance: the residual "
+                   f"resultant is {fb['imbalance_N']:.3g} N, {100 * fb['relative']:.2g} % of the "
+                   f"largest load ({fb['load_N']:.3g} N; allowed {100 * fb['tol']:.2g} %, "
+                   f"[mechanics.solver] stall_force_tol), after {n_stalled} "
+                   f"increment{'' if n_stalled == 1 else 's'} accepted at the best "
+                   "iterate: plate forces and displacements may be off by about that much; "
+                   "a lower stall_force_tol (e.g. 1e-3) refuses such increments and cuts "
+                   "them back instead (slower; a run may then stop short)")
+            log.warning(msg)
+            rec.warnings.append(msg)
         depth, count = behind_chest_wall(self.body.points, self.u, self.body.fixed)
         rec.behind_chest_wall_mm, rec.behind_chest_wall_nodes = depth, count
         if depth is not None and depth > self.config.behind_wall_warn_mm:
@@ -584,6 +606,32 @@ class ProtocolRunner:
         return result
 
 
+def force_balance(problem: Any, u: np.ndarray, r: np.ndarray, g_ms2: np.ndarray,
+                  contribs: list, tol: float) -> dict:
+    """The global force balance of a converged state: the resultant of the residual over
+    the free nodes, ``|sum_free R|`` (N), which equals the sum of the chest-wall reaction,
+    the plate forces and the weight, against the largest of those loads (N).
+
+    The Newton tests bound ``||R||_2`` over the free dofs.  A converged state balances to
+    round-off (about 1e-6 of the load at 10k nodes); an increment accepted at its best
+    iterate (``stall_force_tol``, counted in ``stalled_accepts``) can leave a resultant up
+    to ``sqrt(free nodes)`` times larger, since many small nodal errors of one sign add
+    up (session 39: 0.42 N, 1.0 % of a 40.8 N plate force).  ``ok`` is False when the
+    relative imbalance exceeds ``tol`` (the caller passes ``stall_force_tol``)."""
+    fixed = problem.model.fixed
+    imbalance = float(np.linalg.norm(r[~fixed].sum(axis=0)))
+    loads = [float(np.linalg.norm(r[fixed].sum(axis=0))),
+             float(np.linalg.norm(problem.body_weight.sum() * np.asarray(g_ms2, float)))]
+    for c in contribs:
+        nodal = getattr(c, "nodal_forces", None)
+        if nodal is not None:
+            loads.append(float(np.linalg.norm(nodal(u)[0].sum(axis=0))))
+    load = max(loads)
+    rel = imbalance / load if load > 0 else 0.0
+    return {"imbalance_N": imbalance, "load_N": load, "relative": rel, "tol": float(tol),
+            "ok": bool(rel <= tol)}
+
+
 def solver_from_problem(problem: Any, *, options: Any = None, progress: Any = None,
                         dirichlet: Any = None) -> StepSolver:
     """Adapt :func:`regtrack.mechanics.solver.solve_step` to the engine's step solver.
@@ -618,6 +666,7 @@ def solver_from_problem(problem: Any, *, options: Any = None, progress: Any = No
         if fixed.any():
             r = reaction_forces(problem, u, gravity_ms2=g1, contributions=contribs)
             out["chest_wall_reaction_N"] = r[fixed].sum(axis=0).tolist()
+            out["force_balance"] = force_balance(problem, u, r, g1, contribs, o.stall_force_tol)
         return u, out
     solve.takes_increment = True  # type: ignore[attr-defined]
     return solve

@@ -131,8 +131,15 @@ def summarise(result: ProtocolResult, timing: dict | None = None) -> dict:
     says which); their figures are those of the retry.  ``behind_chest_wall_mm``: the
     deepest any node ended a step behind the chest-wall plane
     (:func:`regtrack.mechanics.protocol_run.behind_chest_wall`); ``warnings``: every step's
-    warnings (``[contact] behind_wall_warn_mm``)."""
+    warnings (``[contact] behind_wall_warn_mm``, and the force balance below).
+    ``force_imbalance_rel``: the largest over the steps of the global force imbalance
+    (the residual's resultant over the free nodes) relative to the step's largest load
+    (:func:`regtrack.mechanics.protocol_run.force_balance`; about 1e-6 for converged
+    states, a step warns above ``[mechanics.solver] stall_force_tol``), None without
+    fixed nodes."""
     behind = [s.behind_chest_wall_mm for s in result.steps if s.behind_chest_wall_mm is not None]
+    balance = [s.solver["force_balance"]["relative"] for s in result.steps
+               if isinstance(s.solver.get("force_balance"), dict)]
     last = result.steps[-1]
     upper = last.contact["upper"]["normal_force_N"]
     edge = last.contact["upper"].get("edge_normal_force_N")
@@ -149,6 +156,7 @@ def summarise(result: ProtocolResult, timing: dict | None = None) -> dict:
             "cutbacks": sum(s.solver.get("cutbacks", 0) for s in result.steps),
             "retried_steps": [s.name for s in result.steps if "retry" in s.solver],
             "behind_chest_wall_mm": max(behind) if behind else None,
+            "force_imbalance_rel": max(balance) if balance else None,
             "warnings": [w for s in result.steps for w in s.warnings],
             "tissue": result.materials, "timing_s": timing or {}}
 
