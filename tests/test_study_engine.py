@@ -171,13 +171,16 @@ def test_killed_study_resumes_with_only_missing_runs(tmp_path):
     proc = subprocess.Popen([sys.executable, "-m", "regtrack.cli", "-q", "study", str(p),
                              "--no-progress"], cwd=REPO, env=env, start_new_session=True,
                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    def finished():  # run records; not the atomic writer's ".<key>.<random>.part.json"
+        return {q.stem for q in results.glob("*.json") if not q.name.startswith(".")}
+
     try:
-        while len(list(results.glob("*.json"))) < 4 and proc.poll() is None:
+        while len(finished()) < 4 and proc.poll() is None:
             time.sleep(0.05)
     finally:
         os.killpg(proc.pid, signal.SIGKILL)  # the study and its worker processes
         proc.wait()
-    done_before = {q.stem for q in results.glob("*.json")}
+    done_before = finished()
     assert 4 <= len(done_before) < 12, "the study was not killed halfway"
     calls_before = calls(tmp_path / "s_results" / "cache")
     assert main(["-q", "study", str(p), "--no-progress"]) == 0
