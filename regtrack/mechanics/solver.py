@@ -115,7 +115,9 @@ Faster in 8 of those 9 runs (-3 to -11 %); exam 10's CC took another Newton path
 The plate forces agree to 0.04 %.  Exam 10's MLO and exam 05's CC and MLO (9,468 nodes)
 ran identically (no increment's first solve failed on re-used factors: they had gone
 stale before).  All 12 runs: 1,547 against 1,576 CPU s (-1.9 %).  The benchmark CC alone
-on the idle host (``pipelines/bench_protocols.py``): 57.6 s, against 62.2 to 64.3 s.
+on the idle host (two threads, the same path each time): 57.6 to 63.0 s over nine runs,
+median 58.9 s; alternated with ``"never"`` in one hour, 58.8 to 60.3 s against 62.9 to
+65.4 s.
 An increment that fails (iterations exhausted, divergence, inversion, NaN) is rolled
 back and cut (``cutback``); easy increments grow the next one (``growth``).  Below
 ``min_increment`` the step stops with :class:`SolverDidNotConvergeError`, which keeps
