@@ -153,14 +153,35 @@ def test_wrinkled_tangent_finite_difference(theta):
     assert_consistent(X, x, tris, rng)
 
 
-def test_tangent_sandwich_is_the_tensor_contraction():
-    """The numba kernel that forms D^T H D per triangle equals the einsum contraction
-    (to round-off; it sums in einsum's order, bit-identical on the benchmark path)."""
-    from regtrack.mechanics.membrane import _sandwich
+def test_forces_do_not_depend_on_the_tangent_request():
+    """The kernels that form the forces alone and with the tangent give the same bits
+    (the line search compares residuals from both), wrinkled and taut triangles alike."""
+    rng = np.random.default_rng(11)
+    P2, tris = patch(6)
+    X = np.c_[P2, np.zeros(len(P2))] @ ROT.T
+    S = P2 * rng.uniform(0.6, 1.4, P2.shape)  # some triangles stretched, some wrinkled or slack
+    x = np.c_[S, 0.3 * rng.standard_normal(len(P2))] @ ROT.T
+    G, A0 = reference_geometry(X, tris)
+    fk, Ke, ek = membrane_forces(x, tris, G, A0, MAT, want_k=True)
+    f, K0, e = membrane_forces(x, tris, G, A0, MAT, want_k=False)
+    assert K0 is None and ek == e
+    assert np.array_equal(fk, f)
+    c = np.einsum("tiJ,tiK->tJK", *(2 * [np.einsum("tai,taJ->tiJ", x[tris], G)]))
+    mu1 = 0.5 * (c[:, 0, 0] + c[:, 1, 1] + np.hypot(c[:, 0, 0] - c[:, 1, 1], 2 * c[:, 0, 1]))
+    mu2 = np.linalg.det(c) / mu1
+    assert (mu2 < 0.8).any() and (mu1 > 1.2).any()  # the states span wrinkling and tension
+    np.testing.assert_allclose(Ke, Ke.transpose(0, 2, 1), rtol=0, atol=1e-12 * np.abs(Ke).max())
 
-    rng = np.random.default_rng(5)
-    D, H = rng.normal(size=(57, 3, 9)), rng.normal(size=(57, 3, 3))
-    ref = np.einsum("tmA,tmn,tnB->tAB", D, H, D)
-    np.testing.assert_allclose(_sandwich(D, H), ref, rtol=1e-13, atol=1e-13 * np.abs(ref).max())
-    K = _sandwich(D, np.ascontiguousarray(H + H.transpose(0, 2, 1)))
-    np.testing.assert_allclose(K, K.transpose(0, 2, 1), rtol=0, atol=1e-12)  # symmetric H -> symmetric K
+
+def test_corner_forces_sum_like_add_at():
+    """problem._add_corner_forces accumulates in np.add.at's order: the same bits."""
+    from regtrack.mechanics.problem import _add_corner_forces
+
+    rng = np.random.default_rng(3)
+    cells, fe = rng.integers(0, 50, size=(400, 3)), rng.normal(size=(400, 3, 3))
+    f1 = rng.normal(size=(50, 3))
+    f2 = f1.copy()
+    for a in range(3):
+        np.add.at(f1, cells[:, a], fe[:, a])
+    _add_corner_forces(f2, cells, fe)
+    assert np.array_equal(f1, f2)
