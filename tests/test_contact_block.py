@@ -394,3 +394,52 @@ def test_a_settle_starts_from_the_stabilised_multipliers_and_a_failed_one_leaves
     rep, rep_ref = st.reports[-1]["lower"], st_ref.reports[-1]["lower"]
     assert rep["max_penetration_mm"] <= 1e-3
     assert rep["normal_force_N"] == pytest.approx(rep_ref["normal_force_N"], rel=5e-3)
+
+
+@pytest.mark.parametrize("contact", [{}, {"stick_slip_freeze": 2, "hold_state_in_line_search": True}])
+def test_speculative_tangent_keeps_the_newton_path_and_saves_evaluations(contact, monkeypatch):
+    """``speculative_tangent``: the line search's first trial also forms the tissue and skin
+    tangent, and the next Newton iteration from that point takes it.  The forces do not
+    depend on it and the contact is evaluated at every call as before (its stick/slip
+    bookkeeping counts the calls), so the press-and-shear path is the same to the bit,
+    with fewer evaluations: each re-use replaces one, each unused speculation costs none
+    (it replaces the trial's evaluation without tangent)."""
+    from regtrack.mechanics import solver as S
+
+    calls = []
+    evaluate = S.evaluate
+
+    def counting(*a, **k):
+        calls.append(k.get("want_k", True))
+        return evaluate(*a, **k)
+
+    monkeypatch.setattr(S, "evaluate", counting)
+    runs = {}
+    for spec in (False, True):
+        model = box_model((10.0, 10.0, 5.0), (4, 4, 2))
+        prob = build_problem(model, MechanicsConfig(tissue_c1_kpa=1.0, nu=0.45))  # ANP + skin
+        X = model.points
+        bottom = model.skin[np.all(np.isclose(X[model.skin][:, :, 2], 0.0), axis=1)]
+        nodes = np.unique(bottom)
+        plate = RigidPlate(name="lower", origin=(0, 0, 0), normal=(0, 0, 1), e1=(1, 0, 0))
+        c = PlateContact(plate, X, nodes, tributary_areas(X, bottom)[nodes],
+                         config=ContactConfig(friction=0.3, penetration_tol_mm=1e-3, **contact),
+                         penalty=0.01)
+        top = np.flatnonzero(np.isclose(X[:, 2], 5.0))
+        dofs = (3 * top[:, None] + np.arange(3)).ravel()
+        opts = SolverOptions(initial_increment=0.1, max_increment=0.1, speculative_tangent=spec)
+        calls.clear()
+        u, st1 = solve_step(prob, np.zeros_like(X), contributions=[c], options=opts,
+                            dirichlet=lambda t: (dofs, np.tile([0.0, 0.0, -0.5 * t], len(top))))
+        u, st2 = solve_step(prob, u, contributions=[c], options=opts,
+                            dirichlet=lambda t: (dofs, np.tile([2.0 * t, 0.0, -0.5], len(top))))
+        runs[spec] = (u, [st1, st2], len(calls))
+    (u0, st0, n0), (u1, st1, n1) = runs[False], runs[True]
+    assert np.array_equal(u0, u1)
+    assert [s.iterations for s in st0] == [s.iterations for s in st1]
+    assert [s.line_search_trials for s in st0] == [s.line_search_trials for s in st1]
+    assert sum(s.tangent_reuses for s in st0) == 0 and sum(s.speculative_tangents for s in st0) == 0
+    reuses = sum(s.tangent_reuses for s in st1)
+    assert reuses >= 10 and reuses <= sum(s.speculative_tangents for s in st1)
+    assert n1 == n0 - reuses
+    assert st1[1].reports[-1]["lower"]["n_slip"] > 0  # the shear slid: the friction path ran
