@@ -254,7 +254,7 @@ class _Newton:
         these frictional, pinched problems are chaotic, so only totals over several models
         decide such choices."""
         R0, _, _ = self.residual(u, fext, want_k=False)
-        R1, _, _ = self.residual(guess, fext, want_k=False, speculate=self.o.speculative_tangent)
+        R1, _, _ = self.residual(guess, fext, want_k=False)
         if R1 is None or (R0 is not None and np.linalg.norm(R1[cons.free]) >= np.linalg.norm(R0[cons.free])):
             return u
         self.stats.extrapolated_increments += 1
@@ -287,24 +287,20 @@ class _Newton:
         """Residual (free and constrained dofs), the tissue and skin evaluation, and the
         contributions' tangents (with ``want_k``) at ``u``.
 
-        ``speculate`` (the line search's first trial, the extrapolated start of an
-        increment): evaluate the tissue and skin tangent too, though only the residual is
-        asked for, and keep that evaluation; the next call with ``want_k`` at the very same
-        ``u`` (the next Newton iteration from the accepted trial, or a re-solve from a
-        converged one) takes it instead of evaluating again (``tangent_reuses``), and a
-        call without ``want_k`` there reads its forces (``force_reuses``).  The forces do not depend on whether the tangent is
+        ``speculate`` (the line search's first trial): evaluate the tissue and skin tangent
+        too, though only the residual is asked for, and keep that evaluation; the next
+        call with ``want_k`` at the very same ``u`` (the next Newton iteration from the
+        accepted trial, or a re-solve from a converged one) takes it instead of evaluating
+        again (``tangent_reuses``).  The forces do not depend on whether the tangent is
         formed (same kernels, same bits), and the contributions are evaluated at every call
         as before, so the Newton path is unchanged.  Benchmark hemisphere, compressed
         state: an evaluation takes 22.5 ms with the tangent and 7.6 ms without."""
         t0 = time.perf_counter()
         ev = None
-        if self._spec is not None and np.array_equal(self._spec[0], u):
-            ev = self._spec[1]
-            if want_k:  # its tangent values are the caller's to change (matrix)
-                self._spec = None
-                self.stats.tangent_reuses += 1
-            else:
-                self.stats.force_reuses += 1
+        if want_k and self._spec is not None and np.array_equal(self._spec[0], u):
+            ev = self._spec[1]  # its tangent values are the caller's to change (matrix)
+            self._spec = None
+            self.stats.tangent_reuses += 1
         if ev is None:
             ev = evaluate(self.p, u, want_k=want_k or speculate)
             if speculate and not want_k and ev.data is not None:

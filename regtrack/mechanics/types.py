@@ -34,10 +34,7 @@ class StepStats:
     ``tightening_solves`` the solves to ``force_tol`` of increments whose multiplier
     iterations used inexact solves (``augmentation_force_tol``); ``increment_refactors``
     the increments whose first linear solve was factorised afresh by
-    ``[mechanics.solver] increment_refactor`` (:mod:`.solver`); ``speculative_tangents``
-    the evaluations that formed a tangent before it was asked for, ``tangent_reuses`` the
-    Newton iterations that took one, ``force_reuses`` the residuals read from one
-    (``speculative_tangent``, :meth:`.solver._Newton.residual`);
+    ``[mechanics.solver] increment_refactor`` (:mod:`.solver`);
     ``extrapolated_increments`` counts the increments whose Newton
     iterations started from the linear extrapolation of the previous increment.
     ``line_search_trials`` counts the line-search residual evaluations and
@@ -83,7 +80,6 @@ class StepStats:
     increment_refactors: int = 0
     speculative_tangents: int = 0
     tangent_reuses: int = 0
-    force_reuses: int = 0
     t_assembly: float = 0.0
     t_contrib: float = 0.0
     t_solve: float = 0.0
@@ -102,8 +98,7 @@ class StepStats:
                 "polish_solves", "extrapolated_increments",
                 "line_search_trials", "inverted_trials", "factorisations", "analyses",
                 "krylov_solves", "krylov_iterations", "reuse_failures", "krylov_wasted_iterations",
-                "increment_refactors", "speculative_tangents", "tangent_reuses",
-                "force_reuses", "t_assembly", "t_contrib", "t_solve", "t_line_search",
+                "increment_refactors", "speculative_tangents", "tangent_reuses", "t_assembly", "t_contrib", "t_solve", "t_line_search",
                 "t_total", "cpu_total")
         d = {k: getattr(self, k) for k in keys}
         d["reports"] = self.reports[-1:] if self.reports else []
