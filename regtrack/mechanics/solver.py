@@ -426,8 +426,6 @@ class _Newton:
             rn, ducon, ok = check(R, ev, u, 0.0 if it == 0 else du_prev)
             hist.append(rn)
             if ok:
-                if o.speculative_tangent and ev.data is not None:
-                    self._spec = (u.copy(), ev)  # for a re-solve from here (multiplier update)
                 return u
             rs = hist[n_hist0:]
             if it >= limit:
