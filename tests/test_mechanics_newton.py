@@ -179,7 +179,7 @@ class _Scalar:
         self.o = SolverOptions(line_search_merit=merit)
         self.stats = S.StepStats()
 
-    def residual(self, u, fext, want_k, speculate=False):
+    def residual(self, u, fext, want_k):
         return np.arctan(u), None, None
 
 
@@ -599,7 +599,7 @@ def test_extrapolated_start_is_refused_where_it_inverts_elements_or_raises_the_r
 class _Inverting(_Scalar):
     """As :class:`_Scalar`, but an element "inverts" beyond u = -0.5 (no residual there)."""
 
-    def residual(self, u, fext, want_k, speculate=False):
+    def residual(self, u, fext, want_k):
         return (None, None, None) if u[0] < -0.5 else (np.arctan(u), None, None)
 
 

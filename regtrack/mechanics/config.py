@@ -197,10 +197,6 @@ class SolverOptions:
                                     "solver.py, session 40), 'never' (the behaviour before "
                                     "session 40) or 'always'",
                                     choices=("never", "adaptive", "always"))
-    speculative_tangent: bool = param(True, "", "the line search's first trial also forms the "
-                                      "tissue and skin tangent, which the next Newton iteration "
-                                      "from that point then re-uses (the same Newton path; "
-                                      "benchmark CC: 101 of 134 re-used, session 41)")
     krylov_max: int = param(60, "-", "cap of the GMRES iterations on a re-used factorisation before "
                             "refactorising (the actual limit follows the estimated cost ratio and "
                             "reuse_budget)", ge=1, le=500)

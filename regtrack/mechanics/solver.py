@@ -243,7 +243,6 @@ class _Newton:
         self.guess: np.ndarray | None = None  # starting guess of the next undamped solve
         self.increment_start = False  # the next linear solve is an increment's first (_increment)
         self.refactor_starts = False  # increment_refactor = "adaptive": a first re-use failed
-        self._spec: tuple | None = None  # (u, evaluation with tangent) of a line-search trial
 
     def start(self, u: np.ndarray, guess: np.ndarray, fext: np.ndarray, cons: _Constraints) -> np.ndarray:
         """The start of an increment's Newton iterations: the extrapolated ``guess`` if no
@@ -283,29 +282,9 @@ class _Newton:
             self._cons_cache = {key: _Constraints(self.p, dofs)}
         return self._cons_cache[key]
 
-    def residual(self, u: np.ndarray, fext: np.ndarray, want_k: bool, *, speculate: bool = False):
-        """Residual (free and constrained dofs), the tissue and skin evaluation, and the
-        contributions' tangents (with ``want_k``) at ``u``.
-
-        ``speculate`` (the line search's first trial): evaluate the tissue and skin tangent
-        too, though only the residual is asked for, and keep that evaluation; the next
-        call with ``want_k`` at the very same ``u`` (the next Newton iteration from the
-        accepted trial, or a re-solve from a converged one) takes it instead of evaluating
-        again (``tangent_reuses``).  The forces do not depend on whether the tangent is
-        formed (same kernels, same bits), and the contributions are evaluated at every call
-        as before, so the Newton path is unchanged.  Benchmark hemisphere, compressed
-        state: an evaluation takes 22.5 ms with the tangent and 7.6 ms without."""
+    def residual(self, u: np.ndarray, fext: np.ndarray, want_k: bool):
         t0 = time.perf_counter()
-        ev = None
-        if want_k and self._spec is not None and np.array_equal(self._spec[0], u):
-            ev = self._spec[1]  # its tangent values are the caller's to change (matrix)
-            self._spec = None
-            self.stats.tangent_reuses += 1
-        if ev is None:
-            ev = evaluate(self.p, u, want_k=want_k or speculate)
-            if speculate and not want_k and ev.data is not None:
-                self._spec = (u.copy(), ev)
-                self.stats.speculative_tangents += 1
+        ev = evaluate(self.p, u, want_k=want_k)
         self.stats.t_assembly += time.perf_counter() - t0
         if ev.n_inverted != 0 or not np.all(np.isfinite(ev.f)):
             return None, None, None
@@ -544,8 +523,7 @@ class _Newton:
         t0 = time.perf_counter()
         try:
             for trial in range(o.line_search_max + 4):
-                R1, ev1, _ = self.residual(u + alpha * du, fext, want_k=False,
-                                           speculate=trial == 0 and o.speculative_tangent)
+                R1, ev1, _ = self.residual(u + alpha * du, fext, want_k=False)
                 self.stats.line_search_trials += 1
                 if R1 is None:  # an element inverts at this step length
                     self.stats.inverted_trials += 1

@@ -78,8 +78,6 @@ class StepStats:
     reuse_failures: int = 0
     krylov_wasted_iterations: int = 0
     increment_refactors: int = 0
-    speculative_tangents: int = 0
-    tangent_reuses: int = 0
     t_assembly: float = 0.0
     t_contrib: float = 0.0
     t_solve: float = 0.0
@@ -98,7 +96,7 @@ class StepStats:
                 "polish_solves", "extrapolated_increments",
                 "line_search_trials", "inverted_trials", "factorisations", "analyses",
                 "krylov_solves", "krylov_iterations", "reuse_failures", "krylov_wasted_iterations",
-                "increment_refactors", "speculative_tangents", "tangent_reuses", "t_assembly", "t_contrib", "t_solve", "t_line_search",
+                "increment_refactors", "t_assembly", "t_contrib", "t_solve", "t_line_search",
                 "t_total", "cpu_total")
         d = {k: getattr(self, k) for k in keys}
         d["reports"] = self.reports[-1:] if self.reports else []
