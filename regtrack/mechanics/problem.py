@@ -105,6 +105,30 @@ def _add_corner_forces(f, cells, fe):
                 f[n, k] += fe[t, a, k]
 
 
+@njit(cache=True, nogil=True)
+def _anp_pressure(of, V, Je, vol0, kappa):
+    """ANP group volume ratios ``J_g = sum_(e, i in g) V_e J_e / 4 / V_g`` (G,) and each
+    element's pressure ``p_e = mean_i kappa_g (J_g - 1)`` over its four corners' groups
+    (E,).  The sums run in the order of the numpy code they replace (``np.bincount`` over
+    the flat corners, ``mean(axis=1)`` left to right then / 4), so the values are the same
+    to the bit; 0.2 against 1.35 ms on the benchmark hemisphere (session 41)."""
+    ng = vol0.shape[0]
+    vg = np.zeros(ng)
+    for e in range(of.shape[0]):
+        w = V[e] * Je[e] / 4.0
+        for i in range(4):
+            vg[of[e, i]] += w
+    Jg = np.empty(ng)
+    pg = np.empty(ng)
+    for g in range(ng):
+        Jg[g] = vg[g] / vol0[g]
+        pg[g] = kappa[g] * (Jg[g] - 1.0)
+    p = np.empty(of.shape[0])
+    for e in range(of.shape[0]):
+        p[e] = (pg[of[e, 0]] + pg[of[e, 1]] + pg[of[e, 2]] + pg[of[e, 3]]) / 4.0
+    return Jg, p
+
+
 @njit(cache=True)
 def scatter_add(data, pos, vals):
     """``data[pos] += vals`` with repeated positions accumulated."""
@@ -243,10 +267,7 @@ def evaluate(problem: Problem, u: np.ndarray, *, want_k: bool = True) -> Evaluat
         return Evaluation(np.full(problem.n_dofs, np.nan), None, np.inf, int(np.sum(~(Je > 0))))
     grp = problem.groups
     if grp is not None:
-        vg = np.bincount(grp.of.reshape(-1), weights=np.repeat(problem.V * Je / 4.0, 4), minlength=grp.n_groups)
-        Jg = vg / grp.vol0
-        pg = grp.kappa * (Jg - 1.0)
-        p = pg[grp.of].mean(axis=1)
+        Jg, p = _anp_pressure(grp.of, problem.V, Je, grp.vol0, grp.kappa)
         dp = np.zeros_like(p)
         e_vol = float(np.sum(grp.vol0 * grp.kappa / 2.0 * (Jg - 1.0) ** 2))
     else:
