@@ -118,7 +118,7 @@ stale before).  All 12 runs: 1,547 against 1,576 CPU s (-1.9 %).  The benchmark 
 on the idle host (two threads, the same path each time): 57.6 to 63.0 s over nine runs,
 median 58.9 s; alternated with ``"never"`` in one hour, 58.8 to 60.3 s against 62.9 to
 65.4 s; with session 41's bit-identical speed-ups of the evaluation
-(the membrane kernels), SOLVER_FINAL.
+(the membrane and ANP kernels), 57.9 to 58.6 s in four runs.
 An increment that fails (iterations exhausted, divergence, inversion, NaN) is rolled
 back and cut (``cutback``); easy increments grow the next one (``growth``).  Below
 ``min_increment`` the step stops with :class:`SolverDidNotConvergeError`, which keeps
