@@ -316,16 +316,15 @@ def _relax(c: np.ndarray, psi: np.ndarray, gpsi: np.ndarray, m1: np.ndarray, loo
     f, dd, hh = _psi_mu(u1, u2, mat)
     fp = dd[0]
     qq = np.maximum(q, 1e-300)
-    c12 = C12
-    dm1 = np.stack([0.5 * (1.0 + dl / qq), 0.5 * (1.0 - dl / qq), 2.0 * c12 / qq], axis=1)  # dmu1/dc
+    dm1 = np.stack([0.5 * (1.0 + dl / qq), 0.5 * (1.0 - dl / qq), 2.0 * C12 / qq], axis=1)  # dmu1/dc
     psi[wr] = f
     gpsi[wr] = fp[:, None] * dm1
     if want_k:
         fpp = hh[0] - hh[1] ** 2 / hh[2]
-        dq = np.stack([dl / qq, -dl / qq, 4.0 * c12 / qq], axis=1)
+        dq = np.stack([dl / qq, -dl / qq, 4.0 * C12 / qq], axis=1)
         e = np.array([1.0, -1.0, 0.0])
         d_dq = (e[None] - (dl / qq)[:, None] * dq) / qq[:, None]  # d(dlt/q)/dc
-        d_cq = (np.array([0.0, 0.0, 1.0])[None] - (c12 / qq)[:, None] * dq) / qq[:, None]  # d(C12/q)/dc
+        d_cq = (np.array([0.0, 0.0, 1.0])[None] - (C12 / qq)[:, None] * dq) / qq[:, None]  # d(C12/q)/dc
         H1 = np.stack([0.5 * d_dq, -0.5 * d_dq, 2.0 * d_cq], axis=1)  # H1[t, m, n] = d2mu1/dc_m dc_n
         hpsi[wr] = fpp[:, None, None] * np.einsum("ti,tj->tij", dm1, dm1) + fp[:, None, None] * H1
     return hpsi
