@@ -30,6 +30,15 @@ class SolverOptions:
       the increment.
     """
 
+    method: str = param("newton", "", "'energy': each increment minimises the incremental "
+                        "potential (regtrack.mechanics.minimise: Newton with inertia correction and "
+                        "a line search on the potential, contact and friction as potentials); "
+                        "'newton': the residual-based Newton solver (regtrack.mechanics.solver)",
+                        choices=("newton", "energy"))
+    balance_tol: float = param(1e-3, "-", "method 'energy': an increment has converged only when "
+                               "the resultant of the residual over the free nodes is below this "
+                               "fraction of the force reference too (the global force balance)",
+                               gt=0, lt=1)
     force_tol: float = param(1e-4, "-", "relative residual tolerance (vs external force / reaction); "
                              "1e-4 because frictional contact stalls at ~1e-5 (stick/slip switching), "
                              "while the displacement criterion keeps the solution accurate", gt=0, lt=1)

@@ -485,6 +485,14 @@ class LinearSolver:
                                    "factorisation (singular or extremely ill-conditioned tangent)")
         return x
 
+    def inertia(self) -> tuple[int, int] | None:
+        """``(positive, negative)`` eigenvalue counts of the last symmetric (LDL^T)
+        factorisation (PARDISO ``iparm(22)``, ``iparm(23)``), or None (SuperLU, LU)."""
+        be = self._backends.get(True)
+        if not isinstance(be, _Pardiso) or not self._factored.get(True):
+            return None
+        return int(be.iparm[21]), int(be.iparm[22])
+
     def release(self) -> None:
         """Free the factorisation memory."""
         for sym, be in self._backends.items():

@@ -68,9 +68,19 @@ def run_protocol_on_model(model: BreastModel, protocol: Protocol, *, mechanics: 
     t0 = time.perf_counter()
     problem = build_problem(model, mechanics)
     t1 = time.perf_counter()
+    contact = contact or ContactConfig()
+    if mechanics.solver.method == "energy":
+        from dataclasses import replace
+
+        from regtrack.mechanics.minimise import minimiser_from_problem
+
+        step_solver = minimiser_from_problem(problem, progress=progress)
+        # every increment's minimisation converges by construction: no retried plate moves
+        contact = replace(contact, retry_penalty_growth_max=0.0, retry_plate_increment_mm=0.0)
+    else:
+        step_solver = solver_from_problem(problem, progress=progress)
     runner = ProtocolRunner(body_from_model(model, mechanics, problem.tissue_c1.mean_kpa), protocol,
-                            solver_from_problem(problem, progress=progress),
-                            config=contact or ContactConfig())
+                            step_solver, config=contact)
     result = runner.run()
     result.materials = problem.tissue_c1.info
     t2 = time.perf_counter()

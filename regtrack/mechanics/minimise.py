@@ -1,0 +1,427 @@
+"""Quasi-static load steps as minimisations of the incremental potential.
+
+Each increment of a load step (pseudo-time ``t``) finds the displacement ``u`` (mm) that
+minimises
+
+.. math::
+
+    \\Pi(u) = W(u) - f_{ext}(t) \\cdot u + \\sum_{plates} (\\Pi_N + \\Pi_T)(u)
+    \\quad\\text{(N mm)}
+
+over the free dofs (the chest-wall nodes keep their displacement): ``W`` the stored energy
+of the tissue and the skin membrane (:mod:`.problem`; the ANP tetrahedron and the
+tension-field membrane are variational), ``f_ext`` gravity, and the plates' augmented-
+Lagrangian contact and lagged friction potentials (:mod:`.potential`).
+
+Newton's method with a guaranteed descent (Nocedal & Wright, *Numerical Optimization*,
+2nd ed., sections 3.4 and 6.3; as IPC, Li et al. 2020):
+
+* the Hessian is the consistent tangent with the contact blocks projected onto the
+  positive semi-definite cone (:mod:`.potential`); it is made positive definite by
+  *inertia correction*: the LDL^T factorisation reports its inertia, which for the ANP
+  saddle-point system ``[[K, B^T], [B, -D]]`` must show exactly one negative eigenvalue
+  per pressure group (Haynsworth: the condensed ``K + B^T D^-1 B`` is then positive
+  definite); otherwise ``tau I`` (scaled by the mean diagonal) is added to the
+  displacement block, ``tau`` growing tenfold until it does;
+* a correction computed on an earlier (positive definite) factorisation is accepted only
+  if it is a descent direction, ``R . du < 0``;
+* the step length is chosen by backtracking on the potential itself (Armijo: ``Pi(u + a
+  du) <= Pi(u) + c a R . du``); an inverted element makes ``Pi`` infinite;
+* an increment has converged when the residual ``R = dPi/du`` on the free dofs meets
+  ``||R||_2 <= force_tol F_ref`` *and* its resultant ``|sum R|`` is below
+  ``balance_tol`` of the largest load.
+
+Every iteration lowers ``Pi``, which is bounded below (elastic energy grows without bound,
+gravity is linear, contact is non-negative), so the iterates converge to a stationary
+point: no merit-function switching, no acceptance of a stalled iterate.
+
+Increments: a plate move is split into increments of at most ``max_plate_increment_mm`` of
+travel (friction is path dependent), a gravity change into ``1 / initial_increment``.  The
+augmented-Lagrangian multipliers and the friction lag are updated once after each
+increment and carried into the next; in the last increment of a step they are iterated
+until the penetration is below ``penetration_tol_mm`` and the lagged slip bound agrees
+with the current pressure within ``friction_tol`` (then the state obeys Coulomb's law).
+An increment that does not converge in ``4 max_iterations`` is halved (a shorter path to the
+same state: no tolerance is relaxed).
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.sparse as sp
+
+from regtrack.errors import SolverDidNotConvergeError
+from regtrack.mechanics.linsolve import LinearSolveError, LinearSolver, serial_openblas
+from regtrack.mechanics.potential import PlateEval, PlatePotential
+from regtrack.mechanics.problem import Problem, body_force, dof_nodes, evaluate, scatter_add, system_matrix
+
+log = logging.getLogger(__name__)
+
+#: Armijo's sufficient-decrease constant.
+ARMIJO_C = 1e-4
+
+
+@dataclass
+class MinimiseStats:
+    """Counts and times of one step (``to_dict`` is what the protocol records)."""
+
+    name: str = ""
+    increments: int = 0
+    iterations: int = 0
+    cutbacks: int = 0
+    augmentations: int = 0
+    factorisations: int = 0
+    krylov_solves: int = 0
+    inertia_corrections: int = 0
+    rejected_directions: int = 0
+    line_search_trials: int = 0
+    t_assembly: float = 0.0
+    t_solve: float = 0.0
+    t_total: float = 0.0
+    reports: list = field(default_factory=list)
+
+    def to_dict(self) -> dict:
+        return {k: getattr(self, k) for k in self.__dataclass_fields__ if k != "reports"}
+
+
+@dataclass
+class _State:
+    """Potential, residual and (optionally) the assembled pieces at one ``u``."""
+
+    u: np.ndarray
+    energy: float
+    R: np.ndarray
+    plates: list[PlateEval]
+    ev: object = None
+    f_ref: float = 0.0
+
+
+class Minimiser:
+    """Newton minimisation of the incremental potential for one problem (module docstring).
+
+    Parameters
+    ----------
+    problem : the discrete problem (:func:`.problem.build_problem`).
+    options : :class:`.config.SolverOptions` (``force_tol``, ``max_iterations``,
+        ``max_augmentations``, the linear-solver settings).
+    fixed_dofs : the dofs held at their value (default: the model's fixed nodes).
+    """
+
+    def __init__(self, problem: Problem, options, fixed_dofs: np.ndarray | None = None) -> None:
+        self.p = problem
+        self.o = options
+        self.ls = _linear_solver(problem, options)
+        self.fixed_dofs = problem.fixed_dofs if fixed_dofs is None else np.unique(fixed_dofs)
+        self.free = np.ones(problem.n_dofs, bool)
+        self.free[self.fixed_dofs] = False
+        self._diag = problem.pattern.diagonal_positions()
+        self._cons = _constraint_positions(problem, self.fixed_dofs)
+        self.n_groups = 0 if problem.groups is None else problem.groups.n_groups
+        self.tau = 0.0  # last inertia-correction shift (relative), re-used as the next start
+        # every iteration lowers the potential, so a minimisation may take longer than a
+        # Newton solve of the residual before an increment is halved
+        self.max_iterations = 4 * options.max_iterations
+        self.stats = MinimiseStats()
+
+    # -- the potential ------------------------------------------------------------------
+    def state(self, u: np.ndarray, fext: np.ndarray, plates: Sequence[PlatePotential], *,
+              hessian: bool) -> _State | None:
+        """``Pi``, ``R = dPi/du`` and the pieces of the Hessian at ``u`` (None if an element
+        inverts)."""
+        t0 = time.perf_counter()
+        ev = evaluate(self.p, u, want_k=hessian)
+        if ev.n_inverted != 0 or not np.all(np.isfinite(ev.f)):
+            self.stats.t_assembly += time.perf_counter() - t0
+            return None
+        ue = np.asarray(u, float).reshape(-1)
+        energy = ev.energy - float(fext @ ue)
+        R = ev.f - fext
+        pe = [pl.evaluate(u, hessian=hessian) for pl in plates]
+        fc = 0.0
+        for e in pe:
+            energy += e.energy
+            R = R + e.grad
+            fc = max(fc, float(np.linalg.norm(e.grad.reshape(-1, 3).sum(axis=0))))
+        self.stats.t_assembly += time.perf_counter() - t0
+        weight = float(np.linalg.norm(fext.reshape(-1, 3).sum(axis=0)))
+        reaction = float(np.linalg.norm(R.reshape(-1, 3)[self.p.model.fixed].sum(axis=0)))
+        f_ref = max(weight, fc, reaction, float(np.linalg.norm(ev.f)) / np.sqrt(len(ev.f)),
+                    self.o.force_floor_n)
+        return _State(ue.reshape(-1, 3), energy, R, pe, ev, f_ref)
+
+    def converged(self, s: _State) -> bool:
+        Rf = s.R[self.free]
+        norm = float(np.linalg.norm(Rf))
+        resultant = float(np.linalg.norm(Rf.reshape(-1, 3).sum(axis=0))) if Rf.size % 3 == 0 else norm
+        return norm <= self.o.force_tol * s.f_ref and resultant <= self.o.balance_tol * s.f_ref
+
+    # -- Newton ---------------------------------------------------------------------------
+    def matrix(self, s: _State, shift: float) -> sp.csr_matrix:
+        """The system matrix (ANP: augmented) with the contact Hessians, ``shift`` added to
+        the free displacement diagonal, and identity rows/columns at the fixed dofs."""
+        data = s.ev.data.copy()
+        pat = self.p.pattern
+        for e in s.plates:
+            if e.hess is not None and e.hess.nnz:
+                scatter_add(data, pat.dof_positions(e.hess.row, e.hess.col), e.hess.data)
+        if shift > 0:
+            data[self._diag] += shift
+        M = system_matrix(self.p, s.ev, data)
+        zero, diag = self._cons
+        M.data[zero] = 0.0
+        M.data[diag] = 1.0
+        return M
+
+    def direction(self, s: _State) -> np.ndarray:
+        """A descent direction ``du`` (3N,): the Newton correction of the Hessian shifted by
+        ``tau`` times its mean free diagonal, with ``tau`` the smallest of the trials
+        ``tau_last / 4, max(8 tau, 1e-4), ...`` (``tau_last``: the previous iteration's; 0 while
+        the Hessian stays positive definite) whose fresh factorisation has the inertia of
+        a positive definite condensed Hessian (Nocedal & Wright, algorithm 3.3).  A correction solved on an earlier
+        factorisation (GMRES) must pass the angle test ``-R . du >= 1e-8 |R| |du|``
+        instead, or the matrix is factorised afresh."""
+        n = self.p.n_dofs
+        b = np.zeros(self.p.layout.n)
+        b[:n] = -np.where(self.free, s.R, 0.0)
+        dscale = float(np.mean(np.abs(s.ev.data[self._diag][self.free])))
+        tau = self.tau / 4.0 if self.tau > 1e-4 else 0.0
+        refactor = False
+        for _ in range(12):
+            t0 = time.perf_counter()
+            M = self.matrix(s, tau * dscale)
+            nf = self.ls.n_factorisations
+            try:
+                x = self.ls.solve(M, b, symmetric=True, refactor=refactor, rtol=self.o.forcing_max)
+            except LinearSolveError:
+                x = None
+            self.stats.t_solve += time.perf_counter() - t0
+            fresh = self.ls.n_factorisations > nf
+            self.stats.factorisations += int(fresh)
+            self.stats.krylov_solves += int(not fresh)
+            if x is not None and np.all(np.isfinite(x)):
+                inertia = self.ls.inertia() if fresh else None
+                if inertia is not None and inertia[1] > self.n_groups:
+                    self.stats.inertia_corrections += 1
+                    tau = max(8.0 * tau, 1e-4)
+                    refactor = True
+                    continue
+                du = x[:n]
+                slope = -float(s.R[self.free] @ du[self.free])
+                if slope >= 1e-8 * np.linalg.norm(s.R[self.free]) * np.linalg.norm(du[self.free]):
+                    self.tau = tau
+                    return du
+                self.stats.rejected_directions += 1
+                if fresh:  # correct inertia, yet no descent: round-off; shift
+                    tau = max(8.0 * tau, 1e-4)
+            else:
+                tau = max(8.0 * tau, 1e-4) if fresh else tau
+            refactor = True
+        raise SolverDidNotConvergeError("no descent direction after 12 inertia corrections "
+                                        "(the tangent is singular or not finite)")
+
+    def line_search(self, s: _State, du: np.ndarray, fext: np.ndarray,
+                    plates: Sequence[PlatePotential]) -> _State | None:
+        """Backtracking (halving) on ``Pi`` from the full step; None when no trial of 40
+        lowers it."""
+        slope = float(s.R[self.free] @ du[self.free])
+        scale = 1e-12 * (abs(s.energy) + float(np.abs(fext) @ np.abs(s.u.reshape(-1))) + 1e-12)
+        a = 1.0
+        for _ in range(40):
+            self.stats.line_search_trials += 1
+            trial = self.state(s.u + a * du.reshape(-1, 3), fext, plates, hessian=False)
+            if trial is not None and trial.energy <= s.energy + ARMIJO_C * a * slope + scale:
+                return trial
+            a *= 0.5
+        return None
+
+    def solve(self, u: np.ndarray, fext: np.ndarray, plates: Sequence[PlatePotential]) -> _State:
+        """Minimise ``Pi`` from ``u`` (N, 3) at fixed loads and lags; raises
+        :class:`SolverDidNotConvergeError` after ``max_iterations``."""
+        s = self.state(u, fext, plates, hessian=True)
+        if s is None:
+            raise SolverDidNotConvergeError("an element is inverted at the start of the increment")
+        for _ in range(self.max_iterations):
+            if self.converged(s):
+                return s
+            self.stats.iterations += 1
+            du = self.direction(s)
+            nxt = self.line_search(s, du, fext, plates)
+            if nxt is None:
+                raise SolverDidNotConvergeError("line search found no decrease of the potential")
+            if log.isEnabledFor(5):
+                log.log(5, "  iteration: Pi %.10g -> %.10g, |R| %.3g -> %.3g N, |du| %.3g mm, tau %.2g",
+                        s.energy, nxt.energy, np.linalg.norm(s.R[self.free]),
+                        np.linalg.norm(nxt.R[self.free]), np.abs(nxt.u - s.u).max(), self.tau)
+            s = self.state(nxt.u, fext, plates, hessian=True)
+            if s is None:  # cannot happen: the line search evaluated this state
+                raise SolverDidNotConvergeError("inverted element at an accepted state")
+        if self.converged(s):
+            return s
+        raise SolverDidNotConvergeError(
+            f"no equilibrium in {self.max_iterations} Newton iterations (|R| = "
+            f"{np.linalg.norm(s.R[self.free]):.3g} N, reference {s.f_ref:.3g} N)")
+
+
+def _constraint_positions(problem: Problem, dofs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Value positions of the system matrix zeroed (fixed rows/columns) and set to one
+    (their diagonal)."""
+    lay = problem.layout
+    smask = np.zeros(lay.n, bool)
+    smask[dofs] = True
+    rows = np.repeat(smask, np.diff(lay.indptr))
+    zero = rows | smask[lay.indices]
+    diag = problem.pattern.dof_positions(dofs, dofs)
+    return zero, (diag if lay.k_pos is None else lay.k_pos[diag])
+
+
+def _linear_solver(problem: Problem, o) -> LinearSolver:
+    """The problem's linear solver (the symbolic analysis of its fixed pattern is kept)."""
+    ls = getattr(problem, "_minimiser_solver", None)
+    if ls is None:
+        ls = LinearSolver(o.linear_solver, reuse_factorisation=o.reuse_factorisation,
+                          precision=o.precision, krylov_rtol=o.krylov_rtol, krylov_max=o.krylov_max,
+                          reuse_budget=o.reuse_budget, ordering=o.ordering,
+                          dof_nodes=dof_nodes(problem), decoupled=problem.fixed_dofs)
+        problem._minimiser_solver = ls  # type: ignore[attr-defined]
+    return ls
+
+
+Progress = Callable[[str, float], None]
+
+
+def minimise_step(problem: Problem, u0: np.ndarray, *, gravity: Callable[[float], np.ndarray],
+                  contacts: Sequence, n_increments: int, options=None, config=None,
+                  dirichlet: Callable[[float], tuple] | None = None,
+                  progress: Progress | None = None, step_name: str = ""
+                  ) -> tuple[np.ndarray, MinimiseStats, np.ndarray]:
+    """Run one load step from ``u0`` (N, 3) mm over ``n_increments`` equal increments of
+    pseudo-time; ``gravity(t)`` (m/s^2, model frame); ``contacts`` the step's
+    :class:`~.contact.PlateContact` objects (their ``set_time`` moves the plates), whose
+    committed states are updated; ``config`` the :class:`~.contact.ContactConfig`
+    (penetration and friction tolerances, penalty growth).  Returns ``u`` at ``t = 1``, the
+    step's statistics and the residual ``dPi/du`` (N, 3) N there (at the fixed nodes: the
+    support force on the body).  ``dirichlet(t) -> (dofs, values)``: displacements (mm)
+    prescribed besides the model's fixed nodes (which keep their ``u0``), set at the start
+    of each increment.  Raises :class:`SolverDidNotConvergeError` with
+    ``load_fraction`` and ``last_converged`` when an increment fails at the smallest
+    increment."""
+    o = options or problem.config.solver
+    cfg = config or (contacts[0].config if contacts else None)
+    extra = np.zeros(0, np.int64) if dirichlet is None else np.asarray(dirichlet(0.0)[0], np.int64)
+    m = Minimiser(problem, o, np.concatenate([problem.fixed_dofs, extra.reshape(-1)]))
+    m.stats.name = step_name
+    t_start = time.perf_counter()
+    u = np.asarray(u0, float).reshape(-1, 3).copy()
+    plates = [PlatePotential(c, u) for c in contacts]
+    R = np.zeros(u.size)
+    t, dt = 0.0, 1.0 / max(int(n_increments), 1)
+    base, min_dt = dt, dt / 64.0
+    with serial_openblas():
+        while t < 1.0 - 1e-12:
+            t_new = min(1.0, t + dt)
+            try:
+                start = u
+                if dirichlet is not None:
+                    dofs, vals = dirichlet(t_new)
+                    start = u.copy().reshape(-1)
+                    start[np.asarray(dofs, np.int64)] = vals
+                    start = start.reshape(-1, 3)
+                s = _increment(m, start, t_new, gravity, contacts, plates, cfg,
+                               last=t_new >= 1.0 - 1e-12)
+            except SolverDidNotConvergeError as exc:
+                for pl in plates:
+                    pl.begin(u)
+                if dt / 2 < min_dt:
+                    raise SolverDidNotConvergeError(
+                        f"step '{step_name}': no equilibrium at t = {t_new:.4g} from t = {t:.4g} "
+                        f"(increments down to {dt:.3g}): {exc}", load_fraction=t,
+                        last_converged=u) from exc
+                dt /= 2
+                m.stats.cutbacks += 1
+                log.info("%s: increment to t = %.4g cut back (%s)", step_name, t_new, exc)
+                continue
+            u, t, R = s.u, t_new, s.R
+            dt = min(2.0 * dt, base)
+            m.stats.increments += 1
+            for pl in plates:
+                pl.commit(u)
+            if progress is not None:
+                progress(step_name, t)
+    m.stats.t_total = time.perf_counter() - t_start
+    return u, m.stats, R.reshape(-1, 3)
+
+
+def _increment(m: Minimiser, u: np.ndarray, t: float, gravity, contacts, plates, cfg, *, last: bool):
+    """One increment to ``t``: minimise, update the multipliers and the friction lag (the
+    last increment: until the penetration and the friction bound are converged)."""
+    for c in contacts:
+        c.set_time(t)
+    fext = body_force(m.p, gravity(t))
+    previous: list = [None] * len(plates)
+    n_aug = m.o.max_augmentations if last else 1
+    for k in range(n_aug):
+        s = m.solve(u, fext, plates)
+        u = s.u
+        pen = max((pl.max_violation(e) for pl, e in zip(plates, s.plates)), default=0.0)
+        ferr = max((pl.friction_error(e) for pl, e in zip(plates, s.plates)), default=0.0)
+        done = cfg is None or (pen <= cfg.penetration_tol_mm and ferr <= cfg.friction_tol)
+        log.debug("%s: t = %.4g, update %d: %d iterations so far, penetration %.3g mm, "
+                  "friction error %.3g, |R| %.3g N, resultant %.3g N", m.stats.name, t, k,
+                  m.stats.iterations, pen, ferr, np.linalg.norm(s.R[m.free]),
+                  np.linalg.norm(s.R[m.free].reshape(-1, 3).sum(axis=0)))
+        if done and last:
+            return s
+        for i, (pl, e) in enumerate(zip(plates, s.plates)):
+            eps_max = cfg.penalty_growth_max * float(np.max(pl.c.eps_n))
+            previous[i] = pl.update(e, growth=cfg.penalty_growth, slow_ratio=cfg.slow_uzawa_ratio,
+                                    eps_max=eps_max, previous=previous[i])
+        m.stats.augmentations += 1
+        if not last:
+            return s
+    raise SolverDidNotConvergeError(f"contact multipliers not converged in {n_aug} updates "
+                                    f"(penetration {pen:.3g} mm, friction error {ferr:.3g})")
+
+
+def minimiser_from_problem(problem: Problem, *, options=None, progress: Progress | None = None):
+    """The protocol engine's step solver (:class:`.protocol_run.ProtocolRunner`) with
+    :func:`minimise_step`: a plate move in increments of the engine's ``max_increment``
+    (its plate travel cap), a single increment where the engine asks for one, a gravity
+    change in ``1 / initial_increment`` increments.  The stats carry the chest-wall
+    reaction (N) and the force balance; a state whose balance misses ``stall_force_tol``
+    (0.5 % by default) is never returned."""
+    from regtrack.mechanics.protocol_run import force_balance
+
+    o = options or problem.config.solver
+
+    def solve(u0, g0, g1, contribs, name, initial_increment=None, max_increment=None, **_guards):
+        g0 = np.asarray(g0, float)
+        g1 = np.asarray(g1, float)
+        if initial_increment is not None and initial_increment >= 1.0:
+            n = 1
+        elif max_increment is not None:
+            n = int(np.ceil(1.0 / max_increment - 1e-9))
+        else:
+            n = int(np.ceil(1.0 / o.initial_increment - 1e-9))
+        cfg = contribs[0].config if contribs else None
+        u, st, r = minimise_step(problem, u0, gravity=lambda t: g0 + t * (g1 - g0), contacts=contribs,
+                                 n_increments=n, options=o, config=cfg, progress=progress,
+                                 step_name=name)
+        out = st.to_dict()
+        fixed = problem.model.fixed
+        if fixed.any():
+            out["chest_wall_reaction_N"] = r[fixed].sum(axis=0).tolist()
+            fb = force_balance(problem, u, r, g1, contribs, o.stall_force_tol)
+            out["force_balance"] = fb
+            if not fb["ok"]:
+                raise SolverDidNotConvergeError(
+                    f"step '{name}': the forces do not balance ({100 * fb['relative']:.2g} % of "
+                    f"{fb['load_N']:.3g} N; allowed {100 * fb['tol']:.2g} %)", load_fraction=1.0,
+                    last_converged=u)
+        return u, out
+    solve.takes_increment = True  # type: ignore[attr-defined]
+    return solve

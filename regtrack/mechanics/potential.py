@@ -1,0 +1,217 @@
+"""Rigid-plate contact and friction as potentials: the plate terms of the incremental
+potential that :mod:`.minimise` minimises.
+
+A skin node ``i`` (tributary reference area ``A_i``, mm^2) meets a rigid plate
+(:mod:`.plates`: signed gap ``g_i(x)`` in mm, outward unit normal ``n_i``).
+
+**Normal contact**, augmented Lagrangian (method of multipliers; Bertsekas 1982), with the
+multiplier ``lambda_i`` (MPa) and the penalty ``eps_i`` (MPa/mm):
+
+.. math::
+
+    \\Pi_N = \\sum_i \\frac{A_i}{2\\varepsilon_i} \\max(0, \\lambda_i - \\varepsilon_i g_i)^2
+    \\quad\\text{(N mm)},\\qquad
+    \\frac{\\partial \\Pi_N}{\\partial x_i} = -A_i p_i n_i,\\quad
+    p_i = \\max(0, \\lambda_i - \\varepsilon_i g_i),
+
+    \\frac{\\partial^2 \\Pi_N}{\\partial x_i^2} = A_i \\varepsilon_i n_i n_i^T [p_i > 0]
+    - A_i p_i \\frac{\\partial n_i}{\\partial x_i}.
+
+The plate is convex, so ``dn/dx`` (non-zero only on its rounded edges) is positive
+semi-definite and acts on the plane orthogonal to ``n``: the second term is the negative
+part of the node's 3x3 block and is left out.  That is the block's projection onto the
+positive semi-definite cone (eigenvalue clamping), so the Hessian handed to Newton is
+positive semi-definite; the gradient stays exact.
+
+**Friction**, lagged (Simo & Laursen 1992; Li et al. 2020, *Incremental Potential
+Contact*, section 5): with the stick point ``a_i`` (committed at the end of the last
+increment and carried with the plate), the lagged normal ``nbar_i`` and slip bound
+``B_i = mu pbar_i`` (the pressure of the last multiplier update), the tangential slip
+``s_i = |T_i (x_i - a_i)|``, ``T_i = I - nbar_i nbar_i^T``, enters the Huber potential
+
+.. math::
+
+    \\Pi_T = \\sum_i A_i \\varphi(s_i),\\qquad
+    \\varphi(s) = \\begin{cases} \\varepsilon_T s^2 / 2 & \\varepsilon_T s \\le B \\\\
+    B s - B^2 / (2\\varepsilon_T) & \\text{otherwise,} \\end{cases}
+
+convex and C1 in ``x``.  Its gradient is ``A_i min(eps_T s_i, B_i) ghat_i`` (``ghat =
+T (x - a) / s``, the traction of the return mapping) and its Hessian ``A_i eps_T T_i``
+(stick) or ``A_i (B_i / s_i)(T_i - ghat ghat^T)`` (slip), both positive semi-definite.
+The minimiser iterates the lag to consistency (``pbar = p``, ``nbar = n``) in the last
+increment of a step, so the converged state obeys Coulomb's law at the current pressure.
+
+Units: mm, N, MPa (N/mm^2); energies in N mm.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse as sp
+
+from regtrack.mechanics.contact import PlateContact
+
+
+def normal_terms(gap: np.ndarray, normal: np.ndarray, lam: np.ndarray, eps: np.ndarray,
+                 areas: np.ndarray) -> tuple[float, np.ndarray, np.ndarray, np.ndarray]:
+    """Augmented-Lagrangian normal contact of ``M`` nodes: ``(energy N mm, gradient (M, 3) N,
+    projected Hessian blocks (M, 3, 3) N/mm, pressure (M,) MPa)`` (module docstring)."""
+    p = np.maximum(lam - eps * gap, 0.0)
+    energy = float(np.sum(areas * p * p / (2.0 * eps)))
+    grad = -(areas * p)[:, None] * normal
+    k = np.where(p > 0, areas * eps, 0.0)
+    hess = k[:, None, None] * np.einsum("ni,nj->nij", normal, normal)
+    return energy, grad, hess, p
+
+
+def friction_terms(x: np.ndarray, anchor: np.ndarray, nbar: np.ndarray, bound: np.ndarray,
+                   eps_t: float, areas: np.ndarray) -> tuple[float, np.ndarray, np.ndarray, np.ndarray]:
+    """Lagged Huber friction of ``M`` nodes at positions ``x`` with stick points ``anchor``
+    (mm, model frame), lagged normals ``nbar`` and slip bounds ``bound`` (MPa):
+    ``(energy N mm, gradient (M, 3) N, Hessian blocks (M, 3, 3) N/mm, slip mask (M,))``."""
+    T = np.eye(3)[None] - np.einsum("ni,nj->nij", nbar, nbar)
+    gt = np.einsum("nij,nj->ni", T, x - anchor)
+    s = np.linalg.norm(gt, axis=1)
+    B = np.maximum(bound, 0.0)
+    slip = (eps_t * s > B) & (s > 0)
+    stick = ~slip
+    phi = np.where(slip, B * s - B * B / (2.0 * eps_t), 0.5 * eps_t * s * s)
+    energy = float(np.sum(areas * phi))
+    ghat = gt / np.where(s > 0, s, 1.0)[:, None]
+    force = np.where(slip, B, eps_t * s)
+    grad = (areas * force)[:, None] * ghat
+    hess = np.zeros((len(x), 3, 3))
+    hess[stick] = (areas[stick] * eps_t)[:, None, None] * T[stick]
+    if slip.any():
+        g = ghat[slip]
+        hess[slip] = (areas[slip] * B[slip] / s[slip])[:, None, None] * (
+            T[slip] - np.einsum("ni,nj->nij", g, g))
+    return energy, grad, hess, slip
+
+
+def slid_anchor(x: np.ndarray, anchor: np.ndarray, nbar: np.ndarray, bound: np.ndarray,
+                eps_t: float) -> np.ndarray:
+    """Stick points after a converged increment (mm, model frame): the tangential slip is
+    kept where a node sticks and shortened to ``B / eps_T`` where it slips (slip history);
+    a node without a bound (off contact) takes its own position."""
+    T = np.eye(3)[None] - np.einsum("ni,nj->nij", nbar, nbar)
+    gt = np.einsum("nij,nj->ni", T, x - anchor)
+    s = np.linalg.norm(gt, axis=1)
+    B = np.maximum(bound, 0.0)
+    scale = np.where(eps_t * s > B, B / (eps_t * np.where(s > 0, s, 1.0)), 1.0)
+    scale = np.where(B > 0, scale, 0.0)
+    return x - scale[:, None] * gt
+
+
+@dataclass
+class PlateEval:
+    """One plate's terms at a state: energy (N mm), force on the body's dofs as a residual
+    ``dPi/du`` (3N,) N, Hessian (3N, 3N) COO or None, and per node pressure (MPa), gap (mm)
+    and normal."""
+
+    energy: float
+    grad: np.ndarray
+    hess: sp.coo_matrix | None
+    pressure: np.ndarray
+    gap: np.ndarray
+    normal: np.ndarray
+
+
+class PlatePotential:
+    """The potential of one :class:`~.contact.PlateContact` inside a minimisation.
+
+    It holds the lagged quantities of the current solve (multipliers ``lam``, bound
+    pressures ``pbar``, normals ``nbar``, node penalties ``eps``) and the stick points
+    (plate-local, so they move with the plate), taken from the contact's committed state
+    by :meth:`begin` and written back by :meth:`commit`.  The plate's position is the
+    contact's (``PlateContact.set_time`` moves it).
+    """
+
+    def __init__(self, contact: PlateContact, u: np.ndarray):
+        self.c = contact
+        self.begin(u)
+
+    @property
+    def name(self) -> str:
+        return self.c.name
+
+    def begin(self, u: np.ndarray) -> None:
+        """Lagged state from the contact's committed state; normals at ``u`` (N, 3)."""
+        st = self.c.get_state()
+        self.lam = st["lam"].copy()
+        self.pbar = st["pconv"].copy()
+        self.eps = np.asarray(st.get("eps", self.c.eps_node), float).copy()
+        self.anchor_local = st["anchor"].copy()
+        self.nbar = self.c.plate.query(self.positions(u)).normal
+
+    def positions(self, u: np.ndarray) -> np.ndarray:
+        return self.c.X[self.c.nodes] + np.asarray(u, float).reshape(-1, 3)[self.c.nodes]
+
+    def evaluate(self, u: np.ndarray, *, hessian: bool) -> PlateEval:
+        """Energy, gradient and (projected) Hessian of normal contact and friction at ``u``."""
+        c = self.c
+        x = self.positions(u)
+        q = c.plate.query(x)
+        A = c.areas
+        e, g, H, p = normal_terms(q.gap, q.normal, self.lam, self.eps, A)
+        if c.mu > 0 and np.any(self.pbar > 0):
+            anchor = c.plate.to_model(self.anchor_local)
+            ef, gf, Hf, _ = friction_terms(x, anchor, self.nbar, c.mu * self.pbar, c.eps_t, A)
+            e, g, H = e + ef, g + gf, H + Hf
+        ndof = c.X.size
+        grad = np.zeros(ndof)
+        dof = 3 * c.nodes[:, None] + np.arange(3)[None]
+        grad[dof.ravel()] = g.ravel()  # one row per node: no repeated dofs
+        K = None
+        if hessian:
+            live = np.flatnonzero(np.abs(H).reshape(len(H), -1).max(axis=1) > 0)
+            d = dof[live]
+            rows = np.repeat(d, 3, axis=1).ravel()
+            cols = np.tile(d, (1, 3)).ravel()
+            K = sp.coo_matrix((H[live].ravel(), (rows, cols)), shape=(ndof, ndof))
+        return PlateEval(e, grad, K, p, q.gap, q.normal)
+
+    def max_violation(self, ev: PlateEval) -> float:
+        """Deepest penetration of a node carrying pressure (mm)."""
+        act = ev.pressure > 0
+        return float(max(0.0, -ev.gap[act].min())) if act.any() else 0.0
+
+    def friction_error(self, ev: PlateEval) -> float:
+        """``sum_i A_i mu |p_i - pbar_i| / (mu sum_i A_i p_i)``: the relative error of the
+        lagged slip bound against Coulomb's at the current pressure (0 without friction)."""
+        c = self.c
+        ref = float(np.sum(c.areas * ev.pressure))
+        if c.mu <= 0 or ref <= 0:
+            return 0.0
+        return float(np.sum(c.areas * np.abs(ev.pressure - self.pbar))) / ref
+
+    def update(self, ev: PlateEval, *, growth: float, slow_ratio: float, eps_max: float,
+               previous: np.ndarray | None) -> np.ndarray:
+        """Multiplier update (Uzawa: ``lam <- p``), lag update (``pbar <- p``, ``nbar <- n``)
+        and penalty growth: a node whose violation fell by less than ``slow_ratio`` since
+        the last update gets ``eps <- min(growth eps, eps_max)`` (the method of
+        multipliers' rule for a constraint that converges slowly).  Returns the violations
+        ``max(0, -g)`` (M,) before the update."""
+        viol = np.where(ev.pressure > 0, np.maximum(-ev.gap, 0.0), 0.0)
+        if previous is not None and growth > 1:
+            slow = (viol > 0) & (viol > slow_ratio * previous)
+            self.eps = np.where(slow, np.minimum(self.eps * growth, eps_max), self.eps)
+        self.lam = ev.pressure.copy()
+        self.pbar = ev.pressure.copy()
+        self.nbar = ev.normal.copy()
+        return viol
+
+    def commit(self, u: np.ndarray) -> None:
+        """Store the converged increment in the contact: stick points slid by the slip of
+        the increment, multipliers and pressures (the next increment starts from them)."""
+        c = self.c
+        x = self.positions(u)
+        anchor = c.plate.to_model(self.anchor_local)
+        new = slid_anchor(x, anchor, self.nbar, c.mu * self.pbar, c.eps_t) if c.mu > 0 else x
+        self.anchor_local = c.plate.to_local(new)
+        st = c.get_state()
+        st.update(anchor=self.anchor_local.copy(), lam=self.lam.copy(), pconv=self.pbar.copy(),
+                  eps=self.eps.copy(), plate=c.plate)
+        c.set_state(st)
