@@ -34,6 +34,8 @@ from regtrack import __version__, _io
 log = logging.getLogger(__name__)
 
 MARKER = "_complete.json"
+#: The stage cache of ``regtrack run`` and ``regtrack track`` when none is given.
+DEFAULT_CACHE = Path(".regtrack-cache")
 
 
 def file_digest(path: str | os.PathLike, pattern: str = "*") -> str:
@@ -78,6 +80,10 @@ class StageCache:
 
     def folder(self, stage: str, key: str) -> Path:
         return self.root / stage / key
+
+    def has(self, stage: str, key: str) -> bool:
+        """Whether ``stage`` with ``key`` is finished (not counted as a hit or miss)."""
+        return (self.folder(stage, key) / MARKER).is_file()
 
     def lookup(self, stage: str, key: str) -> Path | None:
         """The finished folder of ``stage`` with ``key``, or None (counted as hit/miss)."""

@@ -27,9 +27,10 @@ from regtrack import __version__, _io
 from regtrack.config import parse_section, to_table
 from regtrack.errors import CaseError, RegtrackError
 from regtrack.pipeline import stages
-from regtrack.pipeline.cache import StageCache, file_digest, fingerprint
+from regtrack.pipeline.cache import DEFAULT_CACHE, StageCache, file_digest, fingerprint
 from regtrack.privacy import (IDENTIFYING_KEYWORDS, Identifiers, identifiers_of_case_folder,
                               pseudonymous_id, scrub_logs)
+from regtrack.views import VIEWS
 
 log = logging.getLogger(__name__)
 
@@ -82,7 +83,7 @@ def effective_configs(case: Any, overrides: dict | None) -> tuple[dict[str, Any]
         configs[section] = obj
     protocol_tables: dict[str, dict] = {}
     case_proto = case.override_table("protocol")
-    for view in ("CC", "MLO"):
+    for view in VIEWS:
         protocol_tables[view] = {**dict(case_proto.get(view, {})),
                                  **dict(overrides.get("protocol", {}).get(view, {}))}
     if problems:
@@ -112,7 +113,7 @@ def run_case(case_dir: str | Path, *, overrides: dict | None = None,
     views : sequence of {"CC", "MLO"}, optional
         Default: every view the case has.
     cache_dir : path, optional
-        Stage cache (default ``.regtrack-cache`` in the working folder).
+        Stage cache (default :data:`~regtrack.pipeline.cache.DEFAULT_CACHE`).
     out_dir : path, optional
         Where metrics, figures and the PDF go; nothing is written there when None.
     progress : callable, optional
@@ -154,46 +155,19 @@ def _run_case(case_dir, found: Identifiers, ids: Identifiers, *, overrides, view
     from regtrack.case import load_case
 
     case = load_case(case_dir)
-    all_views = tuple(case.views)
-    if not all_views:
+    views = select_views(case, views)
+    if not case.views:
         # no mammograms: simulate and project (virtual mammograms only), say so
-        views = tuple(v.upper() for v in (views or ("CC", "MLO")))
         log.warning("%s: the case has no [views.*] (no real mammograms): running mesh, "
                     "simulation and virtual mammograms only; registration and metrics need "
                     "[views.CC]/[views.MLO] with a mammogram", case.toml_path)
         if progress is not None:
             progress("no real mammograms in this case: registration and metrics are skipped")
-    else:
-        views = tuple(v.upper() for v in (views or all_views))
-        missing = [v for v in views if v not in case.views]
-        if missing:
-            raise CaseError(f"{case.toml_path}: view(s) {', '.join(missing)} requested but the "
-                            f"case has {', '.join(all_views)}; add [views.{missing[0]}] or "
-                            "choose --views from those")
-    unknown = [v for v in views if v not in ("CC", "MLO")]
-    if unknown:
-        raise CaseError(f"--views: unknown view {unknown[0]!r}; use CC and/or MLO")
-    configs, protocol_tables = effective_configs(case, overrides)
-    cache = StageCache(Path(cache_dir) if cache_dir else Path(".regtrack-cache"))
     if not keep_identifiers:
         case = dataclasses.replace(case, id=pseudonymous_id(case.id, found),
                                    title=found.scrub(case.title))
-    ctx = RunContext(case, configs, protocol_tables, cache, progress=progress, ids=ids)
-    # the real mammograms first: a bad DICOM fails in seconds, before any stage is
-    # computed or cached
-    reals = {view: stages.real_stage(ctx, view) for view in views if view in case.views}
-    mesh_out = stages.mesh_stage(ctx)
-    failed = stages.simulate_concurrently(ctx, mesh_out, views) if concurrent else {}
-    results = []
-    for view in views:
-        if view in failed:
-            raise failed[view]
-        sim = stages.simulate_stage(ctx, mesh_out, view)
-        virtual = stages.virtual_stage(ctx, mesh_out, sim, view)
-        if view in reals:
-            results.append(stages.align_stage(ctx, mesh_out, sim, virtual, reals[view], view))
-        else:
-            results.append(stages.virtual_only(ctx, sim, virtual, view))
+    ctx = open_run(case, overrides, cache_dir=cache_dir, progress=progress, ids=ids)
+    mesh_out, results = run_stages(ctx, views, concurrent=concurrent)
     rows = [r.row for r in results]
     ctx.timings["total"] = time.perf_counter() - t_start
     if out_dir is not None:
@@ -210,8 +184,74 @@ def _run_case(case_dir, found: Identifiers, ids: Identifiers, *, overrides, view
         if report:
             stages.report_stage(ctx, mesh_out, results, out, prov)
     log.info("case %s done in %.1f s (cache: %d hits, %d misses)", case.id,
-             ctx.timings["total"], cache.hits, cache.misses)
+             ctx.timings["total"], ctx.cache.hits, ctx.cache.misses)
     return rows
+
+
+def select_views(case: Any, views: tuple[str, ...] | list[str] | None = None) -> tuple[str, ...]:
+    """The views to run, upper-cased: ``views``, or every view of the case (both when the
+    case has no mammogram: the virtual-only run).
+
+    Raises :class:`CaseError` for a name outside :data:`regtrack.views.VIEWS`, or a view
+    the case has no ``[views.<V>]`` for (when it has any).
+    """
+    names = tuple(str(v).upper() for v in (views or tuple(case.views) or VIEWS))
+    unknown = [v for v in names if v not in VIEWS]
+    if unknown:
+        raise CaseError(f"--views: unknown view {unknown[0]!r}; use "
+                        f"{' and/or '.join(VIEWS)}")
+    missing = [v for v in names if case.views and v not in case.views]
+    if missing:
+        raise CaseError(f"{case.toml_path}: view(s) {', '.join(missing)} requested but the "
+                        f"case has {', '.join(case.views)}; add [views.{missing[0]}] or "
+                        "choose --views from those")
+    return names
+
+
+def open_run(case: Any, overrides: dict | None = None, *, cache_dir: str | Path | None = None,
+             progress: Progress | None = None, ids: Identifiers | None = None) -> RunContext:
+    """The context every stage of a run of ``case`` reads: the effective configs and the
+    stage cache (``cache_dir``, default :data:`~regtrack.pipeline.cache.DEFAULT_CACHE`).
+
+    The entry point of ``regtrack run`` (:func:`run_case`) and ``regtrack track``
+    (:func:`regtrack.tracking.session.open_case`); ``ids`` are the identifiers to keep out
+    of outputs (none by default).
+    """
+    configs, protocol_tables = effective_configs(case, overrides)
+    cache = StageCache(Path(cache_dir) if cache_dir else DEFAULT_CACHE)
+    return RunContext(case, configs, protocol_tables, cache, progress=progress,
+                      ids=ids if ids is not None else Identifiers())
+
+
+def missing_stages(ctx: RunContext, views: tuple[str, ...] | list[str]) -> list[str]:
+    """Names of the expensive stages (``mesh``, ``simulate_<view>``) not in the cache yet."""
+    mk = stages.mesh_key(ctx)
+    out = [] if ctx.cache.has("mesh", mk) else ["mesh"]
+    out += [f"simulate_{v}" for v in views
+            if not ctx.cache.has("simulate", stages.simulate_key(ctx, mk, v))]
+    return out
+
+
+def run_stages(ctx: RunContext, views: tuple[str, ...], *, concurrent: bool
+               ) -> tuple[stages.MeshOutput, list[stages.ViewOutcome]]:
+    """Mesh, then per view simulate, virtual mammogram and (with a real mammogram) the
+    alignment and metrics; the real mammograms are read first, so that a bad DICOM fails
+    in seconds, before any stage is computed or cached.  ``concurrent``: simulate the
+    uncached views at the same time (:func:`stages.simulate_concurrently`)."""
+    reals = {view: stages.real_stage(ctx, view) for view in views if view in ctx.case.views}
+    mesh_out = stages.mesh_stage(ctx)
+    failed = stages.simulate_concurrently(ctx, mesh_out, views) if concurrent else {}
+    results = []
+    for view in views:
+        if view in failed:
+            raise failed[view]
+        sim = stages.simulate_stage(ctx, mesh_out, view)
+        virtual = stages.virtual_stage(ctx, mesh_out, sim, view)
+        if view in reals:
+            results.append(stages.align_stage(ctx, mesh_out, sim, virtual, reals[view], view))
+        else:
+            results.append(stages.virtual_only(ctx, sim, virtual, view))
+    return mesh_out, results
 
 
 def _remove_stale_parts(out: Path) -> None:
@@ -261,4 +301,5 @@ def provenance(ctx: RunContext, mesh_out, results) -> dict:
     }
 
 
-__all__ = ["run_case", "effective_configs", "RegtrackError", "fingerprint", "file_digest"]
+__all__ = ["run_case", "open_run", "run_stages", "select_views", "missing_stages",
+           "effective_configs", "RegtrackError", "fingerprint", "file_digest"]

@@ -367,9 +367,9 @@ def report_stage(ctx, mesh: MeshOutput, results: list[ViewOutcome], out: Path, p
 def _tracking_section(mesh: MeshOutput, results: list[ViewOutcome], out: Path):
     """Where the MRI tumour lands in each real mammogram (``tracking.json`` + a PDF page)."""
     from regtrack.tracking.figures import draw_tracking_page, report_section
-    from regtrack.tracking.session import viewmap_from_outcome
     from regtrack.tracking.mri_to_view import track_tumour
     from regtrack.tracking.track import TrackResult
+    from regtrack.tracking.viewmap import viewmap_from_outcome
 
     if int(mesh.model.tumour_id.max(initial=0)) < 1:
         return None

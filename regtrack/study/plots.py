@@ -125,11 +125,10 @@ def _save_png(fig: Figure, path: Path) -> Path:
     return path
 
 
-def write_study_figures(result) -> list[Path]:
-    """PNG figures and ``study.pdf`` for a :class:`regtrack.study.run.StudyResult`."""
+def write_study_figures(result, summary: dict) -> list[Path]:
+    """PNG figures and ``study.pdf`` for a :class:`regtrack.study.run.StudyResult`;
+    ``summary`` (:func:`regtrack.study.run.summary`) is the PDF's first page."""
     from matplotlib.backends.backend_pdf import PdfPages
-
-    from regtrack.study.run import summary
 
     st = result.study
     names = list(st.parameters)
@@ -151,7 +150,7 @@ def write_study_figures(result) -> list[Path]:
     if "pdf" in st.outputs:
         with _io.atomic_path(st.out_dir / "study.pdf") as tmp:
             with PdfPages(tmp) as pdf:
-                pdf.savefig(summary_page(summary(result)))
+                pdf.savefig(summary_page(summary))
                 for _, fig in figures:
                     pdf.savefig(fig)
         written.append(st.out_dir / "study.pdf")
