@@ -89,6 +89,7 @@ def mesh_stage(ctx) -> MeshOutput:
     if hit is None:
         from regtrack.imaging.readers import read_label_map
         from regtrack.model.build import build_model
+        from regtrack.model.pictures import save_pictures
 
         ctx.say("mesh: building the patient model from the label map")
         mri = ctx.case.mri
@@ -99,21 +100,13 @@ def mesh_stage(ctx) -> MeshOutput:
         model.meta = ctx.clean(model.meta)  # input paths may name the patient
         with ctx.cache.produce("mesh", key, info={"nodes": model.n_nodes, "tets": model.n_tets}) as d:
             save_model(model, d / "model.vtu")
-            _model_pictures(model, d)
+            save_pictures(model, d / "model")  # a stem: model_sections.png, model_3d.png
         hit = ctx.cache.folder("mesh", key)
     else:
         ctx.say("mesh: found in the cache")
     model = load_model(hit / "model.vtu")
     _timed(ctx, "mesh", t0)
     return MeshOutput(key, hit, model)
-
-
-def _model_pictures(model, folder: Path) -> None:
-    try:
-        from regtrack.model import pictures
-    except ImportError:  # pictures module optional
-        return
-    pictures.save_pictures(model, folder / "model")  # a stem: model_sections.png, model_3d.png
 
 
 # -- simulate -----------------------------------------------------------------------------
@@ -331,10 +324,10 @@ def report_stage(ctx, mesh: MeshOutput, results: list[ViewOutcome], out: Path, p
         if r.real is not None:
             _io.write_json(vdir / "real.json", ctx.clean(r.real.to_dict()))
             _io.write_json(vdir / "alignment.json", ctx.clean(r.alignment.to_dict()))
-            F.save_figure(F.overlay_figure(r.real, r.virtual.view, r.alignment), vdir / "overlay.png")
-            F.save_figure(F.images_figure(r.real, r.virtual.view), vdir / "images.png")
+            _io.save_figure(F.overlay_figure(r.real, r.virtual.view, r.alignment), vdir / "overlay.png")
+            _io.save_figure(F.images_figure(r.real, r.virtual.view), vdir / "images.png")
         else:
-            F.save_figure(F.virtual_figure(r.virtual.view), vdir / "virtual.png")
+            _io.save_figure(F.virtual_figure(r.virtual.view), vdir / "virtual.png")
         for p in r.sim.pictures:
             _io.write_bytes(vdir / f"compression{p.suffix}", p.read_bytes())
         steps = [{"step": s.get("name"), "D": s.get("D"), "force_N": (s.get("contact") or {})
