@@ -106,12 +106,16 @@ def parse_assignments(items: list[str], *, where: str = "command line") -> dict[
     return out
 
 
-def parse_section(cls: type[T], table: dict | None, *, where: str) -> tuple[T, list[str], list[str]]:
+def parse_section(cls: type[T], table: dict | None, *, where: str,
+                  base: T | None = None) -> tuple[T, list[str], list[str]]:
     """Build ``cls`` from a TOML table; return ``(obj, problems, warnings)``.
 
     Unknown keys are warnings naming the closest valid key.  Wrong types and values out
     of range are problems naming ``where``, the key, the value and the allowed range.
-    When there are problems, ``obj`` holds the defaults for the offending keys.
+    ``base``: an instance of ``cls`` whose values the table's keys replace (a layer of
+    overrides on an already parsed section; nested sections merge the same way); default:
+    the class defaults.  When there are problems, ``obj`` holds the base values for the
+    offending keys.
     """
     table = dict(table or {})
     problems: list[str] = []
@@ -131,7 +135,8 @@ def parse_section(cls: type[T], table: dict | None, *, where: str) -> tuple[T, l
         md = f.metadata
         doc = f" ({md['doc']})" if md.get("doc") else ""
         if dataclasses.is_dataclass(tp) and isinstance(value, dict):
-            sub, p, w = parse_section(tp, value, where=f"{where[:-1]}.{key}]" if where.endswith("]") else f"{where}.{key}")
+            sub, p, w = parse_section(tp, value, where=f"{where[:-1]}.{key}]" if where.endswith("]") else f"{where}.{key}",
+                                      base=None if base is None else getattr(base, key))
             problems += p
             warnings += w
             kwargs[key] = sub
@@ -146,7 +151,7 @@ def parse_section(cls: type[T], table: dict | None, *, where: str) -> tuple[T, l
             problems.append(f"{where} {key} = {value!r}{unit}: {bad}{doc}")
             continue
         kwargs[key] = cv
-    obj = cls(**kwargs)
+    obj = cls(**kwargs) if base is None else dataclasses.replace(base, **kwargs)  # type: ignore[type-var]
     post = getattr(obj, "problems", None)
     if callable(post) and not problems:
         problems += [f"{where}: {p}" for p in post()]

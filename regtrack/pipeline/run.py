@@ -24,7 +24,7 @@ from typing import Any
 import numpy as np
 
 from regtrack import __version__, _io
-from regtrack.config import parse_section, to_table
+from regtrack.case.configs import Configs
 from regtrack.errors import CaseError, RegtrackError
 from regtrack.pipeline import stages
 from regtrack.pipeline.cache import DEFAULT_CACHE, StageCache, file_digest, fingerprint
@@ -39,11 +39,10 @@ Progress = Callable[[str], None]
 
 @dataclass
 class RunContext:
-    """Everything a stage needs: the case, the effective configs, the cache."""
+    """Everything a stage needs: the case, its resolved configs, the cache."""
 
     case: Any
-    configs: dict[str, Any]
-    protocol_tables: dict[str, dict]
+    configs: Configs
     cache: StageCache
     timings: dict[str, float] = field(default_factory=dict)
     progress: Progress | None = None
@@ -59,42 +58,6 @@ class RunContext:
     def clean(self, obj: Any) -> Any:
         """``obj`` with patient identifiers and the case folder's path scrubbed."""
         return self.ids.scrub_obj(obj) if self.ids else obj
-
-
-def effective_configs(case: Any, overrides: dict | None) -> tuple[dict[str, Any], dict[str, dict]]:
-    """Config dataclass of every stage section: defaults < case.toml < ``overrides``.
-
-    ``overrides`` uses the case.toml layout: ``{"mechanics": {"tissue_c1_kpa": 1.0},
-    "protocol": {"CC": {"target_D": 0.38}}}``.  Problems raise :class:`CaseError`.
-    """
-    from regtrack.case.overrides import config_class
-
-    overrides = dict(overrides or {})
-    configs: dict[str, Any] = {}
-    problems: list[str] = []
-    for section in ("model", "mechanics", "contact", "registration", "virtual"):
-        cls = config_class(section) if section != "virtual" else _virtual_config_class()
-        if cls is None:
-            continue
-        table = {**case.override_table(section), **overrides.get(section, {})} if section != "virtual" \
-            else dict(overrides.get(section, {}))
-        obj, p, _w = parse_section(cls, table, where=f"{case.toml_path} [{section}]")
-        problems += p
-        configs[section] = obj
-    protocol_tables: dict[str, dict] = {}
-    case_proto = case.override_table("protocol")
-    for view in VIEWS:
-        protocol_tables[view] = {**dict(case_proto.get(view, {})),
-                                 **dict(overrides.get("protocol", {}).get(view, {}))}
-    if problems:
-        raise CaseError(problems)
-    return configs, protocol_tables
-
-
-def _virtual_config_class():
-    from regtrack.virtual.config import VirtualConfig
-
-    return VirtualConfig
 
 
 def run_case(case_dir: str | Path, *, overrides: dict | None = None,
@@ -152,7 +115,7 @@ def concurrent_default() -> bool:
 
 def _run_case(case_dir, found: Identifiers, ids: Identifiers, *, overrides, views, cache_dir,
               out_dir, progress, report, keep_identifiers, t_start, concurrent) -> list[dict]:
-    from regtrack.case import load_case
+    from regtrack.case import load_case, resolve_configs
 
     case = load_case(case_dir)
     views = select_views(case, views)
@@ -166,7 +129,8 @@ def _run_case(case_dir, found: Identifiers, ids: Identifiers, *, overrides, view
     if not keep_identifiers:
         case = dataclasses.replace(case, id=pseudonymous_id(case.id, found),
                                    title=found.scrub(case.title))
-    ctx = open_run(case, overrides, cache_dir=cache_dir, progress=progress, ids=ids)
+    ctx = open_run(case, resolve_configs(case, overrides), cache_dir=cache_dir,
+                   progress=progress, ids=ids)
     mesh_out, results = run_stages(ctx, views, concurrent=concurrent)
     rows = [r.row for r in results]
     ctx.timings["total"] = time.perf_counter() - t_start
@@ -208,18 +172,18 @@ def select_views(case: Any, views: tuple[str, ...] | list[str] | None = None) ->
     return names
 
 
-def open_run(case: Any, overrides: dict | None = None, *, cache_dir: str | Path | None = None,
+def open_run(case: Any, configs: Configs, *, cache_dir: str | Path | None = None,
              progress: Progress | None = None, ids: Identifiers | None = None) -> RunContext:
-    """The context every stage of a run of ``case`` reads: the effective configs and the
-    stage cache (``cache_dir``, default :data:`~regtrack.pipeline.cache.DEFAULT_CACHE`).
+    """The context every stage of a run of ``case`` reads: its ``configs``
+    (:func:`regtrack.case.resolve_configs`) and the stage cache (``cache_dir``, default
+    :data:`~regtrack.pipeline.cache.DEFAULT_CACHE`).
 
     The entry point of ``regtrack run`` (:func:`run_case`) and ``regtrack track``
     (:func:`regtrack.tracking.session.open_case`); ``ids`` are the identifiers to keep out
     of outputs (none by default).
     """
-    configs, protocol_tables = effective_configs(case, overrides)
     cache = StageCache(Path(cache_dir) if cache_dir else DEFAULT_CACHE)
-    return RunContext(case, configs, protocol_tables, cache, progress=progress,
+    return RunContext(case, configs, cache, progress=progress,
                       ids=ids if ids is not None else Identifiers())
 
 
@@ -291,8 +255,9 @@ def provenance(ctx: RunContext, mesh_out, results) -> dict:
             pass
     return {
         "case_id": ctx.case.id,
-        "config": {k: to_table(v) for k, v in ctx.configs.items()},
-        "protocol_overrides": ctx.protocol_tables,
+        "config": ctx.configs.to_tables(),
+        "protocol_overrides": ctx.configs.protocol_tables,
+        "overrides": ctx.configs.overrides,
         "stage_keys": {"mesh": mesh_out.key, **{f"simulate_{r.view}": r.sim_key for r in results}},
         "cache": {"hits": ctx.cache.hits, "misses": ctx.cache.misses},
         "timings_s": ctx.timings,
@@ -302,4 +267,4 @@ def provenance(ctx: RunContext, mesh_out, results) -> dict:
 
 
 __all__ = ["run_case", "open_run", "run_stages", "select_views", "missing_stages",
-           "effective_configs", "RegtrackError", "fingerprint", "file_digest"]
+           "RegtrackError", "fingerprint", "file_digest"]

@@ -76,7 +76,7 @@ def mesh_key(ctx) -> str:
     case = ctx.case
     mri = case.mri
     return fingerprint("mesh", file_digest(mri.labels), to_table(mri.scheme), mri.side,
-                       mri.nipple_lps_mm, to_table(ctx.configs["model"]))
+                       mri.nipple_lps_mm, to_table(ctx.configs.model))
 
 
 def mesh_stage(ctx) -> MeshOutput:
@@ -95,7 +95,7 @@ def mesh_stage(ctx) -> MeshOutput:
         mri = ctx.case.mri
         labels = read_label_map(mri.labels)
         nipple = None if mri.nipple_lps_mm is None else np.asarray(mri.nipple_lps_mm, float)
-        model = build_model(labels, scheme=mri.scheme, config=ctx.configs["model"], side=mri.side,
+        model = build_model(labels, scheme=mri.scheme, config=ctx.configs.model, side=mri.side,
                             nipple_lps=nipple, progress=lambda m: ctx.say(f"mesh: {m}"))
         model.meta = ctx.clean(model.meta)  # input paths may name the patient
         with ctx.cache.produce("mesh", key, info={"nodes": model.n_nodes, "tets": model.n_tets}) as d:
@@ -110,23 +110,16 @@ def mesh_stage(ctx) -> MeshOutput:
 
 
 # -- simulate -----------------------------------------------------------------------------
-def _protocol(ctx, view: str):
-    from regtrack.mechanics.protocol import protocol_for_view
-
-    return protocol_for_view(view, ctx.protocol_tables.get(view) or None,
-                             where=str(ctx.case.toml_path), base_dir=ctx.case.root)
-
-
 def simulate_key(ctx, mesh_key_: str, view: str) -> str:
     """Cache key of the ``view`` simulation: the mesh key, mechanics, contact and protocol."""
-    return fingerprint("simulate", mesh_key_, view, to_table(ctx.configs["mechanics"]),
-                       to_table(ctx.configs["contact"]), _protocol(ctx, view).to_dict())
+    return fingerprint("simulate", mesh_key_, view, to_table(ctx.configs.mechanics),
+                       to_table(ctx.configs.contact), ctx.configs.protocols[view].to_dict())
 
 
 def simulate_stage(ctx, mesh: MeshOutput, view: str) -> SimOutput:
     """Simulate the mammography of ``view`` on the model (or find it in the cache)."""
-    protocol = _protocol(ctx, view)
-    mech, contact = ctx.configs["mechanics"], ctx.configs["contact"]
+    protocol = ctx.configs.protocols[view]
+    mech, contact = ctx.configs.mechanics, ctx.configs.contact
     key = simulate_key(ctx, mesh.key, view)
     hit = ctx.cache.lookup("simulate", key)
     t0 = time.perf_counter()
@@ -225,7 +218,7 @@ def _checked_result(ctx, folder: Path, mesh: MeshOutput, view: str) -> tuple[dic
     except InputFileError as err:
         raise ResultCheckError(f"simulate {view}: {err}") from err
     check_simulation(f"simulate {view}", doc, positions, mesh.model,
-                     max_penetration_mm=ctx.configs["contact"].max_penetration_mm)
+                     max_penetration_mm=ctx.configs.contact.max_penetration_mm)
     return doc, positions
 
 
@@ -237,7 +230,7 @@ def virtual_stage(ctx, mesh: MeshOutput, sim: SimOutput, view: str):
     t0 = time.perf_counter()
     ctx.say(f"virtual {view}: projecting the compressed model")
     frame = default_frame(sim.positions, view, mesh.model.frame.side, angle_deg=sim.angle_deg)
-    vm = project_model(mesh.model, sim.positions, view=view, config=ctx.configs.get("virtual"),
+    vm = project_model(mesh.model, sim.positions, view=view, config=ctx.configs.virtual,
                        frame=frame, source_name=f"virtual:{ctx.case.id}:{view}")
     _timed(ctx, f"virtual_{view}", t0)
     return vm
@@ -269,7 +262,7 @@ def align_stage(ctx, mesh: MeshOutput, sim: SimOutput, vm, real, view: str) -> V
 
     t0 = time.perf_counter()
     ctx.say(f"register {view}: golden-section search of the in-plane rotation")
-    al = align(real, vm.view, config=ctx.configs.get("registration"))
+    al = align(real, vm.view, config=ctx.configs.registration)
     D = sim.summary.get("D")
     m = compute_metrics(al, real, vm.view, D=D)
     md = m.to_dict()
@@ -349,7 +342,7 @@ def report_stage(ctx, mesh: MeshOutput, results: list[ViewOutcome], out: Path, p
     pics = []
     for p in mesh.pictures:
         pics.append(_io.write_bytes(out / "model" / p.name, p.read_bytes()))
-    tracking = _tracking_section(mesh, results, out) if all(r.real is not None for r in results) else None
+    tracking = _tracking_section(ctx, mesh, results, out) if all(r.real is not None for r in results) else None
     rep = CaseReport(ctx.case.id, ctx.case.title, views, ms, pics, prov["config"], prov,
                      extra_pages=[tracking] if tracking else [])
     path = write_pdf(rep, out / "report.pdf")
@@ -357,7 +350,7 @@ def report_stage(ctx, mesh: MeshOutput, results: list[ViewOutcome], out: Path, p
     return path
 
 
-def _tracking_section(mesh: MeshOutput, results: list[ViewOutcome], out: Path):
+def _tracking_section(ctx, mesh: MeshOutput, results: list[ViewOutcome], out: Path):
     """Where the MRI tumour lands in each real mammogram (``tracking.json`` + a PDF page)."""
     from regtrack.tracking.figures import draw_tracking_page, report_section
     from regtrack.tracking.mri_to_view import track_tumour
@@ -368,7 +361,7 @@ def _tracking_section(mesh: MeshOutput, results: list[ViewOutcome], out: Path):
         return None
     vms = {r.view: viewmap_from_outcome(r) for r in results}
     res = TrackResult(results[0].row["case_id"], views={v: {} for v in vms},
-                      mri=track_tumour(mesh.model, vms))
+                      mri=track_tumour(mesh.model, vms, config=ctx.configs.tracking))
     _io.write_json(out / "tracking.json", report_section(res))
     reals = {r.view: r.real for r in results}
     return lambda fig: draw_tracking_page(fig, res, reals)

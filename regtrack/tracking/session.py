@@ -83,6 +83,8 @@ def open_case(case_dir: str | Path, *, views: tuple[str, ...] | list[str] | None
         Config overrides in the case.toml layout (as :func:`regtrack.pipeline.run.run_case`).
     simulate : bool
         Run missing mesh/simulation stages (default); False raises TrackingError.
+    config : TrackingConfig, optional
+        Default: ``overrides``' ``[tracking]`` section on the class defaults.
     progress : callable, optional
         Called with one line per stage.
 
@@ -94,7 +96,7 @@ def open_case(case_dir: str | Path, *, views: tuple[str, ...] | list[str] | None
         A case without mammograms, or (``simulate=False``) a case whose
         simulations are not cached.
     """
-    from regtrack.case import load_case
+    from regtrack.case import load_case, resolve_configs
     from regtrack.pipeline.run import (concurrent_default, missing_stages, open_run, run_stages,
                                        select_views)
 
@@ -103,7 +105,8 @@ def open_case(case_dir: str | Path, *, views: tuple[str, ...] | list[str] | None
     if not case.views:
         raise TrackingError(f"{case.toml_path}: no [views.CC] or [views.MLO] in the case; add "
                             "a mammogram to case.toml to track into it")
-    ctx = open_run(case, overrides, cache_dir=cache_dir, progress=progress)
+    configs = resolve_configs(case, overrides)
+    ctx = open_run(case, configs, cache_dir=cache_dir, progress=progress)
     todo = missing_stages(ctx, names)
     if todo and not simulate:
         raise TrackingError(f"case {case.id} not simulated yet ({', '.join(todo)} not in the cache "
@@ -113,7 +116,7 @@ def open_case(case_dir: str | Path, *, views: tuple[str, ...] | list[str] | None
         ctx.say(f"track: {', '.join(todo)} not in the cache {ctx.cache.root}; running them now "
                 "(this takes minutes; later calls re-use them)")
     mesh, outcomes = run_stages(ctx, names, concurrent=concurrent_default())
-    session = TrackingSession(case, mesh.model, {}, config=config or TrackingConfig(),
+    session = TrackingSession(case, mesh.model, {}, config=config or configs.tracking,
                               stage_keys={"mesh": mesh.key}, simulated_now=todo)
     for out in outcomes:
         session.views[out.view] = viewmap_from_outcome(out)
