@@ -1,4 +1,4 @@
-"""Model file contract (DESIGN.md): a meshio-readable ``.vtu`` plus a JSON sidecar.
+"""Model file contract (docs/design.md): a meshio-readable ``.vtu`` plus a JSON sidecar.
 
 * tetrahedra carry cell data ``region`` (1 tissue, 2 tumour), ``tumour_id`` and
   ``tissue_label``; triangles carry ``region`` 3 (skin membrane);

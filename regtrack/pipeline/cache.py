@@ -2,9 +2,9 @@
 
 A stage's *key* is the SHA-256 of everything it depends on: the content of its input
 files, the configuration sections it reads, the keys of the stages before it, the
-regtrack version and a digest of the package's Python sources (:func:`code_digest`:
-during development a solver change does not bump the version, and a cached simulation
-of the old code was silently re-used; session 7).  Change one registration setting and
+regtrack version and a digest of the package's Python sources (:func:`code_digest`: a
+solver change during development does not bump the version, and a cached simulation of
+the old code must not be re-used).  Change one registration setting and
 only registration and later stages get new keys; the mesh and the simulations are found
 in the cache.
 

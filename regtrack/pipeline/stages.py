@@ -158,9 +158,9 @@ def simulate_concurrently(ctx, mesh: MeshOutput, views, *, worker=None) -> dict[
     only partly busy (its GMRES solves on a stored factorisation are single-threaded and
     memory-bound, 36 % of the CC compression).  Measured on the 9,496-node benchmark
     hemisphere (``pipelines/bench_protocols.py`` with and without ``--concurrent``, back
-    to back, session 34, 2 cores): CC + MLO one after the other 180.2 s, at the same time
-    140.0 s (another pair: 146.9 and 128.6 s), the same Newton paths and forces (PARDISO
-    in strict CNR mode, :mod:`regtrack.mechanics.linsolve`).
+    to back, 2 cores): CC + MLO one after the other 180.2 s, at the same time 140.0 s
+    (another pair: 146.9 and 128.6 s), the same Newton paths and forces (PARDISO in strict
+    CNR mode, :mod:`regtrack.mechanics.linsolve`).
     """
     import concurrent.futures as cf
     import dataclasses

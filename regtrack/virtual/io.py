@@ -1,4 +1,4 @@
-"""Reading simulation results for projection (result file contract of DESIGN.md).
+"""Reading simulation results for projection (result file contract of docs/design.md).
 
 A result is a ``.vtu`` on the model's nodes with point data ``displacement`` (mm, the
 final state) and, per protocol step, ``displacement_<step>``; a JSON sidecar (same stem)
