@@ -19,7 +19,7 @@ import importlib
 from dataclasses import dataclass, field
 from typing import Any
 
-from regtrack.case.overrides import SECTIONS, config_class
+from regtrack.case.overrides import SECTIONS
 from regtrack.config import closest_key, parse_section, to_table
 from regtrack.errors import CaseError
 from regtrack.views import VIEWS
