@@ -40,6 +40,15 @@ def closest_key(key: str, valid) -> str | None:
     return m[0] if m else None
 
 
+def unknown_name(where: str, what: str, name: str, valid) -> str:
+    """One line for an unknown ``name``: ``"<where>: unknown <what> '<name>' (did you mean
+    '<closest>'?); use one of <valid>"``."""
+    valid = list(valid)
+    near = closest_key(name, valid)
+    return (f"{where}: unknown {what} '{name}'" + (f" (did you mean '{near}'?)" if near else "")
+            + f"; use one of {', '.join(valid)}")
+
+
 def _check_type(value: Any, tp: Any) -> tuple[bool, Any]:
     """Return (ok, coerced) for the simple types used in config sections."""
     origin = typing.get_origin(tp)

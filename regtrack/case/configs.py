@@ -20,7 +20,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from regtrack.case.overrides import SECTIONS
-from regtrack.config import closest_key, parse_section, to_table
+from regtrack.config import parse_section, to_table, unknown_name
 from regtrack.errors import CaseError
 from regtrack.views import VIEWS
 
@@ -81,12 +81,8 @@ def resolve_configs(case: Any, overrides: dict | None = None) -> Configs:
     where = str(case.toml_path)
     problems: list[str] = []
     known = (*CONFIG_FIELDS, "protocol")
-    for name in overrides:
-        if name not in known:
-            near = closest_key(name, known)
-            problems.append(f"overrides: unknown section '{name}'"
-                            + (f" (did you mean '{near}'?)" if near else "")
-                            + f"; use one of {', '.join(known)}")
+    problems += [unknown_name("overrides", "section", name, known)
+                 for name in overrides if name not in known]
     values: dict[str, Any] = {}
     for name in CONFIG_FIELDS:
         base = case.config(name) if name in SECTIONS else _command_class(name)()

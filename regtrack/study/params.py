@@ -27,7 +27,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from regtrack.case.overrides import config_class, parse_overrides
-from regtrack.config import closest_key, param, parse_section
+from regtrack.config import closest_key, param, parse_section, unknown_name
 
 
 #: Override sections a study may set or vary.
@@ -98,13 +98,7 @@ def check_overrides(table: Any, *, where: str) -> tuple[dict, list[str], list[st
     if not isinstance(table, dict):
         return {}, [f"{where}: expected a table of override sections ([overrides.mechanics], ...)"], []
     tops = list(dict.fromkeys(s.split(".")[0] for s in SECTIONS))
-    problems = []
-    for top in table:
-        if top not in tops:
-            near = closest_key(top, tops)
-            problems.append(f"{where}: unknown section '{top}'"
-                            + (f" (did you mean '{near}'?)" if near else "")
-                            + f"; use one of {', '.join(tops)}")
+    problems = [unknown_name(where, "section", top, tops) for top in table if top not in tops]
     _, p, warnings = parse_overrides(table, where=where)
     return copy.deepcopy(table), problems + p, warnings
 
