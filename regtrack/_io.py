@@ -1,4 +1,4 @@
-"""Atomic file output.
+"""Atomic file output, and the reading of the mesh files regtrack writes.
 
 Every file regtrack writes goes through these helpers: the data are written to a
 temporary file in the destination folder and then renamed over the target with
@@ -11,6 +11,7 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import sys
 import tempfile
 from collections.abc import Iterator
 from pathlib import Path
@@ -52,6 +53,44 @@ def write_bytes(path: str | os.PathLike, data: bytes) -> Path:
     with atomic_path(path) as tmp:
         tmp.write_bytes(data)
     return Path(path)
+
+
+def save_figure(fig: Any, path: str | os.PathLike, *, dpi: int = 130) -> Path:
+    """Atomically save the matplotlib figure ``fig`` (format from the suffix), then close
+    it in pyplot, which otherwise keeps every figure it made alive.
+
+    A figure made without pyplot (``matplotlib.figure.Figure()``) is not known to it; pyplot
+    is not imported for it.
+    """
+    path = Path(path)
+    try:
+        with atomic_path(path) as tmp:
+            fig.savefig(tmp, dpi=dpi, format=path.suffix.lstrip(".") or None)
+    finally:
+        plt = sys.modules.get("matplotlib.pyplot")
+        if plt is not None:
+            plt.close(fig)
+    return path
+
+
+def read_mesh(path: str | os.PathLike, *, what: str, made_by: str) -> Any:
+    """The :mod:`meshio` mesh in ``path``, a ``.vtu`` that ``made_by`` (a command) writes.
+
+    Raises :class:`~regtrack.errors.InputFileError` naming ``what`` the file is when it is
+    missing or unreadable (meshio raises many exception types).
+    """
+    import meshio
+
+    from regtrack.errors import InputFileError
+
+    path = Path(path)
+    if not path.is_file():
+        raise InputFileError(f"{path}: {what} file not found (run `{made_by}` first)")
+    try:
+        return meshio.read(path)
+    except Exception as exc:  # meshio raises many types
+        raise InputFileError(f"{path}: cannot read the {what} ({exc}); expected a .vtu from "
+                             f"`{made_by}`") from exc
 
 
 def _json_default(obj: Any) -> Any:

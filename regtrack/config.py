@@ -40,6 +40,15 @@ def closest_key(key: str, valid) -> str | None:
     return m[0] if m else None
 
 
+def unknown_name(where: str, what: str, name: str, valid) -> str:
+    """One line for an unknown ``name``: ``"<where>: unknown <what> '<name>' (did you mean
+    '<closest>'?); use one of <valid>"``."""
+    valid = list(valid)
+    near = closest_key(name, valid)
+    return (f"{where}: unknown {what} '{name}'" + (f" (did you mean '{near}'?)" if near else "")
+            + f"; use one of {', '.join(valid)}")
+
+
 def _check_type(value: Any, tp: Any) -> tuple[bool, Any]:
     """Return (ok, coerced) for the simple types used in config sections."""
     origin = typing.get_origin(tp)
@@ -106,12 +115,16 @@ def parse_assignments(items: list[str], *, where: str = "command line") -> dict[
     return out
 
 
-def parse_section(cls: type[T], table: dict | None, *, where: str) -> tuple[T, list[str], list[str]]:
+def parse_section(cls: type[T], table: dict | None, *, where: str,
+                  base: T | None = None) -> tuple[T, list[str], list[str]]:
     """Build ``cls`` from a TOML table; return ``(obj, problems, warnings)``.
 
     Unknown keys are warnings naming the closest valid key.  Wrong types and values out
     of range are problems naming ``where``, the key, the value and the allowed range.
-    When there are problems, ``obj`` holds the defaults for the offending keys.
+    ``base``: an instance of ``cls`` whose values the table's keys replace (a layer of
+    overrides on an already parsed section; nested sections merge the same way); default:
+    the class defaults.  When there are problems, ``obj`` holds the base values for the
+    offending keys.
     """
     table = dict(table or {})
     problems: list[str] = []
@@ -131,7 +144,8 @@ def parse_section(cls: type[T], table: dict | None, *, where: str) -> tuple[T, l
         md = f.metadata
         doc = f" ({md['doc']})" if md.get("doc") else ""
         if dataclasses.is_dataclass(tp) and isinstance(value, dict):
-            sub, p, w = parse_section(tp, value, where=f"{where[:-1]}.{key}]" if where.endswith("]") else f"{where}.{key}")
+            sub, p, w = parse_section(tp, value, where=f"{where[:-1]}.{key}]" if where.endswith("]") else f"{where}.{key}",
+                                      base=None if base is None else getattr(base, key))
             problems += p
             warnings += w
             kwargs[key] = sub
@@ -146,7 +160,7 @@ def parse_section(cls: type[T], table: dict | None, *, where: str) -> tuple[T, l
             problems.append(f"{where} {key} = {value!r}{unit}: {bad}{doc}")
             continue
         kwargs[key] = cv
-    obj = cls(**kwargs)
+    obj = cls(**kwargs) if base is None else dataclasses.replace(base, **kwargs)  # type: ignore[type-var]
     post = getattr(obj, "problems", None)
     if callable(post) and not problems:
         problems += [f"{where}: {p}" for p in post()]

@@ -447,15 +447,13 @@ def test_failed_simulation_check_is_never_cached(tmp_path: Path, monkeypatch) ->
     import regtrack.mechanics.run_view as run_view
     from regtrack.errors import ResultCheckError
     from regtrack.pipeline import stages
-    from regtrack.pipeline.cache import StageCache
-    from regtrack.pipeline.run import RunContext, effective_configs
+    from regtrack.pipeline.run import open_run
 
     case_dir = build_case(tmp_path / "synth01")
-    from regtrack.case import load_case
+    from regtrack.case import load_case, resolve_configs
 
     case = load_case(case_dir)
-    configs, tables = effective_configs(case, None)
-    ctx = RunContext(case, configs, tables, StageCache(tmp_path / "cache"))
+    ctx = open_run(case, resolve_configs(case), cache_dir=tmp_path / "cache")
     model = _box()
 
     def diverged(case, model, view, *, out_dir, **kw):

@@ -1,5 +1,6 @@
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import pytest
@@ -55,3 +56,28 @@ def test_command_line_assignments_are_typed_and_validated():
         with pytest.raises(ConfigError, match=words) as err:
             config_from_assignments(ContactConfig, bad, where="--contact")
         assert "--contact" in str(err.value)
+
+
+
+@dataclasses.dataclass(frozen=True)
+class _Inner:
+    a: int = param(1, "-", "", ge=0)
+    b: int = param(2, "-", "", ge=0)
+
+
+@dataclasses.dataclass(frozen=True)
+class _Outer:
+    x: float = param(0.5, "-", "", gt=0)
+    y: float = param(0.25, "-", "", gt=0)
+    inner: _Inner = dataclasses.field(default_factory=_Inner)
+
+
+def test_parse_section_layers_a_table_on_a_base():
+    """``base=``: the table's keys replace the base's values, nested sections merge, the
+    other values (and a nested section's other keys) stay the base's."""
+    base, p, _ = parse_section(_Outer, {"x": 2.0, "inner": {"a": 5}}, where="case [s]")
+    assert not p and base == _Outer(2.0, 0.25, _Inner(5, 2))
+    top, p, _ = parse_section(_Outer, {"y": 3.0, "inner": {"b": 7}}, where="--set [s]", base=base)
+    assert not p and top == _Outer(2.0, 3.0, _Inner(5, 7))
+    bad, p, _ = parse_section(_Outer, {"y": -1.0}, where="--set [s]", base=base)
+    assert p == ["--set [s] y = -1.0: must be > 0"] and bad == base

@@ -87,8 +87,8 @@ def test_run_set_overrides_parse_into_sections():
 def test_every_dependency_is_pinned_in_constraints():
     """make installs with constraints.txt: each direct dependency (core and test extra) of
     pyproject.toml must be pinned there (==), so a fresh clone cannot pick up an unpinned
-    new release (session 12: a new MKL build moved the phantom's Newton path and failed
-    CI); and the pin must satisfy pyproject's own lower bound."""
+    new release (a new MKL build moves the phantom's Newton path, see
+    test_phantom_mammograms); and the pin must satisfy pyproject's own lower bound."""
     import re
     import tomllib
     from pathlib import Path

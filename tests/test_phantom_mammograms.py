@@ -286,8 +286,8 @@ def test_bundled_cc_view_regenerates_from_the_seed(truth, tmp_path):
         assert new["simulation"][key] == pytest.approx(old["simulation"][key], abs=1e-6)
     # The Newton path of the frictional compression is chaotic: another build of the
     # numerical libraries (MKL, NumPy, SciPy wheels) changes the last bits of the sparse
-    # factorisation and so the path.  Measured in session 12 (mkl 2026.2, numpy 2.4.6,
-    # scipy 1.17.1 against the set the case was made with): 313 Newton iterations instead
+    # factorisation and so the path.  Measured with mkl 2026.2, numpy 2.4.6, scipy
+    # 1.17.1 against the set the case was made with: 313 Newton iterations instead
     # of 252, the nipple 0.64 / 0.23 px away, the tumour centroid 0.022 mm, the plate force
     # 0.03 %, and an image 7 px (0.7 mm, 0.4 %) larger: the image is cropped to the
     # projected outline, whose extreme lies in the tissue pinched at the chest wall, the

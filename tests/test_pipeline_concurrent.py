@@ -44,7 +44,7 @@ def _die(ctx, mesh, view):
 def ctx(monkeypatch):
     monkeypatch.setattr(stages, "simulate_key", lambda ctx, mesh_key, view: view)
     msgs: list[str] = []
-    c = RunContext(case=None, configs={}, protocol_tables={}, cache=_Cache(), progress=msgs.append)
+    c = RunContext(case=None, configs=None, cache=_Cache(), progress=msgs.append)
     c.msgs = msgs
     return c
 

@@ -5,17 +5,14 @@ The case's mammograms come from a different model on purpose (heterogeneous fat/
 tissue, nu 0.495, no friction, its own 1,803-node mesh; see the case README) and were turned
 in the image plane by a known angle (CC +5 deg, MLO -4 deg) about the nipple, in the sense
 of :mod:`regtrack.registration`.  Issue 7's acceptance: the recovered theta_p within 1 deg
-of that angle and d_T under 3 mm in both views.  Since session 31 the CC is allowed
-1.5 deg: the path-converged simulation (plate travel capped at 2.5 mm per increment, the
-default since then; 1.25 and 5 mm give the same within 0.05 deg) recovers 3.77 deg, 1.23
-off, and 3.72 deg (1.28 off) since session 33 iterates the contact multipliers in each
-step's last increment only (``augmentation = "final"``; phantom regenerated with it).
-The 0.34 deg measured before came from uncapped increments, which land on
-another equilibrium of the pipeline's model (frictionless as well: 5.18 deg
-uncapped, 3.81 capped), while the truth model gives the same state either way.  So
-issue 7's 1 deg is met in MLO and missed in CC by 0.28 deg; the bound keeps 0.22 deg for
-solver-level changes and still fails if the CC drifts further (the notes of issue 5,
-sessions 31 and 33).
+of that angle and d_T under 3 mm in both views; the CC is allowed 1.5 deg here.  The
+path-converged simulation (plate travel capped at 2.5 mm per increment; 1.25 and 5 mm give
+the same within 0.05 deg; contact multipliers iterated in each step's last increment,
+``augmentation = "final"``) recovers 3.72 deg in CC, 1.28 off, while uncapped increments
+land on another equilibrium of the pipeline's model (frictionless as well: 5.18 deg
+uncapped, 3.81 capped) and the truth model gives the same state either way.  So issue 7's
+1 deg is met in MLO and missed in CC by 0.28 deg; the bound keeps 0.22 deg for
+solver-level changes and still fails if the CC drifts further (the notes of issue 5).
 
 The pipeline runs the case as bundled: its case.toml gives the phantom's fat and gland c1
 (0.45 / 1.10 kPa) and the model is homogenised with their volume-weighted mean over the
@@ -25,16 +22,11 @@ not), nu 0.495 vs 0.49, friction 0 vs 0.1, the truth's 1,803-node mesh vs the pi
 1,841 nodes, and the simulated X-ray image (noise, JPEG 2000) that the contours are read
 from.
 
-Measured 2026-11-24 (session 33: 1,841 nodes, phantom regenerated with session 33's
-defaults, fresh cache): CC theta_p = 3.72 deg (1.28 deg off), d_T = 0.64 mm; MLO theta_p = -4.44
-deg (0.44 deg off), d_T = 0.14 mm (session 31, multipliers iterated in every increment:
-CC 3.77 deg, d_T 0.61 mm; MLO the same).  (Session 20, uncapped: CC 4.66 deg, d_T 0.28 mm;
-MLO -4.43 deg, d_T 0.14 mm.  Session 9: CC 4.63 deg, d_T
-0.27 mm; session 8: CC 4.93 deg, d_T
-0.54 mm; session 7: CC 4.67 deg, d_T 0.27 mm: the frictional CC path moves with the
-solver's increments and its float32 factors.)  With the paper's homogeneous default
-(c1 = 0.54 kPa, ``tissue_model = "homogeneous"``) the MLO missed by 2.74 deg (session 5,
-before the wrinkling skin): this case's make-up is stiffer than the default.
+Measured 2026-11-24 (1,841 nodes, fresh cache): CC theta_p = 3.72 deg (1.28 deg off),
+d_T = 0.64 mm; MLO theta_p = -4.44 deg (0.44 deg off), d_T = 0.14 mm.  The frictional CC
+path moves with the solver's increments and its float factors.  With the paper's homogeneous default (c1 = 0.54 kPa,
+``tissue_model = "homogeneous"``) the MLO missed by 2.74 deg: this case's make-up is
+stiffer than the default.
 """
 
 from __future__ import annotations

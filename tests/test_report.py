@@ -6,6 +6,7 @@ import re
 
 import numpy as np
 
+from regtrack import _io
 from regtrack.metrics.metrics import compute_metrics
 from regtrack.registration.align import align
 from regtrack.registration.geometry import rotate_about
@@ -32,7 +33,7 @@ def test_overlay_and_pdf(tmp_path):
     al = align(real, virt)
     m = compute_metrics(al, real, virt, D=0.38)
     assert abs(al.theta_p - 4.0) < 0.1
-    png = F.save_figure(F.overlay_figure(real, virt, al), tmp_path / "overlay.png")
+    png = _io.save_figure(F.overlay_figure(real, virt, al), tmp_path / "overlay.png")
     assert png.read_bytes()[:4] == b"\x89PNG"
     row = {"view": "CC", "BS_Av": m.bs_av, "TS_Av": m.ts_av, "theta_p": m.theta_p, "D": 0.38,
            "d_T": m.d_T, "d_B": m.d_B, "theta_p_b": m.theta_p_b, "theta_p_t": m.theta_p_t}

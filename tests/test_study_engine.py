@@ -199,7 +199,7 @@ def _exit_now():
 
 
 def test_a_broken_pool_hands_a_new_run_back_as_died(tmp_path):
-    """The race a clean-clone CI run hit (session 34): a worker dies while the engine is
+    """The race a clean-clone CI run hit: a worker dies while the engine is
     collecting another run, and the engine submits to the broken pool before it sees the
     death.  The submit must not raise; the run comes back as died (the engine's retry
     path), and ``recover`` then starts a fresh pool."""

@@ -6,6 +6,7 @@
 """
 
 from regtrack.case.annotations import read_tumour_mask, read_tumour_polygons
+from regtrack.case.configs import Configs, resolve_configs
 from regtrack.case.loader import CASE_FILE, find_case_file, load_case
 from regtrack.case.overrides import SECTIONS, config_class
 from regtrack.case.schema import (
@@ -22,6 +23,7 @@ __all__ = [
     "CASE_FILE",
     "SECTIONS",
     "Case",
+    "Configs",
     "LabelMapInfo",
     "MammogramInfo",
     "MriInput",
@@ -33,4 +35,5 @@ __all__ = [
     "load_case",
     "read_tumour_mask",
     "read_tumour_polygons",
+    "resolve_configs",
 ]

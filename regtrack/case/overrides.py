@@ -3,14 +3,12 @@
 Each pipeline stage owns its configuration dataclass (fields made with
 :func:`regtrack.config.param`).  A case may override any of their fields in the matching
 section; the table :data:`SECTIONS` maps the section to ``"module:Class"``.  Classes are
-imported lazily, so ``regtrack validate`` only imports what it needs; a class that does
-not exist (yet) leaves its section checked only as "must be a table" (logged at debug).
+imported lazily, so ``regtrack validate`` only imports what it needs.
 """
 
 from __future__ import annotations
 
 import importlib
-import logging
 from pathlib import Path
 from typing import Any
 
@@ -18,7 +16,6 @@ from regtrack.case._paths import resolve_inside, strip_path
 from regtrack.config import closest_key, parse_section
 from regtrack.views import VIEWS
 
-log = logging.getLogger(__name__)
 
 #: Section of ``case.toml`` -> "module:Class" of the stage config it overrides.
 SECTIONS: dict[str, str] = {
@@ -31,28 +28,11 @@ SECTIONS: dict[str, str] = {
 }
 
 
-def config_class(section: str) -> type | None:
-    """The config dataclass of ``section``, or None when its module/class is absent.
-
-    Raises :class:`KeyError` for a section not in :data:`SECTIONS`.  Errors inside an
-    existing module (syntax errors, failing imports of *other* modules) propagate: they are
-    bugs, not a missing stage.
-    """
-    target = SECTIONS[section]
-    modname, clsname = target.split(":")
-    try:
-        mod = importlib.import_module(modname)
-    except ModuleNotFoundError as exc:
-        if exc.name and (modname == exc.name or modname.startswith(exc.name + ".")):
-            log.debug("[%s]: %s not available yet; checking the section as a table only",
-                      section, modname)
-            return None
-        raise
-    cls = getattr(mod, clsname, None)
-    if cls is None:
-        log.debug("[%s]: %s has no %s yet; checking the section as a table only",
-                  section, modname, clsname)
-    return cls
+def config_class(section: str) -> type:
+    """The config dataclass of ``section``; :class:`KeyError` for a section not in
+    :data:`SECTIONS`."""
+    modname, clsname = SECTIONS[section].split(":")
+    return getattr(importlib.import_module(modname), clsname)
 
 
 def parse_overrides(doc: dict, *, where: str) -> tuple[dict[str, tuple[dict, Any]], list[str],
@@ -92,11 +72,7 @@ def parse_overrides(doc: dict, *, where: str) -> tuple[dict[str, tuple[dict, Any
         if not isinstance(table, dict):
             problems.append(f"{where} {section} = {table!r}: expected a table [{section}]")
             continue
-        cls = config_class(section)
-        if cls is None:
-            out[section] = (table, None)
-            continue
-        obj, p, w = parse_section(cls, table, where=at)
+        obj, p, w = parse_section(config_class(section), table, where=at)
         problems += p
         warnings += w
         out[section] = (table, obj)

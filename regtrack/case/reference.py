@@ -87,10 +87,6 @@ def format_reference() -> str:
         done.add(target)
         cls = config_class(section)
         name = "protocol.CC] / [protocol.MLO" if section.startswith("protocol.") else section
-        if cls is None:
-            lines += [f"#### `[{name}]`", "", f"(`{target}` is not available in this "
-                      "version; the section is accepted as a table and not checked.)", ""]
-            continue
         lines.append(f"Overrides `{target.replace(':', '.')}`.")
         lines.append("")
         lines += section_table(cls, name)

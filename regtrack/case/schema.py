@@ -241,15 +241,12 @@ class Case:
         """The config dataclass of ``section`` with this case's overrides applied.
 
         Sections absent from ``case.toml`` give the class defaults.  Raises
-        :class:`LookupError` for an unknown section or one whose class does not exist.
+        :class:`KeyError` for an unknown section.
         """
         from regtrack.case.overrides import config_class
 
         ov = self.overrides.get(section)
         if ov is not None and ov.config is not None:
             return ov.config
-        cls = config_class(section)
-        if cls is None:
-            raise LookupError(f"no config class available for section [{section}]")
-        return cls()
+        return config_class(section)()
 

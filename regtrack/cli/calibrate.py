@@ -72,7 +72,7 @@ def run(args: argparse.Namespace) -> int:
                     cache_dir=cache, scheduler=args.scheduler, workers=args.workers,
                     progress=not args.no_progress)
     _io.write_json(out / "calibration.json", to_json(res))
-    plots.save_figure(plots.calibration_figure(res), out / "calibration.png")
+    _io.save_figure(plots.calibration_figure(res), out / "calibration.png")
     opt = res.optimum
     log.info("optimum for %s: %s  S = %.2f %%  D = %s  (%s)", res.case_id,
              ", ".join(f"{k} = {v:g}" for k, v in opt.params.items()), opt.score,

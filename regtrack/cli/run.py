@@ -12,7 +12,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("case", help="case folder (holding case.toml) or the case.toml itself")
     p.add_argument("--views", default=None, help="comma-separated views, e.g. cc,mlo (default: all in the case)")
     p.add_argument("--out", default=None, help="output folder (default: reports/<case id>)")
-    p.add_argument("--cache", default=".regtrack-cache",
+    p.add_argument("--cache", default=None,
                    help="stage cache folder; finished stages are re-used (default: .regtrack-cache)")
     p.add_argument("--no-report", action="store_true", help="metrics only, no figures or PDF")
     p.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE",

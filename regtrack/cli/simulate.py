@@ -1,6 +1,6 @@
 """``regtrack simulate``: run load steps on a model file, or a mammography view of a case.
 
-File level (DESIGN.md contract)::
+File level (the contract of docs/design.md)::
 
     regtrack simulate --model M.vtu --config C.toml --out R.vtu
 

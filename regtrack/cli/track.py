@@ -39,7 +39,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--mlo-contour", metavar="JSON", help="the same for a contour on the MLO")
     p.add_argument("--views", default=None, help="comma-separated views (default: all in the case)")
     p.add_argument("--out", default=None, help="output folder (default: reports/<case id>/track)")
-    p.add_argument("--cache", default=".regtrack-cache",
+    p.add_argument("--cache", default=None,
                    help="stage cache of `regtrack run` (default: .regtrack-cache)")
     p.add_argument("--no-simulate", action="store_true",
                    help="fail instead of running a mesh/simulation missing from the cache")

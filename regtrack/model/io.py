@@ -1,4 +1,4 @@
-"""Model file contract (DESIGN.md): a meshio-readable ``.vtu`` plus a JSON sidecar.
+"""Model file contract (docs/design.md): a meshio-readable ``.vtu`` plus a JSON sidecar.
 
 * tetrahedra carry cell data ``region`` (1 tissue, 2 tumour), ``tumour_id`` and
   ``tissue_label``; triangles carry ``region`` 3 (skin membrane);
@@ -53,15 +53,8 @@ def load_model(path: str | Path) -> BreastModel:
     Without a sidecar, the nipple is taken as the most anterior (+x) node and the frame as
     the identity, with a warning in ``meta``.
     """
-    import meshio
-
     path = Path(path)
-    if not path.is_file():
-        raise InputFileError(f"{path}: model file not found (run `regtrack mesh CASE` first)")
-    try:
-        mesh = meshio.read(path)
-    except Exception as exc:  # meshio raises many types
-        raise InputFileError(f"{path}: cannot read mesh ({exc}); expected a .vtu from `regtrack mesh`") from exc
+    mesh = _io.read_mesh(path, what="model", made_by="regtrack mesh CASE")
     tets = tris = None
     reg_t = tid = tl = None
     for i, block in enumerate(mesh.cells):

@@ -54,9 +54,7 @@ def save_pictures(model: BreastModel, stem: str | Path) -> list[Path]:
     fig.suptitle(f"{model.n_nodes} nodes, {model.n_tets} tets; grey tissue, red tumour, "
                  "green skin, blue fixed, x nipple")
     out = [stem.parent / f"{stem.name}_sections.png", stem.parent / f"{stem.name}_3d.png"]
-    with _io.atomic_path(out[0]) as tmp:
-        fig.savefig(tmp, dpi=80)
-    plt.close(fig)
+    _io.save_figure(fig, out[0], dpi=80)
     fig = plt.figure(figsize=(7, 7))
     ax = fig.add_subplot(projection="3d")
     ax.plot_trisurf(model.points[:, 0], model.points[:, 1], model.points[:, 2], triangles=model.skin,
@@ -68,7 +66,5 @@ def save_pictures(model: BreastModel, stem: str | Path) -> list[Path]:
     ax.set_ylabel("y superior (mm)")
     ax.set_zlabel("z right (mm)")
     ax.set_box_aspect(np.ptp(model.points, axis=0))
-    with _io.atomic_path(out[1]) as tmp:
-        fig.savefig(tmp, dpi=80)
-    plt.close(fig)
+    _io.save_figure(fig, out[1], dpi=80)
     return out

@@ -29,7 +29,8 @@ from regtrack.mechanics.config import SolverOptions
 from regtrack.phantom.dicom_mg import write_mg_dicom
 from regtrack.phantom.mammo_params import MammoTruthParams
 from regtrack.phantom.mammograms import SimulatedMammogram, simulate_mammogram
-from regtrack.phantom.truth_sim import VIEWS, TruthSimulation, simulate_truth
+from regtrack.phantom.truth_sim import TruthSimulation, simulate_truth
+from regtrack.views import VIEWS
 
 log = logging.getLogger(__name__)
 

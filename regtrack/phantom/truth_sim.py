@@ -31,10 +31,9 @@ from regtrack.imaging.volume import LabelVolume
 from regtrack.model.types import TUMOUR, BreastModel
 from regtrack.phantom.make import FAT_LABELS, GLAND_LABELS, TRANSITION
 from regtrack.phantom.mammo_params import MammoTruthParams
+from regtrack.views import VIEWS
 
 log = logging.getLogger(__name__)
-
-VIEWS = ("CC", "MLO")
 
 
 @dataclass

@@ -2,9 +2,9 @@
 
 A stage's *key* is the SHA-256 of everything it depends on: the content of its input
 files, the configuration sections it reads, the keys of the stages before it, the
-regtrack version and a digest of the package's Python sources (:func:`code_digest`:
-during development a solver change does not bump the version, and a cached simulation
-of the old code was silently re-used; session 7).  Change one registration setting and
+regtrack version and a digest of the package's Python sources (:func:`code_digest`: a
+solver change during development does not bump the version, and a cached simulation of
+the old code must not be re-used).  Change one registration setting and
 only registration and later stages get new keys; the mesh and the simulations are found
 in the cache.
 
@@ -34,6 +34,8 @@ from regtrack import __version__, _io
 log = logging.getLogger(__name__)
 
 MARKER = "_complete.json"
+#: The stage cache of ``regtrack run`` and ``regtrack track`` when none is given.
+DEFAULT_CACHE = Path(".regtrack-cache")
 
 
 def file_digest(path: str | os.PathLike, pattern: str = "*") -> str:
@@ -78,6 +80,10 @@ class StageCache:
 
     def folder(self, stage: str, key: str) -> Path:
         return self.root / stage / key
+
+    def has(self, stage: str, key: str) -> bool:
+        """Whether ``stage`` with ``key`` is finished (not counted as a hit or miss)."""
+        return (self.folder(stage, key) / MARKER).is_file()
 
     def lookup(self, stage: str, key: str) -> Path | None:
         """The finished folder of ``stage`` with ``key``, or None (counted as hit/miss)."""

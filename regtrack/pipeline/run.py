@@ -24,12 +24,13 @@ from typing import Any
 import numpy as np
 
 from regtrack import __version__, _io
-from regtrack.config import parse_section, to_table
+from regtrack.case.configs import Configs
 from regtrack.errors import CaseError, RegtrackError
 from regtrack.pipeline import stages
-from regtrack.pipeline.cache import StageCache, file_digest, fingerprint
+from regtrack.pipeline.cache import DEFAULT_CACHE, StageCache, file_digest, fingerprint
 from regtrack.privacy import (IDENTIFYING_KEYWORDS, Identifiers, identifiers_of_case_folder,
                               pseudonymous_id, scrub_logs)
+from regtrack.views import VIEWS
 
 log = logging.getLogger(__name__)
 
@@ -38,11 +39,10 @@ Progress = Callable[[str], None]
 
 @dataclass
 class RunContext:
-    """Everything a stage needs: the case, the effective configs, the cache."""
+    """Everything a stage needs: the case, its resolved configs, the cache."""
 
     case: Any
-    configs: dict[str, Any]
-    protocol_tables: dict[str, dict]
+    configs: Configs
     cache: StageCache
     timings: dict[str, float] = field(default_factory=dict)
     progress: Progress | None = None
@@ -58,42 +58,6 @@ class RunContext:
     def clean(self, obj: Any) -> Any:
         """``obj`` with patient identifiers and the case folder's path scrubbed."""
         return self.ids.scrub_obj(obj) if self.ids else obj
-
-
-def effective_configs(case: Any, overrides: dict | None) -> tuple[dict[str, Any], dict[str, dict]]:
-    """Config dataclass of every stage section: defaults < case.toml < ``overrides``.
-
-    ``overrides`` uses the case.toml layout: ``{"mechanics": {"tissue_c1_kpa": 1.0},
-    "protocol": {"CC": {"target_D": 0.38}}}``.  Problems raise :class:`CaseError`.
-    """
-    from regtrack.case.overrides import config_class
-
-    overrides = dict(overrides or {})
-    configs: dict[str, Any] = {}
-    problems: list[str] = []
-    for section in ("model", "mechanics", "contact", "registration", "virtual"):
-        cls = config_class(section) if section != "virtual" else _virtual_config_class()
-        if cls is None:
-            continue
-        table = {**case.override_table(section), **overrides.get(section, {})} if section != "virtual" \
-            else dict(overrides.get(section, {}))
-        obj, p, _w = parse_section(cls, table, where=f"{case.toml_path} [{section}]")
-        problems += p
-        configs[section] = obj
-    protocol_tables: dict[str, dict] = {}
-    case_proto = case.override_table("protocol")
-    for view in ("CC", "MLO"):
-        protocol_tables[view] = {**dict(case_proto.get(view, {})),
-                                 **dict(overrides.get("protocol", {}).get(view, {}))}
-    if problems:
-        raise CaseError(problems)
-    return configs, protocol_tables
-
-
-def _virtual_config_class():
-    from regtrack.virtual.config import VirtualConfig
-
-    return VirtualConfig
 
 
 def run_case(case_dir: str | Path, *, overrides: dict | None = None,
@@ -112,7 +76,7 @@ def run_case(case_dir: str | Path, *, overrides: dict | None = None,
     views : sequence of {"CC", "MLO"}, optional
         Default: every view the case has.
     cache_dir : path, optional
-        Stage cache (default ``.regtrack-cache`` in the working folder).
+        Stage cache (default :data:`~regtrack.pipeline.cache.DEFAULT_CACHE`).
     out_dir : path, optional
         Where metrics, figures and the PDF go; nothing is written there when None.
     progress : callable, optional
@@ -151,49 +115,23 @@ def concurrent_default() -> bool:
 
 def _run_case(case_dir, found: Identifiers, ids: Identifiers, *, overrides, views, cache_dir,
               out_dir, progress, report, keep_identifiers, t_start, concurrent) -> list[dict]:
-    from regtrack.case import load_case
+    from regtrack.case import load_case, resolve_configs
 
     case = load_case(case_dir)
-    all_views = tuple(case.views)
-    if not all_views:
+    views = select_views(case, views)
+    if not case.views:
         # no mammograms: simulate and project (virtual mammograms only), say so
-        views = tuple(v.upper() for v in (views or ("CC", "MLO")))
         log.warning("%s: the case has no [views.*] (no real mammograms): running mesh, "
                     "simulation and virtual mammograms only; registration and metrics need "
                     "[views.CC]/[views.MLO] with a mammogram", case.toml_path)
         if progress is not None:
             progress("no real mammograms in this case: registration and metrics are skipped")
-    else:
-        views = tuple(v.upper() for v in (views or all_views))
-        missing = [v for v in views if v not in case.views]
-        if missing:
-            raise CaseError(f"{case.toml_path}: view(s) {', '.join(missing)} requested but the "
-                            f"case has {', '.join(all_views)}; add [views.{missing[0]}] or "
-                            "choose --views from those")
-    unknown = [v for v in views if v not in ("CC", "MLO")]
-    if unknown:
-        raise CaseError(f"--views: unknown view {unknown[0]!r}; use CC and/or MLO")
-    configs, protocol_tables = effective_configs(case, overrides)
-    cache = StageCache(Path(cache_dir) if cache_dir else Path(".regtrack-cache"))
     if not keep_identifiers:
         case = dataclasses.replace(case, id=pseudonymous_id(case.id, found),
                                    title=found.scrub(case.title))
-    ctx = RunContext(case, configs, protocol_tables, cache, progress=progress, ids=ids)
-    # the real mammograms first: a bad DICOM fails in seconds, before any stage is
-    # computed or cached
-    reals = {view: stages.real_stage(ctx, view) for view in views if view in case.views}
-    mesh_out = stages.mesh_stage(ctx)
-    failed = stages.simulate_concurrently(ctx, mesh_out, views) if concurrent else {}
-    results = []
-    for view in views:
-        if view in failed:
-            raise failed[view]
-        sim = stages.simulate_stage(ctx, mesh_out, view)
-        virtual = stages.virtual_stage(ctx, mesh_out, sim, view)
-        if view in reals:
-            results.append(stages.align_stage(ctx, mesh_out, sim, virtual, reals[view], view))
-        else:
-            results.append(stages.virtual_only(ctx, sim, virtual, view))
+    ctx = open_run(case, resolve_configs(case, overrides), cache_dir=cache_dir,
+                   progress=progress, ids=ids)
+    mesh_out, results = run_stages(ctx, views, concurrent=concurrent)
     rows = [r.row for r in results]
     ctx.timings["total"] = time.perf_counter() - t_start
     if out_dir is not None:
@@ -210,8 +148,74 @@ def _run_case(case_dir, found: Identifiers, ids: Identifiers, *, overrides, view
         if report:
             stages.report_stage(ctx, mesh_out, results, out, prov)
     log.info("case %s done in %.1f s (cache: %d hits, %d misses)", case.id,
-             ctx.timings["total"], cache.hits, cache.misses)
+             ctx.timings["total"], ctx.cache.hits, ctx.cache.misses)
     return rows
+
+
+def select_views(case: Any, views: tuple[str, ...] | list[str] | None = None) -> tuple[str, ...]:
+    """The views to run, upper-cased: ``views``, or every view of the case (both when the
+    case has no mammogram: the virtual-only run).
+
+    Raises :class:`CaseError` for a name outside :data:`regtrack.views.VIEWS`, or a view
+    the case has no ``[views.<V>]`` for (when it has any).
+    """
+    names = tuple(str(v).upper() for v in (views or tuple(case.views) or VIEWS))
+    unknown = [v for v in names if v not in VIEWS]
+    if unknown:
+        raise CaseError(f"--views: unknown view {unknown[0]!r}; use "
+                        f"{' and/or '.join(VIEWS)}")
+    missing = [v for v in names if case.views and v not in case.views]
+    if missing:
+        raise CaseError(f"{case.toml_path}: view(s) {', '.join(missing)} requested but the "
+                        f"case has {', '.join(case.views)}; add [views.{missing[0]}] or "
+                        "choose --views from those")
+    return names
+
+
+def open_run(case: Any, configs: Configs, *, cache_dir: str | Path | None = None,
+             progress: Progress | None = None, ids: Identifiers | None = None) -> RunContext:
+    """The context every stage of a run of ``case`` reads: its ``configs``
+    (:func:`regtrack.case.resolve_configs`) and the stage cache (``cache_dir``, default
+    :data:`~regtrack.pipeline.cache.DEFAULT_CACHE`).
+
+    The entry point of ``regtrack run`` (:func:`run_case`) and ``regtrack track``
+    (:func:`regtrack.tracking.session.open_case`); ``ids`` are the identifiers to keep out
+    of outputs (none by default).
+    """
+    cache = StageCache(Path(cache_dir) if cache_dir else DEFAULT_CACHE)
+    return RunContext(case, configs, cache, progress=progress,
+                      ids=ids if ids is not None else Identifiers())
+
+
+def missing_stages(ctx: RunContext, views: tuple[str, ...] | list[str]) -> list[str]:
+    """Names of the expensive stages (``mesh``, ``simulate_<view>``) not in the cache yet."""
+    mk = stages.mesh_key(ctx)
+    out = [] if ctx.cache.has("mesh", mk) else ["mesh"]
+    out += [f"simulate_{v}" for v in views
+            if not ctx.cache.has("simulate", stages.simulate_key(ctx, mk, v))]
+    return out
+
+
+def run_stages(ctx: RunContext, views: tuple[str, ...], *, concurrent: bool
+               ) -> tuple[stages.MeshOutput, list[stages.ViewOutcome]]:
+    """Mesh, then per view simulate, virtual mammogram and (with a real mammogram) the
+    alignment and metrics; the real mammograms are read first, so that a bad DICOM fails
+    in seconds, before any stage is computed or cached.  ``concurrent``: simulate the
+    uncached views at the same time (:func:`stages.simulate_concurrently`)."""
+    reals = {view: stages.real_stage(ctx, view) for view in views if view in ctx.case.views}
+    mesh_out = stages.mesh_stage(ctx)
+    failed = stages.simulate_concurrently(ctx, mesh_out, views) if concurrent else {}
+    results = []
+    for view in views:
+        if view in failed:
+            raise failed[view]
+        sim = stages.simulate_stage(ctx, mesh_out, view)
+        virtual = stages.virtual_stage(ctx, mesh_out, sim, view)
+        if view in reals:
+            results.append(stages.align_stage(ctx, mesh_out, sim, virtual, reals[view], view))
+        else:
+            results.append(stages.virtual_only(ctx, sim, virtual, view))
+    return mesh_out, results
 
 
 def _remove_stale_parts(out: Path) -> None:
@@ -251,8 +255,9 @@ def provenance(ctx: RunContext, mesh_out, results) -> dict:
             pass
     return {
         "case_id": ctx.case.id,
-        "config": {k: to_table(v) for k, v in ctx.configs.items()},
-        "protocol_overrides": ctx.protocol_tables,
+        "config": ctx.configs.to_tables(),
+        "protocol_overrides": ctx.configs.protocol_tables,
+        "overrides": ctx.configs.overrides,
         "stage_keys": {"mesh": mesh_out.key, **{f"simulate_{r.view}": r.sim_key for r in results}},
         "cache": {"hits": ctx.cache.hits, "misses": ctx.cache.misses},
         "timings_s": ctx.timings,
@@ -261,4 +266,5 @@ def provenance(ctx: RunContext, mesh_out, results) -> dict:
     }
 
 
-__all__ = ["run_case", "effective_configs", "RegtrackError", "fingerprint", "file_digest"]
+__all__ = ["run_case", "open_run", "run_stages", "select_views", "missing_stages",
+           "RegtrackError", "fingerprint", "file_digest"]

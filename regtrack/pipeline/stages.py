@@ -76,7 +76,7 @@ def mesh_key(ctx) -> str:
     case = ctx.case
     mri = case.mri
     return fingerprint("mesh", file_digest(mri.labels), to_table(mri.scheme), mri.side,
-                       mri.nipple_lps_mm, to_table(ctx.configs["model"]))
+                       mri.nipple_lps_mm, to_table(ctx.configs.model))
 
 
 def mesh_stage(ctx) -> MeshOutput:
@@ -89,17 +89,18 @@ def mesh_stage(ctx) -> MeshOutput:
     if hit is None:
         from regtrack.imaging.readers import read_label_map
         from regtrack.model.build import build_model
+        from regtrack.model.pictures import save_pictures
 
         ctx.say("mesh: building the patient model from the label map")
         mri = ctx.case.mri
         labels = read_label_map(mri.labels)
         nipple = None if mri.nipple_lps_mm is None else np.asarray(mri.nipple_lps_mm, float)
-        model = build_model(labels, scheme=mri.scheme, config=ctx.configs["model"], side=mri.side,
+        model = build_model(labels, scheme=mri.scheme, config=ctx.configs.model, side=mri.side,
                             nipple_lps=nipple, progress=lambda m: ctx.say(f"mesh: {m}"))
         model.meta = ctx.clean(model.meta)  # input paths may name the patient
         with ctx.cache.produce("mesh", key, info={"nodes": model.n_nodes, "tets": model.n_tets}) as d:
             save_model(model, d / "model.vtu")
-            _model_pictures(model, d)
+            save_pictures(model, d / "model")  # a stem: model_sections.png, model_3d.png
         hit = ctx.cache.folder("mesh", key)
     else:
         ctx.say("mesh: found in the cache")
@@ -108,32 +109,17 @@ def mesh_stage(ctx) -> MeshOutput:
     return MeshOutput(key, hit, model)
 
 
-def _model_pictures(model, folder: Path) -> None:
-    try:
-        from regtrack.model import pictures
-    except ImportError:  # pictures module optional
-        return
-    pictures.save_pictures(model, folder / "model")  # a stem: model_sections.png, model_3d.png
-
-
 # -- simulate -----------------------------------------------------------------------------
-def _protocol(ctx, view: str):
-    from regtrack.mechanics.protocol import protocol_for_view
-
-    return protocol_for_view(view, ctx.protocol_tables.get(view) or None,
-                             where=str(ctx.case.toml_path), base_dir=ctx.case.root)
-
-
 def simulate_key(ctx, mesh_key_: str, view: str) -> str:
     """Cache key of the ``view`` simulation: the mesh key, mechanics, contact and protocol."""
-    return fingerprint("simulate", mesh_key_, view, to_table(ctx.configs["mechanics"]),
-                       to_table(ctx.configs["contact"]), _protocol(ctx, view).to_dict())
+    return fingerprint("simulate", mesh_key_, view, to_table(ctx.configs.mechanics),
+                       to_table(ctx.configs.contact), ctx.configs.protocols[view].to_dict())
 
 
 def simulate_stage(ctx, mesh: MeshOutput, view: str) -> SimOutput:
     """Simulate the mammography of ``view`` on the model (or find it in the cache)."""
-    protocol = _protocol(ctx, view)
-    mech, contact = ctx.configs["mechanics"], ctx.configs["contact"]
+    protocol = ctx.configs.protocols[view]
+    mech, contact = ctx.configs.mechanics, ctx.configs.contact
     key = simulate_key(ctx, mesh.key, view)
     hit = ctx.cache.lookup("simulate", key)
     t0 = time.perf_counter()
@@ -172,9 +158,9 @@ def simulate_concurrently(ctx, mesh: MeshOutput, views, *, worker=None) -> dict[
     only partly busy (its GMRES solves on a stored factorisation are single-threaded and
     memory-bound, 36 % of the CC compression).  Measured on the 9,496-node benchmark
     hemisphere (``pipelines/bench_protocols.py`` with and without ``--concurrent``, back
-    to back, session 34, 2 cores): CC + MLO one after the other 180.2 s, at the same time
-    140.0 s (another pair: 146.9 and 128.6 s), the same Newton paths and forces (PARDISO
-    in strict CNR mode, :mod:`regtrack.mechanics.linsolve`).
+    to back, 2 cores): CC + MLO one after the other 180.2 s, at the same time 140.0 s
+    (another pair: 146.9 and 128.6 s), the same Newton paths and forces (PARDISO in strict
+    CNR mode, :mod:`regtrack.mechanics.linsolve`).
     """
     import concurrent.futures as cf
     import dataclasses
@@ -232,7 +218,7 @@ def _checked_result(ctx, folder: Path, mesh: MeshOutput, view: str) -> tuple[dic
     except InputFileError as err:
         raise ResultCheckError(f"simulate {view}: {err}") from err
     check_simulation(f"simulate {view}", doc, positions, mesh.model,
-                     max_penetration_mm=ctx.configs["contact"].max_penetration_mm)
+                     max_penetration_mm=ctx.configs.contact.max_penetration_mm)
     return doc, positions
 
 
@@ -244,7 +230,7 @@ def virtual_stage(ctx, mesh: MeshOutput, sim: SimOutput, view: str):
     t0 = time.perf_counter()
     ctx.say(f"virtual {view}: projecting the compressed model")
     frame = default_frame(sim.positions, view, mesh.model.frame.side, angle_deg=sim.angle_deg)
-    vm = project_model(mesh.model, sim.positions, view=view, config=ctx.configs.get("virtual"),
+    vm = project_model(mesh.model, sim.positions, view=view, config=ctx.configs.virtual,
                        frame=frame, source_name=f"virtual:{ctx.case.id}:{view}")
     _timed(ctx, f"virtual_{view}", t0)
     return vm
@@ -276,7 +262,7 @@ def align_stage(ctx, mesh: MeshOutput, sim: SimOutput, vm, real, view: str) -> V
 
     t0 = time.perf_counter()
     ctx.say(f"register {view}: golden-section search of the in-plane rotation")
-    al = align(real, vm.view, config=ctx.configs.get("registration"))
+    al = align(real, vm.view, config=ctx.configs.registration)
     D = sim.summary.get("D")
     m = compute_metrics(al, real, vm.view, D=D)
     md = m.to_dict()
@@ -331,10 +317,10 @@ def report_stage(ctx, mesh: MeshOutput, results: list[ViewOutcome], out: Path, p
         if r.real is not None:
             _io.write_json(vdir / "real.json", ctx.clean(r.real.to_dict()))
             _io.write_json(vdir / "alignment.json", ctx.clean(r.alignment.to_dict()))
-            F.save_figure(F.overlay_figure(r.real, r.virtual.view, r.alignment), vdir / "overlay.png")
-            F.save_figure(F.images_figure(r.real, r.virtual.view), vdir / "images.png")
+            _io.save_figure(F.overlay_figure(r.real, r.virtual.view, r.alignment), vdir / "overlay.png")
+            _io.save_figure(F.images_figure(r.real, r.virtual.view), vdir / "images.png")
         else:
-            F.save_figure(F.virtual_figure(r.virtual.view), vdir / "virtual.png")
+            _io.save_figure(F.virtual_figure(r.virtual.view), vdir / "virtual.png")
         for p in r.sim.pictures:
             _io.write_bytes(vdir / f"compression{p.suffix}", p.read_bytes())
         steps = [{"step": s.get("name"), "D": s.get("D"), "force_N": (s.get("contact") or {})
@@ -356,7 +342,7 @@ def report_stage(ctx, mesh: MeshOutput, results: list[ViewOutcome], out: Path, p
     pics = []
     for p in mesh.pictures:
         pics.append(_io.write_bytes(out / "model" / p.name, p.read_bytes()))
-    tracking = _tracking_section(mesh, results, out) if all(r.real is not None for r in results) else None
+    tracking = _tracking_section(ctx, mesh, results, out) if all(r.real is not None for r in results) else None
     rep = CaseReport(ctx.case.id, ctx.case.title, views, ms, pics, prov["config"], prov,
                      extra_pages=[tracking] if tracking else [])
     path = write_pdf(rep, out / "report.pdf")
@@ -364,18 +350,18 @@ def report_stage(ctx, mesh: MeshOutput, results: list[ViewOutcome], out: Path, p
     return path
 
 
-def _tracking_section(mesh: MeshOutput, results: list[ViewOutcome], out: Path):
+def _tracking_section(ctx, mesh: MeshOutput, results: list[ViewOutcome], out: Path):
     """Where the MRI tumour lands in each real mammogram (``tracking.json`` + a PDF page)."""
     from regtrack.tracking.figures import draw_tracking_page, report_section
-    from regtrack.tracking.session import viewmap_from_outcome
     from regtrack.tracking.mri_to_view import track_tumour
     from regtrack.tracking.track import TrackResult
+    from regtrack.tracking.viewmap import viewmap_from_outcome
 
     if int(mesh.model.tumour_id.max(initial=0)) < 1:
         return None
     vms = {r.view: viewmap_from_outcome(r) for r in results}
     res = TrackResult(results[0].row["case_id"], views={v: {} for v in vms},
-                      mri=track_tumour(mesh.model, vms))
+                      mri=track_tumour(mesh.model, vms, config=ctx.configs.tracking))
     _io.write_json(out / "tracking.json", report_section(res))
     reals = {r.view: r.real for r in results}
     return lambda fig: draw_tracking_page(fig, res, reals)

@@ -46,8 +46,7 @@ def save_registration_png(real: MammogramView, alignment: Alignment, path: str |
         ax.set_title(title or f"{alignment.view}: theta_p = {alignment.theta_p:.2f} deg")
         ax.legend(loc="lower left", fontsize=7)
         fig.tight_layout()
-        with _io.atomic_path(path) as tmp:
-            fig.savefig(tmp, dpi=dpi, format="png")
-    finally:
+    except BaseException:
         plt.close(fig)
-    return Path(path)
+        raise
+    return _io.save_figure(fig, path, dpi=dpi)

@@ -8,11 +8,8 @@ the nipple only) and ``theta = theta_p`` ("after"), as in Figure 9 of Lapuebla-F
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import numpy as np
 
-from regtrack import _io
 from regtrack.registration.align import Alignment
 from regtrack.registration.geometry import polygon
 from regtrack.views import MammogramView
@@ -125,12 +122,3 @@ def virtual_figure(virtual: MammogramView):
     return fig
 
 
-def save_figure(fig, path: str | Path, *, dpi: int = 130) -> Path:
-    """Save ``fig`` atomically (format from the suffix) and close it."""
-    plt = _plt()
-    try:
-        with _io.atomic_path(path) as tmp:
-            fig.savefig(tmp, dpi=dpi, format=Path(path).suffix.lstrip("."))
-    finally:
-        plt.close(fig)
-    return Path(path)

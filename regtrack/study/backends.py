@@ -82,8 +82,8 @@ class LocalBackend:
         """Start ``spec``.  A pool that broke after the engine last looked (a worker died
         while another run's result was being collected) refuses new work; the run then
         gets a future that already failed with that error, so the engine treats it like
-        the other runs in flight of the broken pool (suspects, not charged; seen as a race
-        in a clean-clone CI run, session 34)."""
+        the other runs in flight of the broken pool (suspects, not charged; a race seen in
+        a clean-clone CI run)."""
         try:
             return self._ensure().submit(execute, runner_ref, spec)
         except cf.process.BrokenProcessPool as exc:

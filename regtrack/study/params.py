@@ -16,20 +16,19 @@ mesh_nodes    \\-        ``[model] target_nodes``
 
 Any other override key can be varied by its dotted name, ``"<section>.<key>"``, e.g.
 ``"registration.bracket_deg"`` or ``"protocol.MLO.target_D"``, where ``<section>`` is one
-of :data:`SECTIONS`.  Values are checked against the owning stage's config class when it
-is available (:mod:`regtrack.case.overrides`).
+of :data:`SECTIONS`.  Values are checked against the owning stage's config class
+(:mod:`regtrack.case.overrides`).
 """
 
 from __future__ import annotations
 
 import copy
-import logging
 from dataclasses import dataclass
 from typing import Any
 
-from regtrack.config import closest_key, param, parse_section
+from regtrack.case.overrides import config_class, parse_overrides
+from regtrack.config import closest_key, param, parse_section, unknown_name
 
-log = logging.getLogger(__name__)
 
 #: Override sections a study may set or vary.
 SECTIONS = ("model", "mechanics", "contact", "registration", "protocol.CC", "protocol.MLO")
@@ -70,15 +69,6 @@ def split_dotted(name: str) -> tuple[str, str] | None:
     return section, key
 
 
-def _config_class(section: str) -> type | None:
-    try:
-        from regtrack.case.overrides import config_class
-    except ImportError:  # pragma: no cover - depends on the state of the repository
-        log.warning("regtrack.case.overrides unavailable: [%s] values are not range-checked", section)
-        return None
-    return config_class(section)
-
-
 def check_value(name: str, value: Any, *, where: str) -> tuple[Any, list[str], list[str]]:
     """Validate one value of parameter ``name``; return ``(coerced, problems, warnings)``."""
     if name in ALIASES:
@@ -94,47 +84,23 @@ def check_value(name: str, value: Any, *, where: str) -> tuple[Any, list[str], l
     if isinstance(value, (dict, list)):
         return value, [f"{where} {name} = {value!r}: expected a number, string or boolean"], []
     section, key = dotted
-    cls = _config_class(section)
-    if cls is None:
-        return value, [], []
-    obj, problems, warnings = parse_section(cls, {key: value}, where=where)
+    obj, problems, warnings = parse_section(config_class(section), {key: value}, where=where)
     if warnings:  # an unknown key is an error here: the run would silently ignore it
         return value, warnings, []
     return getattr(obj, key), problems, []
 
 
 def check_overrides(table: Any, *, where: str) -> tuple[dict, list[str], list[str]]:
-    """Validate the study's fixed ``[overrides]`` sections; return ``(table, problems, warnings)``."""
+    """Validate the study's fixed ``[overrides]`` sections (the case.toml layout, parsed by
+    :func:`regtrack.case.overrides.parse_overrides`); return ``(table, problems, warnings)``."""
     if table is None:
         return {}, [], []
     if not isinstance(table, dict):
         return {}, [f"{where}: expected a table of override sections ([overrides.mechanics], ...)"], []
-    problems: list[str] = []
-    warnings: list[str] = []
-    flat: dict[str, dict] = {}
-    for top, sub in table.items():
-        if top == "protocol" and isinstance(sub, dict):
-            for view, vsub in sub.items():
-                flat[f"protocol.{view}"] = vsub
-        else:
-            flat[top] = sub
-    for section, sub in flat.items():
-        w = f"{where[:-1]}.{section}]" if where.endswith("]") else f"{where}.{section}"
-        if section not in SECTIONS:
-            near = closest_key(section, SECTIONS)
-            problems.append(f"{where}: unknown section '{section}'"
-                            + (f" (did you mean '{near}'?)" if near else "")
-                            + f"; use one of {', '.join(SECTIONS)}")
-            continue
-        if not isinstance(sub, dict):
-            problems.append(f"{w} = {sub!r}: expected a table of keys")
-            continue
-        cls = _config_class(section)
-        if cls is not None:
-            _, p, wn = parse_section(cls, sub, where=w)
-            problems += p
-            warnings += wn
-    return copy.deepcopy(table), problems, warnings
+    tops = list(dict.fromkeys(s.split(".")[0] for s in SECTIONS))
+    problems = [unknown_name(where, "section", top, tops) for top in table if top not in tops]
+    _, p, warnings = parse_overrides(table, where=where)
+    return copy.deepcopy(table), problems + p, warnings
 
 
 def _set(overrides: dict, section: str, key: str, value: Any) -> None:

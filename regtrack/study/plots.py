@@ -119,17 +119,10 @@ def summary_page(summary: dict) -> Figure:
     return fig
 
 
-def _save_png(fig: Figure, path: Path) -> Path:
-    with _io.atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=130)
-    return path
-
-
-def write_study_figures(result) -> list[Path]:
-    """PNG figures and ``study.pdf`` for a :class:`regtrack.study.run.StudyResult`."""
+def write_study_figures(result, summary: dict) -> list[Path]:
+    """PNG figures and ``study.pdf`` for a :class:`regtrack.study.run.StudyResult`;
+    ``summary`` (:func:`regtrack.study.run.summary`) is the PDF's first page."""
     from matplotlib.backends.backend_pdf import PdfPages
-
-    from regtrack.study.run import summary
 
     st = result.study
     names = list(st.parameters)
@@ -147,11 +140,11 @@ def write_study_figures(result) -> list[Path]:
     written = []
     for name, fig in figures:
         if (name == "d_T" and "d_T" in st.outputs) or (name != "d_T" and "figure8" in st.outputs):
-            written.append(_save_png(fig, st.out_dir / f"{name}.png"))
+            written.append(_io.save_figure(fig, st.out_dir / f"{name}.png"))
     if "pdf" in st.outputs:
         with _io.atomic_path(st.out_dir / "study.pdf") as tmp:
             with PdfPages(tmp) as pdf:
-                pdf.savefig(summary_page(summary(result)))
+                pdf.savefig(summary_page(summary))
                 for _, fig in figures:
                     pdf.savefig(fig)
         written.append(st.out_dir / "study.pdf")
@@ -209,6 +202,3 @@ def calibration_figure(result) -> Figure:
     return fig
 
 
-def save_figure(fig: Figure, path: Path) -> Path:
-    """Write a figure atomically (PNG/PDF by suffix)."""
-    return _save_png(fig, path)

@@ -90,10 +90,11 @@ def write_outputs(result: StudyResult) -> list[Path]:
     if "csv" in st.outputs or "parquet" in st.outputs:
         files += write_table(result.rows, result.columns, st.out_dir,
                              parquet="parquet" in st.outputs)
-    files.append(_io.write_json(st.out_dir / "summary.json", summary(result)))
+    info = summary(result)
+    files.append(_io.write_json(st.out_dir / "summary.json", info))
     if {"figure8", "d_T", "pdf"} & set(st.outputs):
         from regtrack.study import plots
 
-        files += plots.write_study_figures(result)
+        files += plots.write_study_figures(result, info)
     result.files = files
     return files

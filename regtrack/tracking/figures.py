@@ -181,10 +181,9 @@ def write_outputs(result: TrackResult, out_dir: str | Path, *, reals: dict | Non
     reals = reals or {}
     paths = [_io.write_json(out / "tracking.json", {**result.to_dict(),
                                                     "summary": summary_lines(result)})]
-    from regtrack.report.figures import save_figure
 
     for v in result.views:
-        paths.append(save_figure(view_figure(v, result, reals.get(v), truth=truth),
+        paths.append(_io.save_figure(view_figure(v, result, reals.get(v), truth=truth),
                                  out / f"track_{v.lower()}.png"))
     if pdf:
         plt = _plt()

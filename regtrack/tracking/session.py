@@ -21,12 +21,11 @@ from regtrack.errors import TrackingError
 from regtrack.model.types import BreastModel
 from regtrack.tracking.config import TrackingConfig
 from regtrack.tracking.locate import TetLocator
-from regtrack.tracking.uncertainty import Residual
-from regtrack.tracking.viewmap import InPlane, PixelFrame, ViewMap
+from regtrack.tracking.viewmap import ViewMap, viewmap_from_outcome
+from regtrack.views import VIEWS
 
 log = logging.getLogger(__name__)
 
-VIEWS = ("CC", "MLO")
 
 
 @dataclass
@@ -66,39 +65,6 @@ class TrackingSession:
         return self.views[key]
 
 
-def viewmap_from_outcome(outcome) -> ViewMap:
-    """The :class:`ViewMap` of a pipeline :class:`~regtrack.pipeline.stages.ViewOutcome`
-    (simulated positions, virtual plate frame and source, alignment, real view).
-
-    For the case report: ``track_tumour(model, {o.view: viewmap_from_outcome(o) for o in
-    results})`` gives the tumour's predicted position in every real view.
-    """
-    al = outcome.alignment
-    return ViewMap(outcome.view, outcome.sim.positions, outcome.virtual.frame,
-                   InPlane.from_alignment(al), PixelFrame.from_view(outcome.real),
-                   outcome.virtual.source, Residual.from_alignment(al), outcome.real)
-
-
-def _simulate_key(ctx, mesh_key: str, view: str) -> str:
-    """Key of the simulate stage (the pipeline's own :func:`simulate_key`)."""
-    from regtrack.pipeline.stages import simulate_key
-
-    return simulate_key(ctx, mesh_key, view)
-
-
-def missing_stages(ctx, views) -> list[str]:
-    """Names of the expensive stages (mesh, simulate_<view>) not in the cache yet."""
-    from regtrack.pipeline import stages
-    from regtrack.pipeline.cache import MARKER
-
-    mk = stages.mesh_key(ctx)
-    out = [] if (ctx.cache.folder("mesh", mk) / MARKER).is_file() else ["mesh"]
-    for v in views:
-        if not (ctx.cache.folder("simulate", _simulate_key(ctx, mk, v)) / MARKER).is_file():
-            out.append(f"simulate_{v}")
-    return out
-
-
 def open_case(case_dir: str | Path, *, views: tuple[str, ...] | list[str] | None = None,
               cache_dir: str | Path | None = None, overrides: dict | None = None,
               simulate: bool = True, config: TrackingConfig | None = None,
@@ -112,59 +78,48 @@ def open_case(case_dir: str | Path, *, views: tuple[str, ...] | list[str] | None
     views : sequence of {"CC", "MLO"}, optional
         Default: every view of the case.
     cache_dir : path, optional
-        Stage cache (default ``.regtrack-cache``, as ``regtrack run``).
+        Stage cache (default :data:`~regtrack.pipeline.cache.DEFAULT_CACHE`, as ``regtrack run``).
     overrides : dict, optional
         Config overrides in the case.toml layout (as :func:`regtrack.pipeline.run.run_case`).
     simulate : bool
         Run missing mesh/simulation stages (default); False raises TrackingError.
+    config : TrackingConfig, optional
+        Default: ``overrides``' ``[tracking]`` section on the class defaults.
     progress : callable, optional
         Called with one line per stage.
 
     Raises
     ------
+    CaseError
+        An unknown view, or one the case has no mammogram for.
     TrackingError
-        Unknown view, a case without mammograms, or (``simulate=False``) a case whose
+        A case without mammograms, or (``simulate=False``) a case whose
         simulations are not cached.
     """
-    from regtrack.case import load_case
-    from regtrack.pipeline import stages
-    from regtrack.pipeline.cache import StageCache
-    from regtrack.pipeline.run import RunContext, concurrent_default, effective_configs
+    from regtrack.case import load_case, resolve_configs
+    from regtrack.pipeline.run import (concurrent_default, missing_stages, open_run, run_stages,
+                                       select_views)
 
     case = load_case(case_dir)
-    names = tuple(str(v).upper() for v in (views or tuple(case.views)))
-    bad = [v for v in names if v not in VIEWS]
-    if bad:
-        raise TrackingError(f"unknown view {bad[0]!r}: use CC or MLO")
-    missing = [v for v in names if v not in case.views]
-    if missing or not names:
-        raise TrackingError(f"{case.toml_path}: no [views.{(missing or ['CC'])[0]}] in the case "
-                            f"(views: {', '.join(case.views) or 'none'}); add the mammogram to "
-                            "case.toml to track into it")
-    configs, protocol_tables = effective_configs(case, overrides)
-    cache = StageCache(Path(cache_dir) if cache_dir else Path(".regtrack-cache"))
-    ctx = RunContext(case, configs, protocol_tables, cache, progress=progress)
+    names = select_views(case, views)
+    if not case.views:
+        raise TrackingError(f"{case.toml_path}: no [views.CC] or [views.MLO] in the case; add "
+                            "a mammogram to case.toml to track into it")
+    configs = resolve_configs(case, overrides)
+    ctx = open_run(case, configs, cache_dir=cache_dir, progress=progress)
     todo = missing_stages(ctx, names)
     if todo and not simulate:
         raise TrackingError(f"case {case.id} not simulated yet ({', '.join(todo)} not in the cache "
-                            f"{cache.root}): run `regtrack run {case.root}` first, or drop "
+                            f"{ctx.cache.root}): run `regtrack run {case.root}` first, or drop "
                             "--no-simulate to simulate now")
     if todo:
-        ctx.say(f"track: {', '.join(todo)} not in the cache {cache.root}; running them now "
+        ctx.say(f"track: {', '.join(todo)} not in the cache {ctx.cache.root}; running them now "
                 "(this takes minutes; later calls re-use them)")
-    mesh = stages.mesh_stage(ctx)
-    cfg = config or TrackingConfig()
-    session = TrackingSession(case, mesh.model, {}, config=cfg, stage_keys={"mesh": mesh.key},
-                              simulated_now=todo)
-    failed = stages.simulate_concurrently(ctx, mesh, names) if concurrent_default() else {}
-    for v in names:
-        if v in failed:
-            raise failed[v]
-        sim = stages.simulate_stage(ctx, mesh, v)
-        vm = stages.virtual_stage(ctx, mesh, sim, v)
-        real = stages.real_stage(ctx, v)
-        out = stages.align_stage(ctx, mesh, sim, vm, real, v)
-        session.views[v] = viewmap_from_outcome(out)
-        session.outcomes[v] = out
-        session.stage_keys[f"simulate_{v}"] = sim.key
+    mesh, outcomes = run_stages(ctx, names, concurrent=concurrent_default())
+    session = TrackingSession(case, mesh.model, {}, config=config or configs.tracking,
+                              stage_keys={"mesh": mesh.key}, simulated_now=todo)
+    for out in outcomes:
+        session.views[out.view] = viewmap_from_outcome(out)
+        session.outcomes[out.view] = out
+        session.stage_keys[f"simulate_{out.view}"] = out.sim_key
     return session

@@ -19,10 +19,11 @@ from regtrack.tracking.cc_to_mlo import (ContourPrediction, SegmentPrediction, m
                                          track_view_contour, track_view_point)
 from regtrack.tracking.mri_to_view import (MriTrack, track_mri_point, track_points_region,
                                            track_tumour)
+from regtrack.views import VIEWS
 
 log = logging.getLogger(__name__)
 
-OTHER = {"CC": "MLO", "MLO": "CC"}
+OTHER = dict(zip(VIEWS, reversed(VIEWS)))  # the other view of each
 
 
 @dataclass

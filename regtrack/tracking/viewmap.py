@@ -189,3 +189,16 @@ class ViewMap:
         """Lowest and highest deformed node above the lower plate (mm)."""
         h = self.frame.height(self.positions)
         return float(h.min()), float(h.max())
+
+
+def viewmap_from_outcome(outcome) -> ViewMap:
+    """The :class:`ViewMap` of a pipeline :class:`~regtrack.pipeline.stages.ViewOutcome`
+    (simulated positions, virtual plate frame and source, alignment, real view).
+
+    For the case report: ``track_tumour(model, {o.view: viewmap_from_outcome(o) for o in
+    results})`` gives the tumour's predicted position in every real view.
+    """
+    al = outcome.alignment
+    return ViewMap(outcome.view, outcome.sim.positions, outcome.virtual.frame,
+                   InPlane.from_alignment(al), PixelFrame.from_view(outcome.real),
+                   outcome.virtual.source, Residual.from_alignment(al), outcome.real)

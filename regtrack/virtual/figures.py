@@ -58,8 +58,7 @@ def save_overlay_png(vm: VirtualMammogram, path: str | Path, *, title: str = "",
         ax.legend(loc="lower left", fontsize=7)
         ax.set_aspect("equal")
         fig.tight_layout()
-        with _io.atomic_path(path) as tmp:
-            fig.savefig(tmp, dpi=dpi, format="png")
-    finally:
+    except BaseException:
         plt.close(fig)
-    return Path(path)
+        raise
+    return _io.save_figure(fig, path, dpi=dpi)

@@ -1,4 +1,4 @@
-"""Reading simulation results for projection (result file contract of DESIGN.md).
+"""Reading simulation results for projection (result file contract of docs/design.md).
 
 A result is a ``.vtu`` on the model's nodes with point data ``displacement`` (mm, the
 final state) and, per protocol step, ``displacement_<step>``; a JSON sidecar (same stem)
@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
+from regtrack import _io
 from regtrack.errors import InputFileError
 from regtrack.model.types import BreastModel
 
@@ -33,16 +34,8 @@ def read_result_positions(path: str | Path, model: BreastModel, *, step: str | N
         Missing file, missing/ill-shaped displacement array (the message lists the point
         data present), or a node count different from the model's.
     """
-    import meshio
-
     path = Path(path)
-    if not path.is_file():
-        raise InputFileError(f"{path}: result file not found (run `regtrack simulate` first)")
-    try:
-        mesh = meshio.read(path)
-    except Exception as exc:  # meshio raises many types
-        raise InputFileError(f"{path}: cannot read result ({exc}); expected a .vtu from "
-                             "`regtrack simulate`") from exc
+    mesh = _io.read_mesh(path, what="result", made_by="regtrack simulate")
     names = ["displacement"] if step is None else step_array_names(step)
     key = next((n for n in names if n in mesh.point_data), None)
     if key is None:

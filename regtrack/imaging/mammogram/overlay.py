@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from regtrack._io import atomic_path
+from regtrack._io import save_figure
 from regtrack.views import MammogramView
 
 
@@ -53,6 +53,4 @@ def write_overlay(view: MammogramView, path: str | os.PathLike, *, title: str | 
     ax.set_ylabel("y (mm): " + ("medial" if view.view == "CC" else "infero-medial") + " down")
     ax.legend(loc="lower right", fontsize=7)
     fig.tight_layout()
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=dpi)
-    return Path(path)
+    return save_figure(fig, path, dpi=dpi)
