@@ -37,7 +37,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         "studies of the same case to re-use their runs)")
     parser.add_argument("--scheduler", metavar="ADDRESS", help="Dask scheduler address")
     parser.add_argument("--workers", type=int, default=0, help="local workers (0 = machine)")
-    parser.add_argument("--runner", help="runner 'package.module:function' (default: the pipeline)")
+    parser.add_argument("--runner", help="name of a registered runner (default: pipeline; packages add "
+                        "runners through the 'regtrack.study_runners' entry points)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 

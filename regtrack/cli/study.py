@@ -18,7 +18,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="local worker processes (default [study] workers; 0 = machine)")
     parser.add_argument("--out", help="output folder (default [study] out)")
     parser.add_argument("--cache", help="cache folder (default <out>/cache)")
-    parser.add_argument("--runner", help="runner 'package.module:function' (default: the pipeline)")
+    parser.add_argument("--runner", help="name of a registered runner (default: pipeline; packages add "
+                        "runners through the 'regtrack.study_runners' entry points)")
     parser.add_argument("--retry-failed", action="store_true",
                         help="recompute runs whose failure is cached (e.g. after fixing a case)")
     parser.add_argument("--dry-run", action="store_true", help="validate, list the runs, and stop")
