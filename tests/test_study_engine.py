@@ -168,7 +168,10 @@ def test_killed_study_resumes_with_only_missing_runs(tmp_path):
     p.write_text(p.read_text().replace("nu = [0.47]", "nu = [0.45, 0.47]"))  # 12 runs
     results = tmp_path / "s_results" / "cache" / "study-runs"
     env = {**os.environ, "PYTHONPATH": REPO + os.pathsep + os.environ.get("PYTHONPATH", "")}
-    proc = subprocess.Popen([sys.executable, "-m", "regtrack.cli", "-q", "study", str(p),
+    # the CLI in a process of its own, with the test runner "fake" registered first
+    cli = ("import sys, tests._study_fakes; from regtrack.cli import main; "
+           "sys.exit(main(sys.argv[1:]))")
+    proc = subprocess.Popen([sys.executable, "-c", cli, "-q", "study", str(p),
                              "--no-progress"], cwd=REPO, env=env, start_new_session=True,
                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     def finished():  # run records; not the atomic writer's ".<key>.<random>.part.json"
