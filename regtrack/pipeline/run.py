@@ -177,7 +177,7 @@ def _run_case(case_dir, found: Identifiers, ids: Identifiers, *, overrides, view
     cache = StageCache(Path(cache_dir) if cache_dir else Path(".regtrack-cache"))
     if not keep_identifiers:
         case = dataclasses.replace(case, id=pseudonymous_id(case.id, found),
-                                   title=found.scrub(case.title))
+                                   title=found.redact(case.title, "[case] title"))
     ctx = RunContext(case, configs, protocol_tables, cache, progress=progress, ids=ids)
     # the real mammograms first: a bad DICOM fails in seconds, before any stage is
     # computed or cached
