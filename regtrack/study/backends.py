@@ -49,7 +49,11 @@ def default_workers(*, memory_per_run_gb: float = 2.0) -> int:
 
 
 def _init_worker(threads: int) -> None:
-    """Worker initialiser: cap BLAS/numba threads so workers do not oversubscribe cores."""
+    """Worker initialiser: cap BLAS/numba threads so workers do not oversubscribe cores;
+    leave Ctrl-C to the parent and clean up on SIGTERM (:mod:`regtrack._signals`)."""
+    from regtrack._signals import init_worker
+
+    init_worker()
     for var in THREAD_VARS:
         os.environ.setdefault(var, str(threads))
 
@@ -106,9 +110,15 @@ class LocalBackend:
             self._pool.shutdown(wait=False, cancel_futures=True)
             self._pool = None
 
-    def close(self) -> None:
+    def close(self, *, abort: bool = False) -> None:
+        """Shut the pool down; ``abort`` (Ctrl-C, SIGTERM) stops the workers at once."""
         if self._pool is not None:
-            self._pool.shutdown(wait=True, cancel_futures=True)
+            if abort:
+                from regtrack._signals import stop_pool
+
+                stop_pool(self._pool)
+            else:
+                self._pool.shutdown(wait=True, cancel_futures=True)
             self._pool = None
 
 
@@ -155,7 +165,7 @@ class DaskBackend:
     def recover(self) -> None:
         pass
 
-    def close(self) -> None:
+    def close(self, *, abort: bool = False) -> None:
         self.client.close()
 
 

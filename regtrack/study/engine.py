@@ -146,12 +146,13 @@ class Engine:
     def __enter__(self) -> Engine:
         return self
 
-    def __exit__(self, *exc: object) -> None:
-        self.close()
+    def __exit__(self, exc_type: type | None, *exc: object) -> None:
+        self.close(abort=exc_type is not None and issubclass(exc_type, KeyboardInterrupt))
 
-    def close(self) -> None:
+    def close(self, *, abort: bool = False) -> None:
+        """Shut the backend down; ``abort`` (Ctrl-C, SIGTERM) stops the workers at once."""
         if self._backend is not None:
-            self._backend.close()  # type: ignore[attr-defined]
+            self._backend.close(abort=abort)  # type: ignore[attr-defined]
             self._backend = None
 
     def backend(self):
