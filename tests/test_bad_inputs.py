@@ -164,13 +164,60 @@ def _only_mlo_view(root: Path, doc: dict) -> None:
     del doc["views"]["CC"]
 
 
+def _truncate(rel: str, fraction: float) -> Mutation:
+    """Keep the first ``fraction`` of a file (issue 53: a .nii.gz cut at 60-99.5 % was read
+    zero-filled, a 7.3 mL tumour becoming 1.9 mL)."""
+    return _bytes(rel, lambda b: b[: int(len(b) * fraction)])
+
+
+def _labels_uncompressed_truncated(root: Path, doc: dict) -> None:
+    """An uncompressed .nii short of its header's voxel count by 40 bytes."""
+    p = root / "mri" / "labels.nii"
+    write_labels(p, label_data())
+    p.write_bytes(p.read_bytes()[:-40])
+    doc["mri"]["labels"] = "mri/labels.nii"
+
+
+def _labels_regzipped_short(root: Path, doc: dict) -> None:
+    """A complete gzip stream around a NIfTI whose voxel data are cut short."""
+    import gzip
+
+    p = root / "mri" / "labels.nii.gz"
+    raw = gzip.decompress(p.read_bytes())
+    p.write_bytes(gzip.compress(raw[:-200]))
+
+
+def _labels_crc(root: Path, doc: dict) -> None:
+    """One flipped byte in the middle of the deflate stream: the gzip CRC check fails."""
+    p = root / "mri" / "labels.nii.gz"
+    b = bytearray(p.read_bytes())
+    b[len(b) // 2] ^= 0xFF
+    p.write_bytes(bytes(b))
+
+
+def _huge_size_claim(ds) -> None:
+    ds.Rows, ds.Columns = 65535, 65535
+
+
+def _jpeg_12bit(root: Path, doc: dict) -> None:
+    """pydicom's 12-bit JPEG Extended test file as the CC mammogram: Pillow cannot decode
+    12-bit JPEG, pylibjpeg-libjpeg refuses this stream, GDCM (not installed) would."""
+    import pydicom
+    from pydicom.data import get_testdata_file
+
+    ds = pydicom.dcmread(get_testdata_file("JPEG-lossy.dcm"))
+    ds.Modality, ds.ImageLaterality, ds.ViewPosition = "MG", "R", "CC"
+    ds.save_as(root / "mammo" / "cc.dcm")
+
+
 EXTRA: list[tuple[str, Mutation, str]] = [
     # --- DICOM mammograms
     ("truncated DICOM header", _bytes("mammo/cc.dcm", lambda b: b[:200]),
      r"\[views\.CC\] mammogram = 'mammo/cc\.dcm': (cannot read the DICOM header .*truncated"
      r"|DICOM tag Rows/Columns missing)"),
     ("truncated pixel data", _bytes("mammo/cc.dcm", lambda b: b[: len(b) - ROWS * COLS]),
-     r"cc\.dcm: cannot decode the pixel data .*"),
+     r"cc\.dcm: cannot decode the pixel data: PixelData holds 1200 bytes but Rows x Columns x "
+     r"BitsAllocated \(40 x 30 x 16\) need 2400; the file is truncated or those tags are wrong"),
     ("zero-byte DICOM", _bytes("mammo/cc.dcm", lambda b: b""),
      r"\[views\.CC\] mammogram = 'mammo/cc\.dcm': (not a DICOM file|cannot read the DICOM "
      r"header)"),
@@ -245,6 +292,29 @@ EXTRA: list[tuple[str, Mutation, str]] = [
     ("case.toml not UTF-8", _raw_toml(b'[case]\nid = "caf\xe9"\n'), r"not UTF-8 text"),
     ("requested view absent", _only_mlo_view,
      r"view\(s\) CC requested but the case has MLO; add \[views\.CC\]"),
+    # --- issue 53: truncated label maps, impossible DICOM sizes, undecodable JPEG
+    ("label map cut at 60 %", _truncate("mri/labels.nii.gz", 0.60),
+     r"\[mri\] labels = 'mri/labels\.nii\.gz': the gzip stream is truncated or corrupt "
+     r"\(Compressed file ended before the end-of-stream marker was reached\); the file is "
+     r"incomplete: copy or export it again"),
+    ("label map cut at 99.5 %", _truncate("mri/labels.nii.gz", 0.995),
+     r"\[mri\] labels = 'mri/labels\.nii\.gz': the gzip stream is truncated or corrupt"),
+    ("label map .nii 40 bytes short", _labels_uncompressed_truncated,
+     r"\[mri\] labels = 'mri/labels\.nii': the file holds 3672 bytes but its header "
+     r"\(14x12x10 voxels of int16\) needs 3712; the file is truncated"),
+    ("label map re-gzipped short", _labels_regzipped_short,
+     r"\[mri\] labels = 'mri/labels\.nii\.gz': the file holds 3512 bytes but its header "
+     r"\(14x12x10 voxels of int16\) needs 3712; the file is truncated"),
+    ("label map gzip CRC error", _labels_crc,
+     r"\[mri\] labels = 'mri/labels\.nii\.gz': the gzip stream is truncated or corrupt "
+     r"\((CRC check failed|Error -3 while decompressing)"),
+    ("65535 x 65535 size claim", _dicom_edit(_huge_size_claim),
+     r"cc\.dcm: cannot decode the pixel data: Rows x Columns 65535 x 65535 \(4\.3e\+09 "
+     r"pixels, 8\.0 GiB\) is larger than any mammogram; the header is corrupt"),
+    ("12-bit JPEG Extended", _jpeg_12bit,
+     r"cc\.dcm: cannot decode the pixel data \(transfer syntax JPEG Extended \(Process 2 "
+     r"and 4\), 12-bit\): the installed decoders \(.*pylibjpeg.*\) failed \(.*Pillow does "
+     r"not support.*12-bit.*\); not installed: gdcm \(pip install python-gdcm\)"),
 ]
 
 CORPUS = [(f"case:{n}", m, e) for n, m, e in BROKEN] + EXTRA

@@ -61,14 +61,10 @@ def _check_nifti_complete(path: Path) -> None:
 
     import nibabel
 
-    try:
-        proxy = nibabel.load(str(path)).dataobj  # reads the header only
-        shape, dtype = tuple(proxy.shape), np.dtype(proxy.dtype)
-        need = int(proxy.offset) + int(np.prod(shape)) * dtype.itemsize
-    except Exception as exc:  # noqa: BLE001 - nibabel's many header errors: ITK says more below
-        log.debug("%s: nibabel cannot read the header (%s); left to ITK", path, exc)
-        return
-    if _suffix(path) == ".nii.gz":
+    have: int | None = None
+    with open(path, "rb") as f:
+        gzipped = f.read(2) == b"\x1f\x8b"  # else not gzip at all: ITK's error says so
+    if _suffix(path) == ".nii.gz" and gzipped:  # the stream first: a cut may hit the header
         have = 0
         try:
             with gzip.open(path, "rb") as f:
@@ -79,7 +75,14 @@ def _check_nifti_complete(path: Path) -> None:
                 f"{path}: the gzip stream is truncated or corrupt ({exc}); the file is "
                 "incomplete: copy or export it again"
             ) from None
-    else:
+    try:
+        proxy = nibabel.load(str(path)).dataobj  # reads the header only
+        shape, dtype = tuple(proxy.shape), np.dtype(proxy.dtype)
+        need = int(proxy.offset) + int(np.prod(shape)) * dtype.itemsize
+    except Exception as exc:  # noqa: BLE001 - nibabel's many header errors: ITK says more
+        log.debug("%s: nibabel cannot read the header (%s); left to ITK", path, exc)
+        return
+    if have is None:
         have = path.stat().st_size
     if have < need:
         raise InputFileError(
