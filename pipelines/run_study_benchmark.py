@@ -12,7 +12,8 @@ process, each in a fresh cache except where stated:
    (hit rate = cached / total);
 4. the same again -> hit rate 100 %, no run computed.
 
-The default runner is the real pipeline; with the fake runner (``--runner fake``, registered by tests/_study_fakes.py,
+The default runner is the real pipeline; with the fake runner (``--runner fake``,
+registered by tests/_study_fakes.py,
 ``sleep`` seconds per run, no CPU work) the speed-up measures the engine's overhead only.
 The machine's other load makes times noisy: compare the ratios of one invocation.
 """

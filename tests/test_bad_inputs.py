@@ -665,7 +665,8 @@ ARGS: list[tuple[str, Callable[[Path, Path], list[str]], str]] = [
      lambda c, w: ["track", str(c), "--cc-contour", str(_poly(w, [[10, 10], [10, 90], [15, 50]])),
                    "--no-simulate"],
      r"--cc-contour: \(row 10, col 90\) is outside the CC mammogram \(40 rows x 30 columns\)"),
-    ("track --cc-point NaN", lambda c, w: ["track", str(c), "--cc-point", "nan", "3", "--no-simulate"],
+    ("track --cc-point NaN",
+     lambda c, w: ["track", str(c), "--cc-point", "nan", "3", "--no-simulate"],
      r"--cc-point nan 3\.0: coordinates must be finite numbers"),
     ("track --mri-point inf",
      lambda c, w: ["track", str(c), "--mri-point", "0", "inf", "0", "--no-simulate"],
@@ -682,6 +683,13 @@ ARGS: list[tuple[str, Callable[[Path, Path], list[str]], str]] = [
     ("track unknown view",
      lambda c, w: ["track", str(c), "--label", "tumour", "--views", "CC,AP", "--no-simulate"],
      r"--views: unknown view 'AP'; use CC and/or MLO"),
+    ("track --label absent value",
+     lambda c, w: ["track", str(c), "--label", "42", "--no-simulate"],
+     r"--label 42: label value 42 is not in the label map \(values present: .*\); choose "
+     r"--label from those, or 'tumour'"),
+    ("track --label bad syntax",
+     lambda c, w: ["track", str(c), "--label", "tumour:0", "--no-simulate"],
+     r"--label 'tumour:0': use 'tumour' \(every tumour of the model\), 'tumour:K'"),
     ("track --ray-step 0",
      lambda c, w: ["track", str(c), "--cc-point", "5", "5", "--ray-step", "0"],
      r"--ray-step 0\.0: must be in \(0, 5\] mm"),
@@ -710,6 +718,18 @@ ARGS: list[tuple[str, Callable[[Path, Path], list[str]], str]] = [
     ("mammogram missing --dicom",
      lambda c, w: ["mammogram", "--dicom", str(w / "none.dcm"), "--out", str(w / "o")],
      r"none\.dcm: mammogram not found"),
+    # --- regtrack simulate / project
+    ("simulate --model missing",
+     lambda c, w: ["simulate", "--model", str(w / "m.vtu"), "--config", "c.toml", "--out", "r.vtu"],
+     r"^regtrack simulate: error: --model .*m\.vtu: model \.vtu not found; check the path$"),
+    ("simulate --out below a file",
+     lambda c, w: ["simulate", "--model", str(_file(w, "m.vtu")), "--config", "c.toml",
+                   "--out", str(_file(w) / "r.vtu")],
+     r"--out .*afile: is a file, not a folder"),
+    ("project --out names a file",
+     lambda c, w: ["project", "--model", "m.vtu", "--result", "r.vtu", "--view", "CC", "--out",
+                   str(_file(w))],
+     r"^regtrack project: error: --out .*afile: is a file, not a folder"),
     # --- regtrack study / calibrate: a data file names a runner, never code
     ("study runner import path", lambda c, w: ["study", str(_study_file(w, "this:s"))],
      r"s\.toml \[study\] runner = 'this:s': unknown runner; import paths are no longer "
@@ -721,6 +741,12 @@ ARGS: list[tuple[str, Callable[[Path, Path], list[str]], str]] = [
     ("study --runner import path",
      lambda c, w: ["study", str(_study_file(w, "pipeline")), "--runner", "os:getcwd"],
      r"--runner 'os:getcwd': unknown runner; import paths are no longer accepted"),
+    ("study --out names a file",
+     lambda c, w: ["study", str(_study_file(w, "pipeline")), "--out", str(_file(w))],
+     r"^regtrack study: error: --out .*afile: is a file, not a folder"),
+    ("calibrate --cache names a file",
+     lambda c, w: ["calibrate", str(c), "--cache", str(_file(w)), "--out", str(w / "cal")],
+     r"^regtrack calibrate: error: --cache .*afile: is a file, not a folder"),
     ("calibrate --runner import path",
      lambda c, w: ["calibrate", str(c), "--runner", "os:getcwd", "--out", str(w / "cal")],
      r"runner = 'os:getcwd': unknown runner; import paths are no longer accepted"),
@@ -769,7 +795,8 @@ def test_read_only_output_folder_is_refused_first(tmp_path: Path, capsys, monkey
     ro = tmp_path / "ro"
     ro.mkdir()
     real = os.access
-    monkeypatch.setattr(os, "access", lambda p, mode, **kw: False if Path(p) == ro else real(p, mode, **kw))
+    monkeypatch.setattr(os, "access",
+                        lambda p, mode, **kw: False if Path(p) == ro else real(p, mode, **kw))
     for opt in ("--out", "--cache"):
         rc = main(["-q", "run", str(case_dir), opt, str(ro / "sub")])
         err = capsys.readouterr().err

@@ -100,8 +100,8 @@ def test_no_identifier_reaches_the_outputs(tmp_path, caplog, monkeypatch):
                       PatientName="Doe^Jane", PatientBirthDate="19610304")
     titles = []
     real = mg.write_overlay
-    monkeypatch.setattr(mg, "write_overlay",
-                        lambda view, path, **kw: titles.append(kw.get("title")) or real(view, path, **kw))
+    monkeypatch.setattr(mg, "write_overlay", lambda view, path, **kw:
+                        titles.append(kw.get("title")) or real(view, path, **kw))
     out = tmp_path / "out"
     with caplog.at_level(logging.INFO, logger="regtrack"):
         assert main(["mammogram", "--dicom", str(dcm), "--out", str(out)]) == 0
@@ -114,5 +114,6 @@ def test_no_identifier_reaches_the_outputs(tmp_path, caplog, monkeypatch):
     assert titles == ["RCC"]
     assert doc["dicom"] == "<mammogram>"
     assert doc["dicom_sha256"] == hashlib.sha256(dcm.read_bytes()).hexdigest()
-    assert sorted(p.name for p in out.iterdir()) == ["mammogram_cc.json", "mammogram_cc_overlay.png"]
+    assert sorted(p.name for p in out.iterdir()) == ["mammogram_cc.json",
+                                                     "mammogram_cc_overlay.png"]
 

@@ -128,7 +128,8 @@ def test_empty_glob_and_duplicate_ids(tmp_path):
     ("this:s", r"runner = 'this:s': unknown runner; import paths are no longer accepted, name a "
                r"registered runner; known runners: bad_rows, fake, pipeline"),
     ("os:system", r"runner = 'os:system': unknown runner; import paths are no longer accepted"),
-    ("pipline", r"runner = 'pipline': unknown runner \(did you mean 'pipeline'\?\); known runners: "),
+    ("pipline",
+     r"runner = 'pipline': unknown runner \(did you mean 'pipeline'\?\); known runners: "),
 ])
 def test_a_study_file_names_a_runner_never_code(tmp_path, runner, message):
     """A study TOML may only name a registered runner; an import path is refused before any

@@ -52,7 +52,10 @@ def run(args: argparse.Namespace) -> int:
     from regtrack.virtual.io import read_result_positions, result_plate_angle
     from regtrack.virtual.project import default_frame
 
+    from regtrack.cli._checks import writable_folder
+
     log = logging.getLogger("regtrack.project")
+    writable_folder(args.out, "--out")
     cfg = _config(args)
     model = load_model(args.model)
     pos = read_result_positions(args.result, model, step=args.step)

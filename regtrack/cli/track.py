@@ -116,6 +116,8 @@ def run(args: argparse.Namespace) -> int:
                                 f"the {other} view too; add [views.{other}] to case.toml")
     if points or contours:
         _check_on_image(case, points, contours)
+    if args.label is not None:
+        _check_label(case, args.label)
     cfg = TrackingConfig()
     if args.ray_step is not None:
         cfg = dataclasses.replace(cfg, ray_step_mm=args.ray_step)
@@ -178,3 +180,22 @@ def _check_on_image(case, points: dict, contours: dict) -> None:
                 raise TrackingError(f"--{v.lower()}-{kind}: (row {r:g}, col {c:g}) is outside "
                                     f"the {v} mammogram ({rows} rows x {cols} columns); give "
                                     "DICOM pixel coordinates (row, col) on that image")
+
+
+def _check_label(case, label: str) -> None:
+    """``--label``: its syntax, and a label value present in the MRI label map, checked
+    before the mesh and simulations are prepared."""
+    import numpy as np
+
+    from regtrack.errors import TrackingError
+    from regtrack.imaging.readers import read_label_map
+    from regtrack.tracking.track import parse_label
+
+    kind, value = parse_label(label)
+    if kind != "label":
+        return
+    present = np.unique(read_label_map(case.mri.labels).data)
+    if value not in present:
+        raise TrackingError(f"--label {label}: label value {value} is not in the label map "
+                            f"(values present: {', '.join(map(str, present.tolist()))}); "
+                            "choose --label from those, or 'tumour'")

@@ -62,8 +62,9 @@ class StudyTable:
                                default_factory=lambda: list(DEFAULT_OUTPUTS))
     out: str | None = param(None, "", "output folder (relative to the study file)")
     cache: str | None = param(None, "", "cache folder shared by every run (default <out>/cache)")
-    runner: str = param(DEFAULT_RUNNER, "", "name of a registered runner (built-in 'pipeline', or one "
-                          "declared in the 'regtrack.study_runners' entry points)")
+    runner: str = param(DEFAULT_RUNNER, "", "name of a registered runner (built-in "
+                        "'pipeline', or one declared in the 'regtrack.study_runners' entry "
+                        "points)")
     workers: int = param(0, "-", "local worker processes; 0 = sized to the machine", ge=0, le=1024)
     retries: int = param(2, "-", "re-tries of a run whose worker process died", ge=0, le=20)
     memory_per_run_gb: float = param(2.0, "GB", "memory one run needs (caps the local pool size)",
