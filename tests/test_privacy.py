@@ -349,3 +349,17 @@ def test_a_redacted_title_is_announced(caplog) -> None:
     with caplog.at_level(logging.WARNING, logger="regtrack"):
         assert ids.redact("synthetic", "[case] title") == "synthetic"
     assert caplog.text == ""
+
+
+def test_mesh_json_holds_no_folder_names() -> None:
+    """``regtrack mesh`` wrote the label map's absolute path into the model's JSON; its
+    folders often carry the patient's name (issue 53).  Only the file name is kept."""
+    import argparse
+    from types import SimpleNamespace
+
+    from regtrack.cli.mesh import _drop_paths
+
+    model = SimpleNamespace(meta={"source": "/data/Doe_Jane_19610304/mri/labels.nii.gz",
+                                  "quality": {"gamma_p5": 0.4}})
+    _drop_paths(model, argparse.Namespace(case=None))
+    assert model.meta == {"source": "labels.nii.gz", "quality": {"gamma_p5": 0.4}}

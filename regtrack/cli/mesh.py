@@ -83,6 +83,7 @@ def run(args: argparse.Namespace) -> int:
         task = bar.add_task("meshing", total=None)
         model = build_model(labels, scheme=scheme, config=config, side=side, nipple_lps=nipple,
                             progress=lambda msg: bar.update(task, description=msg))
+    _drop_paths(model, args)
     save_model(model, out)
     if not args.no_pictures:
         save_pictures(model, out.with_suffix(""))
@@ -103,3 +104,18 @@ def _checks_parent(out: str) -> None:
         raise ConfigError(f"--out {out}: is a folder named like a .vtu file; give a file path "
                           "or another folder")
     writable_folder(Path(out).parent, "--out")
+
+
+def _drop_paths(model, args: argparse.Namespace) -> None:
+    """Keep folder names out of the model's JSON (they often carry the patient's name):
+    the label map's path becomes its file name, the case folder ``<case>``, and the DICOM
+    identifiers of a case's headers are redacted (announced)."""
+    from pathlib import Path
+
+    from regtrack.privacy import Identifiers, identifiers_of_case_folder
+
+    ids = identifiers_of_case_folder(args.case) if args.case else Identifiers()
+    src = model.meta.get("source")
+    if isinstance(src, str) and src:
+        model.meta["source"] = Path(src).name
+    model.meta.update(ids.redact_obj(dict(model.meta), "the model's metadata"))

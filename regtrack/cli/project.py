@@ -67,7 +67,8 @@ def run(args: argparse.Namespace) -> int:
     stem = f"virtual_{args.view.lower()}" + (f"_{args.step}" if args.step else "")
     doc = vm.view.to_dict()
     doc.update(closed_contour_mm=vm.closed_contour, config=to_table(cfg),
-               model=str(args.model), result=str(args.result), step=args.step,
+               # file names only: the folders often carry the patient's name
+               model=Path(args.model).name, result=Path(args.result).name, step=args.step,
                grid={"origin_mm": list(vm.grid.origin), "pixel_mm": vm.grid.spacing,
                      "shape": list(vm.grid.shape)})
     _io.write_json(out / f"{stem}.json", doc)

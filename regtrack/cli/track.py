@@ -50,21 +50,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    import dataclasses
-    import logging
-    import time
-    from pathlib import Path
-
     from rich.console import Console
 
-    from regtrack.case import load_case
-    from regtrack.errors import TrackingError
-    from regtrack.tracking.config import TrackingConfig
-    from regtrack.tracking.figures import summary_lines, write_outputs
-    from regtrack.tracking.session import open_case
-    from regtrack.tracking.track import track_case
-
     from regtrack.cli._checks import existing_file, writable_folder
+    from regtrack.errors import TrackingError
 
     console = Console(stderr=True)
     if args.mri_point is not None and args.label is not None:
@@ -80,8 +69,30 @@ def run(args: argparse.Namespace) -> int:
                                        args.cc_contour, args.mlo_contour)):
         raise TrackingError("nothing to track: give --mri-point, --label, --cc-point, "
                             "--mlo-point, --cc-contour or --mlo-contour")
+    from regtrack.privacy import identifiers_of_case_folder, pseudonymous_id, scrub_logs
+
+    found = identifiers_of_case_folder(args.case)  # as `regtrack run`: no identifier in outputs
+    with scrub_logs(found):
+        return _track(args, console, found, pseudonymous_id)
+
+
+def _track(args: argparse.Namespace, console, found, pseudonymous_id) -> int:
+    import dataclasses
+    import logging
+    import time
+    from pathlib import Path
+
+    from regtrack.case import load_case
+    from regtrack.cli._checks import writable_folder
+    from regtrack.errors import TrackingError
+    from regtrack.tracking.config import TrackingConfig
+    from regtrack.tracking.figures import summary_lines, write_outputs
+    from regtrack.tracking.session import open_case
+    from regtrack.tracking.track import track_case
+
     case = load_case(args.case, deep=False)
-    out = Path(args.out) if args.out else Path("reports") / case.id / "track"
+    case_id = pseudonymous_id(case.id, found)
+    out = Path(args.out) if args.out else Path("reports") / case_id / "track"
     writable_folder(out, "--out")
     views = tuple(v.strip().upper() for v in args.views.split(",")) if args.views else None
     points = {}
@@ -133,6 +144,8 @@ def run(args: argparse.Namespace) -> int:
                             simulate=not args.no_simulate, config=cfg, progress=progress)
         result = track_case(session, mri_point=args.mri_point, label=args.label,
                             view_points=points, view_contours=contours)
+    result = dataclasses.replace(result, case_id=case_id,
+                                 notes=[found.scrub(n) for n in result.notes])
     reals = {v: vm.real for v, vm in session.views.items()}
     paths = write_outputs(result, out, reals=reals, pdf=not args.no_pdf)
     for line in summary_lines(result):
