@@ -165,3 +165,22 @@ def test_the_pipeline_runner_is_declared_as_an_entry_point():
     doc = tomllib.loads((Path(__file__).resolve().parents[1] / "pyproject.toml").read_text())
     eps = doc["project"]["entry-points"][ENTRY_POINT_GROUP]
     assert eps["pipeline"] == "regtrack.study.runner:pipeline_runner"
+
+
+def test_installed_packages_add_runners_through_entry_points(monkeypatch):
+    """A runner declared by another package (entry point group 'regtrack.study_runners')
+    is known by its name and loaded on use; one whose module is gone is a ConfigError."""
+    from importlib.metadata import EntryPoint
+
+    from regtrack.study import runner as R
+    from tests._study_fakes import fake_runner
+
+    eps = {"ext": EntryPoint("ext", "tests._study_fakes:fake_runner", R.ENTRY_POINT_GROUP),
+           "gone": EntryPoint("gone", "no_such_module_xyz:run", R.ENTRY_POINT_GROUP)}
+    monkeypatch.setattr(R, "_entry_points", lambda: eps)
+    assert {"ext", "gone", "pipeline"} <= set(R.known_runners())
+    assert R.resolve_runner("ext") is fake_runner
+    with pytest.raises(ConfigError, match=r"runner = 'gone': its entry point 'no_such_module_xyz:"
+                                          r"run' \(group regtrack\.study_runners\) cannot be "
+                                          r"loaded \(No module named 'no_such_module_xyz'\)"):
+        R.resolve_runner("gone")
