@@ -717,7 +717,8 @@ ARGS: list[tuple[str, Callable[[Path, Path], list[str]], str]] = [
      r"--out .*afile: is a file, not a folder"),
     ("mammogram missing --dicom",
      lambda c, w: ["mammogram", "--dicom", str(w / "none.dcm"), "--out", str(w / "o")],
-     r"none\.dcm: mammogram not found"),
+     r"^regtrack mammogram: error: --dicom .*none\.dcm: DICOM mammogram not found; check "
+     r"the path$"),
     # --- regtrack simulate / project
     ("simulate --model missing",
      lambda c, w: ["simulate", "--model", str(w / "m.vtu"), "--config", "c.toml", "--out", "r.vtu"],
@@ -749,7 +750,8 @@ ARGS: list[tuple[str, Callable[[Path, Path], list[str]], str]] = [
      r"^regtrack calibrate: error: --cache .*afile: is a file, not a folder"),
     ("calibrate --runner import path",
      lambda c, w: ["calibrate", str(c), "--runner", "os:getcwd", "--out", str(w / "cal")],
-     r"runner = 'os:getcwd': unknown runner; import paths are no longer accepted"),
+     r"^regtrack calibrate: error: --runner 'os:getcwd': unknown runner; import paths are no "
+     r"longer accepted"),
 ]
 
 

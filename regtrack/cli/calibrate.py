@@ -54,6 +54,12 @@ def run(args: argparse.Namespace) -> int:
 
     writable_folder(args.out, "--out")
     writable_folder(args.cache, "--cache")
+    if args.runner is not None:
+        from regtrack.study.runner import known_runners, unknown_runner_message
+
+        if args.runner not in known_runners():
+            msg = unknown_runner_message(args.runner)
+            raise ConfigError(msg.replace("runner = ", "--runner ", 1))
     fixed: dict[str, float | str] = {}
     for item in args.fix:
         name, sep, value = item.partition("=")

@@ -74,7 +74,7 @@ def run(args: argparse.Namespace) -> int:
     from pathlib import Path
 
     from regtrack import _io
-    from regtrack.cli._checks import number_in_range, writable_folder
+    from regtrack.cli._checks import existing_file, number_in_range, writable_folder
     from regtrack.errors import InputFileError, RegtrackError
     from regtrack.imaging.mammogram import extract_view, read_mammogram, write_overlay
     from regtrack.privacy import Identifiers, scrub_logs
@@ -90,6 +90,7 @@ def run(args: argparse.Namespace) -> int:
             number_in_range(value, f"--{opt.replace('_', '-')}", ge=0,
                             why="a (row, col) pixel of the DICOM grid")
     writable_folder(args.out, "--out")
+    existing_file(args.dicom, "--dicom", "DICOM mammogram")
     if args.case is not None:
         from regtrack.privacy import identifiers_of_case_folder, pseudonymous_id
 
