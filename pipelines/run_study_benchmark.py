@@ -1,6 +1,6 @@
 """Benchmark of the study engine: speed-up from 1 to 2 local workers and cache hit rates.
 
-    python pipelines/run_study_benchmark.py [--runner tests._study_fakes:fake_runner]
+    python pipelines/run_study_benchmark.py [--runner fake]
         [--case sample_cases/phantom01] [--c1 0.4 0.8 1.6] [--nu 0.47]
 
 Runs the same study (one case by default; c1 x nu grid, coarse mesh) three times in one
@@ -12,7 +12,8 @@ process, each in a fresh cache except where stated:
    (hit rate = cached / total);
 4. the same again -> hit rate 100 %, no run computed.
 
-The default runner is the real pipeline; with the fake runner (tests/_study_fakes.py,
+The default runner is the real pipeline; with the fake runner (``--runner fake``,
+registered by tests/_study_fakes.py,
 ``sleep`` seconds per run, no CPU work) the speed-up measures the engine's overhead only.
 The machine's other load makes times noisy: compare the ratios of one invocation.
 """
@@ -66,13 +67,17 @@ def _run(study_file: Path, out: Path) -> dict:
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--runner", default="regtrack.study.runner:pipeline_runner")
+    ap.add_argument("--runner", default="pipeline", help="registered runner name ('fake' "
+                    "registers the test stand-in of tests/_study_fakes.py)")
     ap.add_argument("--case", type=Path, default=REPO / "sample_cases" / "phantom01")
     ap.add_argument("--c1", nargs="+", type=float, default=[0.4, 0.8, 1.6])
     ap.add_argument("--nu", nargs="+", type=float, default=[0.47])
     ap.add_argument("--extra-nu", type=float, default=0.49)
     ap.add_argument("--nodes", type=int, default=3000)
     args = ap.parse_args()
+    if args.runner == "fake":
+        sys.path.insert(0, str(REPO))
+        import tests._study_fakes  # noqa: F401 - registers the "fake" runner
     tmp = Path(tempfile.mkdtemp(prefix="regtrack-bench-"))
     try:
         case = args.case.resolve()

@@ -88,6 +88,8 @@ def _check_type(value: Any, tp: Any) -> tuple[bool, Any]:
         return False, value
     if tp is Any or tp is dict or origin is dict:
         return True, value
+    if dataclasses.is_dataclass(tp):  # a sub-table given as a scalar (fuzzing, issue 53)
+        return False, value
     return True, value
 
 

@@ -141,6 +141,33 @@ class Identifiers:
         low = text.lower()
         return sorted(v for v in self.values if v.lower() in low)
 
+    def keywords_in(self, text: str) -> list[str]:
+        """The DICOM keywords (``PatientName``, ...) whose values occur in ``text``; used to
+        say *what kind* of identifier was removed without repeating it."""
+        low = text.lower()
+        return [kw for kw, vals in self.by_keyword.items()
+                if any(f.lower() in low for v in vals for f in _variants(kw, v))]
+
+    def redact(self, text: str, where: str) -> str:
+        """:meth:`scrub` ``text`` and announce it: a warning names ``where`` and the kinds
+        of identifier removed (never their values) when a DICOM identifier was found."""
+        kws = self.keywords_in(text)
+        if kws:
+            log.warning("%s contains DICOM patient identifiers (%s); they are shown as %s in "
+                        "every output (pass --keep-identifiers to keep them)", where,
+                        ", ".join(kws), self.REDACTED)
+        return self.scrub(text)
+
+    def redact_obj(self, obj: Any, where: str) -> Any:
+        """:meth:`scrub_obj` with one announcement, as :meth:`redact`, for the whole object."""
+        import json
+
+        kws = self.keywords_in(json.dumps(obj, default=str))
+        if kws:
+            log.warning("%s contains DICOM patient identifiers (%s); they are written as %s",
+                        where, ", ".join(kws), self.REDACTED)
+        return self.scrub_obj(obj)
+
     def scrub_obj(self, obj: Any) -> Any:
         """Copy of a JSON-like object (dict/list/tuple/str/...) with every string scrubbed."""
         if isinstance(obj, str):

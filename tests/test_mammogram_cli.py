@@ -80,3 +80,40 @@ def test_case_form_unknown_view(case_dir, tmp_path, capsys):
     root, _ = case_dir
     assert main(["mammogram", str(root), "--view", "mlo", "--out", str(tmp_path / "o")]) == 2
     assert "no [views.MLO] section" in capsys.readouterr().err
+
+
+def test_no_identifier_reaches_the_outputs(tmp_path, caplog, monkeypatch):
+    """Issue 53: the JSON held the input's absolute path and the overlay title its file
+    name, both of which carry the patient's name here.  The path becomes ``<mammogram>``
+    (with the file's SHA-256), the header's name and birth date are redacted wherever
+    they occur, and the redaction is announced."""
+    import hashlib
+    import logging
+
+    import regtrack.imaging.mammogram as mg
+
+    folder = tmp_path / "Doe_Jane_19610304"
+    folder.mkdir()
+    s = synthetic_breast()
+    dcm = write_dicom(folder / "DOE_JANE_cc.dcm", np.round(s.image[:, ::-1] * 4095),
+                      ImageLaterality="R", ViewPosition="CC", PixelSpacing=SP,
+                      PatientName="Doe^Jane", PatientBirthDate="19610304")
+    titles = []
+    real = mg.write_overlay
+    monkeypatch.setattr(mg, "write_overlay", lambda view, path, **kw:
+                        titles.append(kw.get("title")) or real(view, path, **kw))
+    out = tmp_path / "out"
+    with caplog.at_level(logging.INFO, logger="regtrack"):
+        assert main(["mammogram", "--dicom", str(dcm), "--out", str(out)]) == 0
+    text = (out / "mammogram_cc.json").read_text()
+    doc = json.loads(text)
+    for leak in ("Doe", "Jane", "19610304", "1961-03-04", folder.name, str(folder)):
+        assert leak.lower() not in text.lower(), leak  # (the JSON's floats hold no letters)
+        assert all(leak.lower() not in t.lower() for t in titles), (leak, titles)
+        assert leak.lower() not in caplog.text.lower(), leak
+    assert titles == ["RCC"]
+    assert doc["dicom"] == "<mammogram>"
+    assert doc["dicom_sha256"] == hashlib.sha256(dcm.read_bytes()).hexdigest()
+    assert sorted(p.name for p in out.iterdir()) == ["mammogram_cc.json",
+                                                     "mammogram_cc_overlay.png"]
+

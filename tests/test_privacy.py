@@ -331,3 +331,35 @@ def test_study_and_calibration_name_an_identifying_case_by_its_pseudonym(tmp_pat
     assert cid == pseudonymous_id(CASE_ID, identifiers_of_case_folder(bad))
     ok = write_e2e_case(tmp_path / "b", case_id="rt01", identifiers=PLANTED)
     assert case_id_of(ok) == "rt01"
+
+
+def test_a_redacted_title_is_announced(caplog) -> None:
+    """Issue 53: a title holding a name and a birth date was redacted silently.  The
+    warning names the field and the kinds of identifier, never their values."""
+    ids = Identifiers()
+    ids.add("PatientName", "Roe^Richard")
+    ids.add("PatientBirthDate", "19550101")
+    with caplog.at_level(logging.WARNING, logger="regtrack"):
+        title = ids.redact("Richard Roe, born 1955-01-01: screening", "[case] title")
+    assert title == "[redacted], born [redacted]: screening"
+    assert ("[case] title contains DICOM patient identifiers (PatientName, PatientBirthDate)"
+            in caplog.text)
+    assert "Roe" not in caplog.text and "1955" not in caplog.text
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="regtrack"):
+        assert ids.redact("synthetic", "[case] title") == "synthetic"
+    assert caplog.text == ""
+
+
+def test_mesh_json_holds_no_folder_names() -> None:
+    """``regtrack mesh`` wrote the label map's absolute path into the model's JSON; its
+    folders often carry the patient's name (issue 53).  Only the file name is kept."""
+    import argparse
+    from types import SimpleNamespace
+
+    from regtrack.cli.mesh import _drop_paths
+
+    model = SimpleNamespace(meta={"source": "/data/Doe_Jane_19610304/mri/labels.nii.gz",
+                                  "quality": {"gamma_p5": 0.4}})
+    _drop_paths(model, argparse.Namespace(case=None))
+    assert model.meta == {"source": "labels.nii.gz", "quality": {"gamma_p5": 0.4}}

@@ -18,7 +18,7 @@ from regtrack.errors import ConfigError
 from regtrack.study.calibrate import calibrate
 from tests._study_fakes import make_case
 
-FAKE = "tests._study_fakes:fake_runner"
+FAKE = "fake"  # registered by tests._study_fakes
 
 
 def test_finds_known_optimum_and_reuses_cache(tmp_path):

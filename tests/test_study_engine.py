@@ -23,7 +23,7 @@ from regtrack.study.engine import Engine
 from regtrack.study.results import read_csv
 from regtrack.study.runner import make_runs
 from regtrack.study.spec import load_study
-from tests._study_fakes import builds, calls, make_case
+from tests._study_fakes import builds, calls, fake_runner, make_case
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
@@ -34,7 +34,7 @@ pytestmark = pytest.mark.isolated
 STUDY = """
 [study]
 name = "fake"
-runner = "tests._study_fakes:fake_runner"
+runner = "fake"
 views = {views}
 workers = {workers}
 outputs = {outputs}
@@ -135,7 +135,7 @@ def test_dying_worker_is_retried_then_recorded(tmp_path):
 
 def test_bad_runner_rows_are_a_recorded_failure(tmp_path):
     make_case(tmp_path / "cases", "A")
-    st = load_study(_study(tmp_path), runner="tests._study_fakes:bad_rows_runner")
+    st = load_study(_study(tmp_path), runner="bad_rows")
     with Engine(runner=st.runner, cache_dir=st.cache_dir, workers=1, progress=False) as eng:
         ex = eng.run(make_runs(st))
     outs = list(ex.outcomes.values())
@@ -168,7 +168,10 @@ def test_killed_study_resumes_with_only_missing_runs(tmp_path):
     p.write_text(p.read_text().replace("nu = [0.47]", "nu = [0.45, 0.47]"))  # 12 runs
     results = tmp_path / "s_results" / "cache" / "study-runs"
     env = {**os.environ, "PYTHONPATH": REPO + os.pathsep + os.environ.get("PYTHONPATH", "")}
-    proc = subprocess.Popen([sys.executable, "-m", "regtrack.cli", "-q", "study", str(p),
+    # the CLI in a process of its own, with the test runner "fake" registered first
+    cli = ("import sys, tests._study_fakes; from regtrack.cli import main; "
+           "sys.exit(main(sys.argv[1:]))")
+    proc = subprocess.Popen([sys.executable, "-c", cli, "-q", "study", str(p),
                              "--no-progress"], cwd=REPO, env=env, start_new_session=True,
                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     def finished():  # run records; not the atomic writer's ".<key>.<random>.part.json"
@@ -212,7 +215,7 @@ def test_a_broken_pool_hands_a_new_run_back_as_died(tmp_path):
         dead = be._ensure().submit(_exit_now)
         with pytest.raises(cf.process.BrokenProcessPool):
             dead.result(timeout=120)
-        fut = be.submit("tests._study_fakes:fake_runner", None, 0)  # no raise here
+        fut = be.submit(fake_runner, None, 0)  # no raise here
         assert fut.done() and be.died(fut.exception())
         be.recover()
         assert be._ensure().submit(os.getpid).result(timeout=120) != os.getpid()

@@ -19,7 +19,7 @@ def _write(tmp_path, body: str, cases=("A", "B")):
     return p
 
 
-BASE = '[study]\nrunner = "tests._study_fakes:fake_runner"\n[cases]\nglob = "cases/*"\n'
+BASE = '[study]\nrunner = "fake"\n[cases]\nglob = "cases/*"\n'
 
 
 def test_grid_expansion_and_order(tmp_path):
@@ -97,7 +97,8 @@ def test_bad_study_section_values(tmp_path):
     with pytest.raises(ConfigError) as err:
         load_study(p)
     msg = str(err.value)
-    for part in ("views = ['CC', 'AP']", "unknown 'xls'", "workers = -1", "runner = 'nocolon'",
+    for part in ("views = ['CC', 'AP']", "unknown 'xls'", "workers = -1",
+                 "runner = 'nocolon': unknown runner; known runners: ",
                  "'missing' is not a case folder"):
         assert part in msg
     assert msg.startswith("5 problems")
@@ -120,3 +121,66 @@ def test_empty_glob_and_duplicate_ids(tmp_path):
     p.write_text(BASE.replace('glob = "cases/*"', 'paths = ["cases/A", "other/A"]'))
     with pytest.raises(ConfigError, match="case id 'A' used by both"):
         load_study(p)
+
+
+@pytest.mark.parametrize("runner, message", [
+    # issue 53: 'runner = "this:s"' imported the module and printed the Zen of Python
+    ("this:s", r"runner = 'this:s': unknown runner; import paths are no longer accepted, name a "
+               r"registered runner; known runners: bad_rows, fake, pipeline"),
+    ("os:system", r"runner = 'os:system': unknown runner; import paths are no longer accepted"),
+    ("pipline",
+     r"runner = 'pipline': unknown runner \(did you mean 'pipeline'\?\); known runners: "),
+])
+def test_a_study_file_names_a_runner_never_code(tmp_path, runner, message):
+    """A study TOML may only name a registered runner; an import path is refused before any
+    module is imported (no run, nothing written)."""
+    import sys
+
+    sys.modules.pop("this", None)
+    p = _write(tmp_path, BASE.replace('"fake"', f'"{runner}"'))
+    with pytest.raises(ConfigError, match=message) as err:
+        load_study(p)
+    assert "\n" not in str(err.value) and "this" not in sys.modules
+    assert not (tmp_path / "s_results").exists()
+
+
+def test_runner_registry_resolves_names_only():
+    from regtrack.study.runner import known_runners, pipeline_runner, resolve_runner
+    from tests._study_fakes import fake_runner
+
+    assert {"pipeline", "fake", "bad_rows"} <= set(known_runners())
+    assert resolve_runner("pipeline") is pipeline_runner
+    assert resolve_runner("fake") is fake_runner
+    with pytest.raises(ConfigError, match=r"runner = 'tests\._study_fakes:fake_runner': unknown"):
+        resolve_runner("tests._study_fakes:fake_runner")
+
+
+def test_the_pipeline_runner_is_declared_as_an_entry_point():
+    """pyproject.toml declares the built-in runner in the group other packages extend."""
+    import tomllib
+    from pathlib import Path
+
+    from regtrack.study.runner import ENTRY_POINT_GROUP
+
+    doc = tomllib.loads((Path(__file__).resolve().parents[1] / "pyproject.toml").read_text())
+    eps = doc["project"]["entry-points"][ENTRY_POINT_GROUP]
+    assert eps["pipeline"] == "regtrack.study.runner:pipeline_runner"
+
+
+def test_installed_packages_add_runners_through_entry_points(monkeypatch):
+    """A runner declared by another package (entry point group 'regtrack.study_runners')
+    is known by its name and loaded on use; one whose module is gone is a ConfigError."""
+    from importlib.metadata import EntryPoint
+
+    from regtrack.study import runner as R
+    from tests._study_fakes import fake_runner
+
+    eps = {"ext": EntryPoint("ext", "tests._study_fakes:fake_runner", R.ENTRY_POINT_GROUP),
+           "gone": EntryPoint("gone", "no_such_module_xyz:run", R.ENTRY_POINT_GROUP)}
+    monkeypatch.setattr(R, "_entry_points", lambda: eps)
+    assert {"ext", "gone", "pipeline"} <= set(R.known_runners())
+    assert R.resolve_runner("ext") is fake_runner
+    with pytest.raises(ConfigError, match=r"runner = 'gone': its entry point 'no_such_module_xyz:"
+                                          r"run' \(group regtrack\.study_runners\) cannot be "
+                                          r"loaded \(No module named 'no_such_module_xyz'\)"):
+        R.resolve_runner("gone")

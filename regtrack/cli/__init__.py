@@ -63,8 +63,16 @@ def main(argv: list[str] | None = None) -> int:
     level = logging.DEBUG if args.debug else (logging.WARNING if args.quiet else logging.INFO)
     logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s")
     mod = importlib.import_module(args._module)
+    import signal
+    import threading
+
+    from regtrack._signals import Terminated, install_cli_handlers
     from regtrack.errors import RegtrackError
 
+    main_thread = threading.current_thread() is threading.main_thread()
+    previous = signal.getsignal(signal.SIGTERM) if main_thread else None
+    if main_thread:
+        install_cli_handlers()  # SIGTERM unwinds like Ctrl-C: workers stopped, temporaries removed
     try:
         return int(mod.run(args) or 0)
     except RegtrackError as err:
@@ -72,9 +80,14 @@ def main(argv: list[str] | None = None) -> int:
             raise
         print(f"regtrack {args.command}: error: {err}", file=sys.stderr)
         return err.exit_code
-    except KeyboardInterrupt:
-        print(f"regtrack {args.command}: interrupted", file=sys.stderr)
-        return 130
+    except KeyboardInterrupt as exc:
+        what = f"terminated ({exc})" if isinstance(exc, Terminated) else "interrupted"
+        print(f"regtrack {args.command}: {what}; worker processes stopped, unfinished stages "
+              "discarded (finished ones stay in the cache)", file=sys.stderr)
+        return 128 + exc.signum if isinstance(exc, Terminated) else 130
+    finally:
+        if main_thread:
+            signal.signal(signal.SIGTERM, previous)
 
 
 if __name__ == "__main__":  # pragma: no cover

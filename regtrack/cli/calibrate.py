@@ -37,7 +37,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         "studies of the same case to re-use their runs)")
     parser.add_argument("--scheduler", metavar="ADDRESS", help="Dask scheduler address")
     parser.add_argument("--workers", type=int, default=0, help="local workers (0 = machine)")
-    parser.add_argument("--runner", help="runner 'package.module:function' (default: the pipeline)")
+    parser.add_argument("--runner", help="name of a registered runner (default: pipeline; "
+                        "packages add runners through the 'regtrack.study_runners' entry "
+                        "points)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
@@ -48,6 +50,16 @@ def run(args: argparse.Namespace) -> int:
     from regtrack.study.calibrate import calibrate, to_json
     from regtrack.study.spec import DEFAULT_RUNNER
 
+    from regtrack.cli._checks import writable_folder
+
+    writable_folder(args.out, "--out")
+    writable_folder(args.cache, "--cache")
+    if args.runner is not None:
+        from regtrack.study.runner import known_runners, unknown_runner_message
+
+        if args.runner not in known_runners():
+            msg = unknown_runner_message(args.runner)
+            raise ConfigError(msg.replace("runner = ", "--runner ", 1))
     fixed: dict[str, float | str] = {}
     for item in args.fix:
         name, sep, value = item.partition("=")

@@ -32,7 +32,23 @@ def run(args: argparse.Namespace) -> int:
     from regtrack.model.labels import get_scheme
     from regtrack.model.pictures import save_pictures
 
+    from regtrack.cli._checks import existing_file, number_in_range
+
     log = logging.getLogger("regtrack.mesh")
+    # the numbers first: a negative element size used to mean 8 minutes of mesher retries
+    nodes_f = MeshConfig.__dataclass_fields__["target_nodes"].metadata
+    size_f = MeshConfig.__dataclass_fields__["element_size_mm"].metadata
+    number_in_range(args.target_nodes, "--target-nodes", ge=nodes_f["ge"], le=nodes_f["le"],
+                    why="approximate node count of the mesh")
+    number_in_range(args.element_size, "--element-size", unit="mm", gt=size_f["gt"],
+                    le=size_f["le"], why="tetrahedron edge length")
+    existing_file(args.labels, "--labels", "label map")
+    if args.out is not None and Path(args.out).suffix == ".vtu":
+        _checks_parent(args.out)
+    elif args.out is not None:
+        from regtrack.cli._checks import writable_folder
+
+        writable_folder(args.out, "--out")
     nipple = None
     side = args.side
     if args.labels:
@@ -57,16 +73,17 @@ def run(args: argparse.Namespace) -> int:
         raise CaseError("regtrack mesh: give a CASE folder or --labels FILE")
     if out.suffix != ".vtu":
         out = out / "model.vtu"
-    over = {}
-    if args.target_nodes:
+    over: dict = {}
+    if args.target_nodes is not None:
         over["target_nodes"] = args.target_nodes
-    if args.element_size:
+    if args.element_size is not None:
         over["element_size_mm"] = args.element_size
     config = dataclasses.replace(config, **over)
     with Progress(SpinnerColumn(), TextColumn("{task.description}"), TimeElapsedColumn(), transient=True) as bar:
         task = bar.add_task("meshing", total=None)
         model = build_model(labels, scheme=scheme, config=config, side=side, nipple_lps=nipple,
                             progress=lambda msg: bar.update(task, description=msg))
+    _drop_paths(model, args)
     save_model(model, out)
     if not args.no_pictures:
         save_pictures(model, out.with_suffix(""))
@@ -74,3 +91,31 @@ def run(args: argparse.Namespace) -> int:
     log.info("wrote %s: %d nodes, %d tets, min dihedral %.1f deg, gamma p5 %.2f, volume error %.2f%%",
              out, model.n_nodes, model.n_tets, q["min_dihedral_deg"], q["gamma_p5"], 100 * q["volume_error"])
     return 0
+
+
+def _checks_parent(out: str) -> None:
+    """``--out M.vtu``: its folder must be creatable and writable."""
+    from pathlib import Path
+
+    from regtrack.cli._checks import writable_folder
+    from regtrack.errors import ConfigError
+
+    if Path(out).is_dir():
+        raise ConfigError(f"--out {out}: is a folder named like a .vtu file; give a file path "
+                          "or another folder")
+    writable_folder(Path(out).parent, "--out")
+
+
+def _drop_paths(model, args: argparse.Namespace) -> None:
+    """Keep folder names out of the model's JSON (they often carry the patient's name):
+    the label map's path becomes its file name, the case folder ``<case>``, and the DICOM
+    identifiers of a case's headers are redacted (announced)."""
+    from pathlib import Path
+
+    from regtrack.privacy import Identifiers, identifiers_of_case_folder
+
+    ids = identifiers_of_case_folder(args.case) if args.case else Identifiers()
+    src = model.meta.get("source")
+    if isinstance(src, str) and src:
+        model.meta["source"] = Path(src).name
+    model.meta.update(ids.redact_obj(dict(model.meta), "the model's metadata"))

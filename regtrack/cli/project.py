@@ -52,7 +52,10 @@ def run(args: argparse.Namespace) -> int:
     from regtrack.virtual.io import read_result_positions, result_plate_angle
     from regtrack.virtual.project import default_frame
 
+    from regtrack.cli._checks import writable_folder
+
     log = logging.getLogger("regtrack.project")
+    writable_folder(args.out, "--out")
     cfg = _config(args)
     model = load_model(args.model)
     pos = read_result_positions(args.result, model, step=args.step)
@@ -64,7 +67,8 @@ def run(args: argparse.Namespace) -> int:
     stem = f"virtual_{args.view.lower()}" + (f"_{args.step}" if args.step else "")
     doc = vm.view.to_dict()
     doc.update(closed_contour_mm=vm.closed_contour, config=to_table(cfg),
-               model=str(args.model), result=str(args.result), step=args.step,
+               # file names only: the folders often carry the patient's name
+               model=Path(args.model).name, result=Path(args.result).name, step=args.step,
                grid={"origin_mm": list(vm.grid.origin), "pixel_mm": vm.grid.spacing,
                      "shape": list(vm.grid.shape)})
     _io.write_json(out / f"{stem}.json", doc)

@@ -36,7 +36,14 @@ def run(args: argparse.Namespace) -> int:
     from regtrack.case import load_case
     from regtrack.pipeline.run import run_case
 
+    from regtrack.cli._checks import writable_folder
+
     console = Console(stderr=True)
+    # everything the command line decides is checked before the case is read or any
+    # stage runs: the override keys and the folders written at the end
+    overrides = parse_sets(args.set)
+    writable_folder(args.out, "--out")
+    writable_folder(args.cache, "--cache")
     from regtrack.privacy import Identifiers, identifiers_of_case_folder, pseudonymous_id, scrub_logs
 
     found = identifiers_of_case_folder(args.case)
@@ -44,6 +51,7 @@ def run(args: argparse.Namespace) -> int:
         case = load_case(args.case, deep=False)
     case_id = case.id if args.keep_identifiers else pseudonymous_id(case.id, found)
     out = Path(args.out) if args.out else Path("reports") / case_id
+    writable_folder(out, "--out")
     views = tuple(v.strip().upper() for v in args.views.split(",")) if args.views else None
     t0 = time.perf_counter()
 
@@ -53,7 +61,7 @@ def run(args: argparse.Namespace) -> int:
     # stage messages go to the console; keep library INFO logs for --debug
     if not logging.getLogger().isEnabledFor(logging.DEBUG):
         logging.getLogger("regtrack").setLevel(logging.WARNING)
-    rows = run_case(args.case, overrides=parse_sets(args.set), views=views, cache_dir=args.cache,
+    rows = run_case(args.case, overrides=overrides, views=views, cache_dir=args.cache,
                     out_dir=out, progress=progress, report=not args.no_report,
                     keep_identifiers=args.keep_identifiers,
                     concurrent=False if args.serial_views else None)
@@ -69,7 +77,13 @@ def run(args: argparse.Namespace) -> int:
 
 
 def parse_sets(items: list[str]) -> dict:
-    """``["model.target_nodes=3000", "protocol.CC.target_D=0.3"]`` -> nested overrides."""
+    """``["model.target_nodes=3000", "protocol.CC.target_D=0.3"]`` -> nested overrides.
+
+    Each item is checked against the configuration schema (the stage config dataclasses of
+    :data:`regtrack.case.overrides.SECTIONS` and ``[virtual]``) before anything runs: an
+    unknown section or key is an error naming the closest valid one, a bad value an error
+    naming the allowed range.
+    """
     import tomllib
 
     from regtrack.errors import ConfigError
@@ -85,8 +99,65 @@ def parse_sets(items: list[str]) -> dict:
             parsed = tomllib.loads(f"v = {value.strip()}")["v"]
         except tomllib.TOMLDecodeError:
             parsed = value.strip()  # a bare word is a string
+        _check_set(item, parts, parsed)
         node = out
         for k in parts[:-1]:
             node = node.setdefault(k, {})
         node[parts[-1]] = parsed
     return out
+
+
+def _set_sections() -> dict[str, type]:
+    """Section name (``model``, ``protocol.CC``, ...) -> its config dataclass."""
+    from regtrack.case.overrides import SECTIONS, config_class
+    from regtrack.virtual.config import VirtualConfig
+
+    out: dict[str, type] = {}
+    for section in SECTIONS:
+        cls = config_class(section)
+        if cls is not None:
+            out[section] = cls
+    out["virtual"] = VirtualConfig
+    return out
+
+
+def _check_set(item: str, parts: list[str], value) -> None:
+    """One ``--set`` item against the schema; raises :class:`ConfigError` (one line)."""
+    from regtrack.config import closest_key, parse_section
+    from regtrack.errors import ConfigError
+
+    sections = _set_sections()
+    n = 2 if parts[0] == "protocol" else 1
+    section = ".".join(parts[:n])
+    if section not in sections:
+        near = closest_key(section, sections)
+        hint = f" (did you mean '{near}'?)" if near else ""
+        raise ConfigError(f"--set {item}: unknown section '{section}'{hint}; sections: "
+                          f"{', '.join(sections)}")
+    keys = parts[n:]
+    if not keys:
+        raise ConfigError(f"--set {item}: give a key of [{section}], e.g. --set {section}."
+                          f"{next(iter(_fields(sections[section])))}=VALUE")
+    table: dict = {}
+    node = table
+    for k in keys[:-1]:
+        node = node.setdefault(k, {})
+    node[keys[-1]] = value
+    where = f"--set {item} [{section}]"
+    _obj, problems, warnings = parse_section(sections[section], table, where=where)
+    if warnings:  # an unknown key: an error here, since the value would be ignored
+        import re
+
+        m = re.search(r"unknown key '(.+?)' ignored(?: \(did you mean '(.+?)'\?\))?", warnings[0])
+        table_name = ".".join([section, *keys[:-1]])
+        bad, near = (m.group(1), m.group(2)) if m else (keys[-1], None)
+        hint = f" (did you mean '{near}'?)" if near else ""
+        raise ConfigError(f"--set {item}: unknown key '{bad}' in [{table_name}]{hint}")
+    if problems:
+        raise ConfigError(problems[0].replace(f"{where} ", f"--set {item}: [{section}] ", 1))
+
+
+def _fields(cls: type) -> list[str]:
+    import dataclasses
+
+    return [f.name for f in dataclasses.fields(cls)]  # type: ignore[arg-type]

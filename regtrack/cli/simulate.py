@@ -37,7 +37,12 @@ def run(args: argparse.Namespace) -> int:
     from regtrack.errors import ConfigError
     from regtrack.model.io import load_model
 
+    from regtrack.cli._checks import existing_file, writable_folder
+
     log = logging.getLogger("regtrack.simulate")
+    existing_file(args.model, "--model", "model .vtu")
+    out_path = Path(args.out)
+    writable_folder(out_path.parent if out_path.suffix == ".vtu" else out_path, "--out")
     if args.case is not None or args.view is not None:
         if args.case is None or args.view is None:
             raise ConfigError("regtrack simulate: the case-level form needs both CASE and --view cc|mlo")

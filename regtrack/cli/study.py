@@ -18,7 +18,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="local worker processes (default [study] workers; 0 = machine)")
     parser.add_argument("--out", help="output folder (default [study] out)")
     parser.add_argument("--cache", help="cache folder (default <out>/cache)")
-    parser.add_argument("--runner", help="runner 'package.module:function' (default: the pipeline)")
+    parser.add_argument("--runner", help="name of a registered runner (default: pipeline; "
+                        "packages add runners through the 'regtrack.study_runners' entry "
+                        "points)")
     parser.add_argument("--retry-failed", action="store_true",
                         help="recompute runs whose failure is cached (e.g. after fixing a case)")
     parser.add_argument("--dry-run", action="store_true", help="validate, list the runs, and stop")
@@ -27,13 +29,19 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Exit 0 when every run succeeded, 4 when the study finished with failed runs."""
+    from regtrack.cli._checks import writable_folder
     from regtrack.study.runner import make_runs
     from regtrack.study.spec import load_study
+
+    writable_folder(args.out, "--out")
+    writable_folder(args.cache, "--cache")
 
     study = load_study(args.study, out=args.out, cache=args.cache, workers=args.workers,
                        runner=args.runner)
     for w in study.warnings:
         log.warning("%s", w)
+    writable_folder(study.out_dir, "[study] out")
+    writable_folder(study.cache_dir, "[study] cache")
     if args.dry_run:
         runs = make_runs(study)
         log.info("study %s: %d cases x %d parameter points = %d runs, views %s", study.name,

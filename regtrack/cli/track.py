@@ -50,27 +50,50 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from rich.console import Console
+
+    from regtrack.cli._checks import existing_file, writable_folder
+    from regtrack.errors import TrackingError
+
+    console = Console(stderr=True)
+    if args.mri_point is not None and args.label is not None:
+        raise TrackingError("give either --mri-point or --label, not both")
+    if args.ray_step is not None and not 0 < args.ray_step <= 5:  # also refuses NaN
+        raise TrackingError(f"--ray-step {args.ray_step}: must be in (0, 5] mm")
+    _check_numbers(args)
+    existing_file(args.cc_contour, "--cc-contour", "contour JSON")
+    existing_file(args.mlo_contour, "--mlo-contour", "contour JSON")
+    writable_folder(args.out, "--out")
+    writable_folder(args.cache, "--cache")
+    if not any(x is not None for x in (args.mri_point, args.label, args.cc_point, args.mlo_point,
+                                       args.cc_contour, args.mlo_contour)):
+        raise TrackingError("nothing to track: give --mri-point, --label, --cc-point, "
+                            "--mlo-point, --cc-contour or --mlo-contour")
+    from regtrack.privacy import identifiers_of_case_folder, pseudonymous_id, scrub_logs
+
+    found = identifiers_of_case_folder(args.case)  # as `regtrack run`: no identifier in outputs
+    with scrub_logs(found):
+        return _track(args, console, found, pseudonymous_id)
+
+
+def _track(args: argparse.Namespace, console, found, pseudonymous_id) -> int:
     import dataclasses
     import logging
     import time
     from pathlib import Path
 
-    from rich.console import Console
-
     from regtrack.case import load_case
+    from regtrack.cli._checks import writable_folder
     from regtrack.errors import TrackingError
     from regtrack.tracking.config import TrackingConfig
     from regtrack.tracking.figures import summary_lines, write_outputs
     from regtrack.tracking.session import open_case
     from regtrack.tracking.track import track_case
 
-    console = Console(stderr=True)
-    if args.mri_point is not None and args.label is not None:
-        raise TrackingError("give either --mri-point or --label, not both")
-    if args.ray_step is not None and not 0 < args.ray_step <= 5:
-        raise TrackingError(f"--ray-step {args.ray_step}: must be in (0, 5] mm")
     case = load_case(args.case, deep=False)
-    out = Path(args.out) if args.out else Path("reports") / case.id / "track"
+    case_id = pseudonymous_id(case.id, found)
+    out = Path(args.out) if args.out else Path("reports") / case_id / "track"
+    writable_folder(out, "--out")
     views = tuple(v.strip().upper() for v in args.views.split(",")) if args.views else None
     points = {}
     if args.cc_point is not None:
@@ -84,10 +107,28 @@ def run(args: argparse.Namespace) -> int:
 
             contours[v] = read_tumour_polygons(f)[0]
     if views is not None:
+        unknown = [v for v in views if v not in ("CC", "MLO")]
+        if unknown:
+            raise TrackingError(f"--views: unknown view {unknown[0]!r}; use CC and/or MLO")
         for v in [*points, *contours]:
             other = "MLO" if v == "CC" else "CC"
             if v not in views or other not in views:
-                raise TrackingError(f"--{v.lower()}-point needs both CC and MLO in --views")
+                kind = "point" if v in points else "contour"
+                raise TrackingError(f"--{v.lower()}-{kind} needs both CC and MLO in --views")
+    for v in [*points, *contours]:  # before any mesh, simulation or registration runs
+        if v not in case.views:
+            have = ", ".join(case.views) or "none"
+            raise TrackingError(f"--{v.lower()}-{'point' if v in points else 'contour'}: the case "
+                                f"has no [views.{v}] mammogram (views: {have}); add one to "
+                                "case.toml")
+        other = "MLO" if v == "CC" else "CC"
+        if other not in case.views and views is None:
+            raise TrackingError(f"--{v.lower()}-{'point' if v in points else 'contour'}: needs "
+                                f"the {other} view too; add [views.{other}] to case.toml")
+    if points or contours:
+        _check_on_image(case, points, contours)
+    if args.label is not None:
+        _check_label(case, args.label)
     cfg = TrackingConfig()
     if args.ray_step is not None:
         cfg = dataclasses.replace(cfg, ray_step_mm=args.ray_step)
@@ -103,6 +144,8 @@ def run(args: argparse.Namespace) -> int:
                             simulate=not args.no_simulate, config=cfg, progress=progress)
         result = track_case(session, mri_point=args.mri_point, label=args.label,
                             view_points=points, view_contours=contours)
+    result = dataclasses.replace(result, case_id=case_id,
+                                 notes=[found.scrub(n) for n in result.notes])
     reals = {v: vm.real for v, vm in session.views.items()}
     paths = write_outputs(result, out, reals=reals, pdf=not args.no_pdf)
     for line in summary_lines(result):
@@ -110,3 +153,62 @@ def run(args: argparse.Namespace) -> int:
     dt = time.perf_counter() - t0
     console.print(f"tracking written to {out} ({len(paths)} files, {dt:.1f} s)")
     return 0
+
+
+def _check_numbers(args: argparse.Namespace) -> None:
+    """Finite coordinates for every point option (NaN/inf are refused before any work)."""
+    import math
+
+    from regtrack.errors import TrackingError
+
+    for opt in ("mri_point", "cc_point", "mlo_point"):
+        value = getattr(args, opt)
+        if value is not None and not all(math.isfinite(v) for v in value):
+            raise TrackingError(f"--{opt.replace('_', '-')} {' '.join(map(str, value))}: "
+                                "coordinates must be finite numbers")
+
+
+def _check_on_image(case, points: dict, contours: dict) -> None:
+    """Every (row, col) given on a real mammogram must lie on its pixel grid; checked from
+    the DICOM header (Rows, Columns) before the registration that took 6-8 s."""
+    import numpy as np
+    import pydicom
+
+    from regtrack.errors import TrackingError
+
+    for v in {*points, *contours}:
+        try:
+            ds = pydicom.dcmread(case.views[v].mammogram, stop_before_pixels=True)
+            rows, cols = int(ds.Rows), int(ds.Columns)
+        except Exception:  # noqa: BLE001 - the reader names a bad DICOM later, in its own words
+            continue
+        pts = [np.asarray(points[v], float)[None]] if v in points else []
+        if v in contours:
+            pts.append(np.asarray(contours[v], float).reshape(-1, 2))
+        for rc in pts:
+            bad = (rc[:, 0] < 0) | (rc[:, 0] > rows - 1) | (rc[:, 1] < 0) | (rc[:, 1] > cols - 1)
+            if bad.any():
+                r, c = rc[np.argmax(bad)]
+                kind = "point" if v in points and rc.shape[0] == 1 else "contour"
+                raise TrackingError(f"--{v.lower()}-{kind}: (row {r:g}, col {c:g}) is outside "
+                                    f"the {v} mammogram ({rows} rows x {cols} columns); give "
+                                    "DICOM pixel coordinates (row, col) on that image")
+
+
+def _check_label(case, label: str) -> None:
+    """``--label``: its syntax, and a label value present in the MRI label map, checked
+    before the mesh and simulations are prepared."""
+    import numpy as np
+
+    from regtrack.errors import TrackingError
+    from regtrack.imaging.readers import read_label_map
+    from regtrack.tracking.track import parse_label
+
+    kind, value = parse_label(label)
+    if kind != "label":
+        return
+    present = np.unique(read_label_map(case.mri.labels).data)
+    if value not in present:
+        raise TrackingError(f"--label {label}: label value {value} is not in the label map "
+                            f"(values present: {', '.join(map(str, present.tolist()))}); "
+                            "choose --label from those, or 'tumour'")

@@ -29,6 +29,7 @@ import numpy as np
 
 from regtrack._io import atomic_path
 from regtrack.errors import DicomError, InputFileError
+from regtrack.imaging.pixel_decoding import check_pixel_header, decode_failure
 
 log = logging.getLogger(__name__)
 
@@ -213,13 +214,13 @@ def read_dicom_series(
     meta: dict = {}
     for h in headers:
         ds = pydicom.dcmread(h.path)
+        problem = check_pixel_header(ds, str(h.path))
+        if problem:
+            raise DicomError(problem)
         try:
             arr = ds.pixel_array
         except Exception as exc:  # decoder missing / corrupt pixel data
-            raise DicomError(
-                f"{h.path}: cannot decode PixelData ({exc}); install the pylibjpeg decoders "
-                "or re-export the series uncompressed"
-            ) from exc
+            raise DicomError(decode_failure(ds, str(h.path), exc)) from exc
         slope = float(getattr(ds, "RescaleSlope", 1.0) or 1.0)
         intercept = float(getattr(ds, "RescaleIntercept", 0.0) or 0.0)
         slices.append(arr.T.astype(np.float64) * slope + intercept)

@@ -10,7 +10,10 @@ in the cache.
 
 A stage is produced in a temporary folder and renamed into place when it finishes,
 together with a ``_complete.json`` marker, so an interrupted run never leaves a stage
-folder that a later run would trust (``os.rename`` of a folder is atomic on POSIX).
+folder that a later run would trust (``os.rename`` of a folder is atomic on POSIX).  The
+temporary folder's name holds its producer (``.<key>.<host>-<pid>.<random>.part``); a
+process killed outright (SIGKILL) leaves it behind, and the next :class:`StageCache` on
+the same root removes it once that process is gone (:func:`remove_stale_parts`).
 """
 
 from __future__ import annotations
@@ -36,6 +39,62 @@ log = logging.getLogger(__name__)
 MARKER = "_complete.json"
 #: The stage cache of ``regtrack run`` and ``regtrack track`` when none is given.
 DEFAULT_CACHE = Path(".regtrack-cache")
+#: a temporary file or folder of unknown producer older than this is abandoned (s); the
+#: atomic file writes of :func:`regtrack._io.atomic_path` last milliseconds
+STALE_AGE_S = 3600.0
+
+
+def _host_tag() -> str:
+    import socket
+
+    return hashlib.sha256(socket.gethostname().encode()).hexdigest()[:8]
+
+
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # another user's live process
+        return True
+    return True
+
+
+def remove_stale_parts(root: str | os.PathLike) -> int:
+    """Remove the temporaries (``.*.part*``) a killed run left one level below ``root``
+    (``root/<stage>/``) and in ``root`` itself; return how many were removed.
+
+    A folder named by :meth:`StageCache.produce` is removed when its producer ran on this
+    host and is no longer alive; any other temporary when older than
+    :data:`STALE_AGE_S`.  A live producer's folder (another run sharing the cache) is kept.
+    """
+    import re
+
+    root = Path(root)
+    if not root.is_dir():
+        return 0
+    own = re.compile(r"^\.[^.]+\.([0-9a-f]{8})-(\d+)\.")
+    host, now, removed = _host_tag(), time.time(), 0
+    for p in [*root.glob(".*.part*"), *root.glob("*/.*.part*")]:
+        m = own.match(p.name)
+        try:
+            if m:
+                stale = m.group(1) == host and not _pid_alive(int(m.group(2)))
+            else:
+                stale = now - p.stat().st_mtime > STALE_AGE_S
+        except OSError:
+            continue
+        if not stale:
+            continue
+        if p.is_dir():
+            shutil.rmtree(p, ignore_errors=True)
+        else:
+            p.unlink(missing_ok=True)
+        removed += 1
+    if removed:
+        log.info("removed %d unfinished temporary file(s)/folder(s) of an interrupted run "
+                 "from %s", removed, root)
+    return removed
 
 
 def file_digest(path: str | os.PathLike, pattern: str = "*") -> str:
@@ -77,6 +136,7 @@ class StageCache:
 
     def __post_init__(self) -> None:
         self.root = Path(self.root)
+        remove_stale_parts(self.root)
 
     def folder(self, stage: str, key: str) -> Path:
         return self.root / stage / key
@@ -102,7 +162,8 @@ class StageCache:
         """Yield an empty temporary folder; on success it becomes the stage folder."""
         final = self.folder(stage, key)
         final.parent.mkdir(parents=True, exist_ok=True)
-        tmp = Path(tempfile.mkdtemp(prefix=f".{key}.", suffix=".part", dir=final.parent))
+        tmp = Path(tempfile.mkdtemp(prefix=f".{key}.{_host_tag()}-{os.getpid()}.", suffix=".part",
+                                    dir=final.parent))
         t0 = time.perf_counter()
         try:
             yield tmp

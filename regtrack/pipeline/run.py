@@ -128,7 +128,7 @@ def _run_case(case_dir, found: Identifiers, ids: Identifiers, *, overrides, view
             progress("no real mammograms in this case: registration and metrics are skipped")
     if not keep_identifiers:
         case = dataclasses.replace(case, id=pseudonymous_id(case.id, found),
-                                   title=found.scrub(case.title))
+                                   title=found.redact(case.title, "[case] title"))
     ctx = open_run(case, resolve_configs(case, overrides), cache_dir=cache_dir,
                    progress=progress, ids=ids)
     mesh_out, results = run_stages(ctx, views, concurrent=concurrent)

@@ -173,9 +173,12 @@ def simulate_concurrently(ctx, mesh: MeshOutput, views, *, worker=None) -> dict[
     t0 = time.perf_counter()
     ctx.say(f"simulate {' and '.join(todo)} at the same time ({len(todo)} processes)")
     lite = dataclasses.replace(ctx, progress=None, timings={})
+    from regtrack._signals import init_worker, stop_pool
+
     failed: dict[str, Exception] = {}
-    with cf.ProcessPoolExecutor(max_workers=len(todo),
-                                mp_context=multiprocessing.get_context("spawn")) as pool:
+    pool = cf.ProcessPoolExecutor(max_workers=len(todo), initializer=init_worker,
+                                  mp_context=multiprocessing.get_context("spawn"))
+    try:
         futures = {pool.submit(worker or _simulate_worker, lite, mesh, v): v for v in todo}
         for fut in cf.as_completed(futures):
             view = futures[fut]
@@ -188,6 +191,10 @@ def simulate_concurrently(ctx, mesh: MeshOutput, views, *, worker=None) -> dict[
             except Exception as exc:  # a dead worker, an error that did not pickle
                 log.warning("simulate %s: the worker process failed (%s: %s); simulating it "
                             "again in this process", view, type(exc).__name__, exc)
+    except BaseException:  # Ctrl-C, SIGTERM: stop the workers now, do not wait for them
+        stop_pool(pool)
+        raise
+    pool.shutdown(wait=True)
     _timed(ctx, "simulate_concurrent", t0)
     return failed
 

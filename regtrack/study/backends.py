@@ -1,7 +1,7 @@
 """Where runs execute: a local process pool (default) or an existing Dask cluster.
 
 Both backends offer the same small interface to :class:`regtrack.study.engine.Engine`:
-``capacity()``, ``submit(runner_ref, spec, attempt)``, ``wait(futures)``,
+``capacity()``, ``submit(runner, spec, attempt)``, ``wait(futures)``,
 ``died(exc)``, ``recover()`` and ``close()``.
 
 * :class:`LocalBackend`: :class:`concurrent.futures.ProcessPoolExecutor` with the
@@ -13,7 +13,7 @@ Both backends offer the same small interface to :class:`regtrack.study.engine.En
   tasks of a dead worker (``distributed.scheduler.allowed-failures``) and raises
   :class:`distributed.KilledWorker` after that; ``retries=`` is passed to ``submit`` for
   exceptions escaping :func:`regtrack.study.runner.execute` (it catches the run's own).
-  The workers must have regtrack (and the runner's module) importable.
+  The workers must have regtrack (and the runner function's module) importable.
 """
 
 from __future__ import annotations
@@ -49,7 +49,11 @@ def default_workers(*, memory_per_run_gb: float = 2.0) -> int:
 
 
 def _init_worker(threads: int) -> None:
-    """Worker initialiser: cap BLAS/numba threads so workers do not oversubscribe cores."""
+    """Worker initialiser: cap BLAS/numba threads so workers do not oversubscribe cores;
+    leave Ctrl-C to the parent and clean up on SIGTERM (:mod:`regtrack._signals`)."""
+    from regtrack._signals import init_worker
+
+    init_worker()
     for var in THREAD_VARS:
         os.environ.setdefault(var, str(threads))
 
@@ -78,14 +82,14 @@ class LocalBackend:
     def capacity(self) -> int:
         return self.workers
 
-    def submit(self, runner_ref: str, spec: RunSpec, attempt: int) -> cf.Future:
+    def submit(self, runner: Any, spec: RunSpec, attempt: int) -> cf.Future:
         """Start ``spec``.  A pool that broke after the engine last looked (a worker died
         while another run's result was being collected) refuses new work; the run then
         gets a future that already failed with that error, so the engine treats it like
         the other runs in flight of the broken pool (suspects, not charged; a race seen in
         a clean-clone CI run)."""
         try:
-            return self._ensure().submit(execute, runner_ref, spec)
+            return self._ensure().submit(execute, runner, spec)
         except cf.process.BrokenProcessPool as exc:
             failed: cf.Future = cf.Future()
             failed.set_exception(exc)
@@ -106,9 +110,15 @@ class LocalBackend:
             self._pool.shutdown(wait=False, cancel_futures=True)
             self._pool = None
 
-    def close(self) -> None:
+    def close(self, *, abort: bool = False) -> None:
+        """Shut the pool down; ``abort`` (Ctrl-C, SIGTERM) stops the workers at once."""
         if self._pool is not None:
-            self._pool.shutdown(wait=True, cancel_futures=True)
+            if abort:
+                from regtrack._signals import stop_pool
+
+                stop_pool(self._pool)
+            else:
+                self._pool.shutdown(wait=True, cancel_futures=True)
             self._pool = None
 
 
@@ -136,8 +146,8 @@ class DaskBackend:
     def capacity(self) -> int:
         return max(1, sum(self.client.nthreads().values()))
 
-    def submit(self, runner_ref: str, spec: RunSpec, attempt: int) -> Any:
-        return self.client.submit(execute, runner_ref, spec, pure=False, retries=self.retries,
+    def submit(self, runner: Any, spec: RunSpec, attempt: int) -> Any:
+        return self.client.submit(execute, runner, spec, pure=False, retries=self.retries,
                                   key=f"regtrack-run-{spec.run_key}-{attempt}")
 
     @staticmethod
@@ -155,7 +165,7 @@ class DaskBackend:
     def recover(self) -> None:
         pass
 
-    def close(self) -> None:
+    def close(self, *, abort: bool = False) -> None:
         self.client.close()
 
 

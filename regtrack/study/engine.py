@@ -111,7 +111,8 @@ class Engine:
     Parameters
     ----------
     runner : str
-        ``"package.module:function"`` of the runner (see :mod:`regtrack.study.runner`).
+        Name of a registered runner (see :func:`regtrack.study.runner.known_runners`);
+        resolved here, in the parent process, and the function handed to the workers.
     cache_dir : Path
         Cache root shared with the pipeline's stage cache.
     scheduler : str, optional
@@ -129,7 +130,10 @@ class Engine:
     def __init__(self, *, runner: str, cache_dir: Path, scheduler: str | None = None,
                  workers: int = 0, memory_per_run_gb: float = 2.0, retries: int = 2,
                  retry_failed: bool = False, progress: bool = True):
+        from regtrack.study.runner import resolve_runner
+
         self.runner = runner
+        self.runner_fn = resolve_runner(runner)  # ConfigError for an unknown name, before any work
         self.cache = ResultCache(Path(cache_dir) / RESULTS_SUBDIR)
         self.scheduler = scheduler
         self.workers = workers
@@ -142,12 +146,13 @@ class Engine:
     def __enter__(self) -> Engine:
         return self
 
-    def __exit__(self, *exc: object) -> None:
-        self.close()
+    def __exit__(self, exc_type: type | None, *exc: object) -> None:
+        self.close(abort=exc_type is not None and issubclass(exc_type, KeyboardInterrupt))
 
-    def close(self) -> None:
+    def close(self, *, abort: bool = False) -> None:
+        """Shut the backend down; ``abort`` (Ctrl-C, SIGTERM) stops the workers at once."""
         if self._backend is not None:
-            self._backend.close()  # type: ignore[attr-defined]
+            self._backend.close(abort=abort)  # type: ignore[attr-defined]
             self._backend = None
 
     def backend(self):
@@ -243,7 +248,7 @@ class Engine:
         if first_suspect is not None:
             if not inflight:
                 pending.remove(first_suspect)
-                inflight[backend.submit(self.runner, first_suspect,
+                inflight[backend.submit(self.runner_fn, first_suspect,
                                         attempts[first_suspect.run_key])] = first_suspect
                 busy.update(first_suspect.groups)
             return
@@ -252,7 +257,7 @@ class Engine:
             spec = pending[i]
             if all(g in done_groups or busy[g] == 0 for g in spec.groups):
                 pending.pop(i)
-                inflight[backend.submit(self.runner, spec, attempts[spec.run_key])] = spec
+                inflight[backend.submit(self.runner_fn, spec, attempts[spec.run_key])] = spec
                 busy.update(spec.groups)
             else:
                 i += 1

@@ -43,7 +43,10 @@ class ResultCache:
     misses: int = 0
 
     def __post_init__(self) -> None:
+        from regtrack.pipeline.cache import remove_stale_parts
+
         self.root = Path(self.root)
+        remove_stale_parts(self.root)  # atomic writes of a killed study
 
     def path(self, key: str) -> Path:
         return self.root / f"{key}.json"

@@ -1,9 +1,17 @@
 """Runs of a study: :class:`RunSpec`, the runner interface and the worker-side wrapper.
 
 A *runner* is a picklable, importable callable ``runner(spec: RunSpec) -> list[dict]``
-that returns one flat metrics row per view.  The default, :func:`pipeline_runner`, calls
-:func:`regtrack.pipeline.run.run_case`; studies may name another one as
-``"package.module:function"`` (it must be importable on every worker).
+that returns one flat metrics row per view.  The default, :func:`pipeline_runner` (name
+``"pipeline"``), calls :func:`regtrack.pipeline.run.run_case`.
+
+A study TOML names its runner by *name* only: a data file never chooses code to import.
+The names come from a registry (:func:`known_runners`): the built-in ones, the Python entry
+points of the group ``regtrack.study_runners`` declared by installed packages (in a
+package's ``pyproject.toml``: ``[project.entry-points."regtrack.study_runners"]
+mine = "mypkg.runners:mine"``), and those registered in-process by
+:func:`register_runner` (tests).  The engine resolves the name in the parent process and
+hands the function itself to the workers (pickled by reference, so its module must be
+importable there).
 
 :func:`execute` is what a worker process actually calls: it never raises for a failing
 run but returns an outcome dict, so a bad case or a diverging simulation becomes a
@@ -14,7 +22,6 @@ so a worker sets its thread limits before numpy is loaded.
 
 from __future__ import annotations
 
-import importlib
 import logging
 import math
 import os
@@ -82,27 +89,76 @@ def pipeline_runner(spec: RunSpec) -> list[dict]:
                     out_dir=Path(spec.out_dir) if spec.out_dir else None, concurrent=False)
 
 
-def resolve_runner(ref: str) -> Callable[[RunSpec], list[dict]]:
-    """Import ``"package.module:function"``.
+#: Entry-point group through which installed packages add study runners.
+ENTRY_POINT_GROUP = "regtrack.study_runners"
+#: Built-in runners (name -> the function).
+BUILTIN_RUNNERS: dict[str, Callable[[RunSpec], list[dict]]] = {"pipeline": pipeline_runner}
+_REGISTERED: dict[str, Callable[[RunSpec], list[dict]]] = {}
+
+
+def register_runner(name: str, fn: Callable[[RunSpec], list[dict]]) -> None:
+    """Make ``fn`` available as runner ``name`` in this process (tests, embedding code).
+
+    ``fn`` must be a module-level function so the workers can unpickle it by reference.
+    """
+    if not name or not name.replace("_", "").replace("-", "").isalnum():
+        raise ValueError(f"runner name {name!r}: use letters, digits, '-' and '_'")
+    if not callable(fn):
+        raise ValueError(f"runner {name!r}: {fn!r} is not callable")
+    _REGISTERED[name] = fn
+
+
+def _entry_points() -> dict[str, Any]:
+    from importlib.metadata import entry_points
+
+    return {ep.name: ep for ep in entry_points(group=ENTRY_POINT_GROUP)}
+
+
+def known_runners() -> list[str]:
+    """Names a study may give as ``runner`` (built-in, entry points, registered)."""
+    return sorted({*BUILTIN_RUNNERS, *_entry_points(), *_REGISTERED})
+
+
+def resolve_runner(name: str) -> Callable[[RunSpec], list[dict]]:
+    """The runner function registered under ``name``.
 
     Raises
     ------
     regtrack.errors.ConfigError
-        The module or function cannot be found.
+        ``name`` is not a registered runner (the message lists the known ones), or its
+        entry point cannot be loaded.
     """
     from regtrack.errors import ConfigError
 
-    modname, _, qual = ref.partition(":")
+    if name in _REGISTERED:
+        return _REGISTERED[name]
+    if name in BUILTIN_RUNNERS:
+        return BUILTIN_RUNNERS[name]
+    eps = _entry_points()
+    if name not in eps:
+        raise ConfigError(unknown_runner_message(name))
     try:
-        obj: Any = importlib.import_module(modname)
-        for part in qual.split("."):
-            obj = getattr(obj, part)
-    except (ImportError, AttributeError) as exc:
-        raise ConfigError(f"runner = {ref!r}: cannot import it ({exc}); give an importable "
-                          "'package.module:function'") from None
-    if not callable(obj):
-        raise ConfigError(f"runner = {ref!r}: not callable; name a function")
-    return obj
+        fn = eps[name].load()
+    except Exception as exc:  # noqa: BLE001 - a broken plug-in is a configuration problem
+        raise ConfigError(f"runner = {name!r}: its entry point {eps[name].value!r} "
+                          f"(group {ENTRY_POINT_GROUP}) cannot be loaded ({exc}); reinstall "
+                          "the package that declares it") from None
+    if not callable(fn):
+        raise ConfigError(f"runner = {name!r}: entry point {eps[name].value!r} is not callable")
+    return fn
+
+
+def unknown_runner_message(name: str) -> str:
+    """``runner = 'x': unknown runner; known runners: pipeline, ...`` (one line)."""
+    from regtrack.config import closest_key
+
+    known = known_runners()
+    near = closest_key(name, known) if isinstance(name, str) else None
+    hint = f" (did you mean {near!r}?)" if near else ""
+    if isinstance(name, str) and ":" in name:
+        hint += "; import paths are no longer accepted, name a registered runner"
+    return (f"runner = {name!r}: unknown runner{hint}; known runners: {', '.join(known)} "
+            f"(packages add runners through the {ENTRY_POINT_GROUP!r} entry points)")
 
 
 def _clean(value: Any) -> Any:
@@ -139,8 +195,9 @@ def check_rows(rows: Any, spec: RunSpec) -> list[dict]:
     return [{str(k): _clean(v) for k, v in r.items()} for r in rows]
 
 
-def execute(runner_ref: str, spec: RunSpec) -> dict:
-    """Run ``spec`` with the runner ``runner_ref``; return an outcome dict, never raise.
+def execute(runner: Callable[[RunSpec], list[dict]], spec: RunSpec) -> dict:
+    """Run ``spec`` with the runner function ``runner`` (resolved by the engine from its
+    registered name); return an outcome dict, never raise.
 
     The outcome has ``run_key``, ``status`` (``"ok"``/``"failed"``), ``rows``, ``error``
     (one line), ``error_type``, ``deterministic`` (True for a :class:`RegtrackError`,
@@ -152,7 +209,6 @@ def execute(runner_ref: str, spec: RunSpec) -> dict:
     t0 = time.perf_counter()
     base = {"run_key": spec.run_key, "host": socket.gethostname(), "pid": os.getpid()}
     try:
-        runner = resolve_runner(runner_ref)
         rows = check_rows(runner(spec), spec)
     except Exception as exc:  # noqa: BLE001 - every failure becomes a record
         msg = " ".join(str(exc).split()) or type(exc).__name__

@@ -47,7 +47,7 @@ from regtrack.views import VIEWS
 #: Outputs a study can write.  ``parquet`` needs the optional ``pyarrow`` package.
 OUTPUTS = ("csv", "parquet", "figure8", "d_T", "pdf", "run_files")
 DEFAULT_OUTPUTS = ("csv", "figure8", "d_T", "pdf")
-DEFAULT_RUNNER = "regtrack.study.runner:pipeline_runner"
+DEFAULT_RUNNER = "pipeline"
 TOP_LEVEL = ("study", "cases", "parameters", "overrides")
 
 
@@ -62,7 +62,9 @@ class StudyTable:
                                default_factory=lambda: list(DEFAULT_OUTPUTS))
     out: str | None = param(None, "", "output folder (relative to the study file)")
     cache: str | None = param(None, "", "cache folder shared by every run (default <out>/cache)")
-    runner: str = param(DEFAULT_RUNNER, "", "'module:function' called as runner(RunSpec) -> rows")
+    runner: str = param(DEFAULT_RUNNER, "", "name of a registered runner (built-in "
+                        "'pipeline', or one declared in the 'regtrack.study_runners' entry "
+                        "points)")
     workers: int = param(0, "-", "local worker processes; 0 = sized to the machine", ge=0, le=1024)
     retries: int = param(2, "-", "re-tries of a run whose worker process died", ge=0, le=20)
     memory_per_run_gb: float = param(2.0, "GB", "memory one run needs (caps the local pool size)",
@@ -79,8 +81,10 @@ class StudyTable:
         bad = [o for o in self.outputs if o not in OUTPUTS]
         if bad:
             out.append(f"outputs: unknown {', '.join(map(repr, bad))}; use {', '.join(OUTPUTS)}")
-        if ":" not in self.runner:
-            out.append(f"runner = {self.runner!r}: write it as 'package.module:function'")
+        from regtrack.study.runner import known_runners, unknown_runner_message
+
+        if self.runner not in known_runners():
+            out.append(unknown_runner_message(self.runner))
         return out
 
 
@@ -312,6 +316,11 @@ def load_study(path: str | os.PathLike, *, out: str | os.PathLike | None = None,
     if "tumour_ratio" in parameters and not P.has_c1(overrides, list(parameters)):
         problems.append(f"{where} [parameters] tumour_ratio: needs the tissue c1; vary c1 too or "
                         "set [overrides.mechanics] tissue_c1_kpa")
+    if runner is not None:
+        from regtrack.study.runner import known_runners, unknown_runner_message
+
+        if runner not in known_runners():
+            problems.append(unknown_runner_message(runner).replace("runner = ", "--runner ", 1))
     if workers is not None and workers < 0:
         problems.append(f"workers = {workers}: must be >= 0 (0 = sized to the machine)")
     if problems:

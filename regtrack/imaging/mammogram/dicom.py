@@ -169,14 +169,15 @@ def _view_from_tags(ds) -> tuple[str | None, str]:
 def _pixels(ds, name: str, apply_voi: bool) -> tuple[np.ndarray, dict]:
     from pydicom.pixels import apply_modality_lut, apply_voi_lut
 
+    from regtrack.imaging.pixel_decoding import check_pixel_header, decode_failure
+
+    problem = check_pixel_header(ds, name)  # a corrupt size claim, before any allocation
+    if problem:
+        raise DicomError(problem)
     try:
         arr = ds.pixel_array
     except Exception as err:  # decoder missing or corrupt data
-        ts = getattr(getattr(ds, "file_meta", None), "TransferSyntaxUID", None)
-        tsn = getattr(ts, "name", str(ts))
-        raise DicomError(f"{name}: cannot decode the pixel data (transfer syntax {tsn}): {err}; "
-                         "install the pydicom plug-ins pylibjpeg, pylibjpeg-libjpeg, "
-                         "pylibjpeg-openjpeg, pylibjpeg-rle") from err
+        raise DicomError(decode_failure(ds, name, err)) from err
     info: dict = {}
     if arr.ndim != 2:
         raise DicomError(f"{name}: pixel data has shape {arr.shape}; a single-frame grey-level "
