@@ -1,7 +1,7 @@
 """Examples are tests: the commands and links shown in README.md and docs/*.md.
 
-* Every command line in a ```bash block is checked: a ``regtrack ...`` (or ``python -m
-  regtrack.cli ...``) line must parse with regtrack's own argparse parser (nothing is
+* Every command line in a ```bash block, and every ``regtrack ...`` code span in the text,
+  is checked: a ``regtrack ...`` (or ``python -m regtrack.cli ...``) line must parse with regtrack's own argparse parser (nothing is
   executed); ``make TARGET`` must name a Makefile target; ``python pipelines/X.py`` must
   name a script that exists; any other program must be in :data:`OTHER_PROGRAMS`.
   Output shown in the docs goes in ```text blocks, which are not checked.
@@ -59,12 +59,32 @@ def _bash_commands(path: Path) -> list[tuple[int, str]]:
     return out
 
 
+INLINE = re.compile(r"`((?:regtrack|python -m regtrack\.cli) [^`]*)`")
+
+
+def _inline_commands(path: Path) -> list[tuple[int, str]]:
+    """(line number, command) of the ``regtrack ...`` code spans in the text (tables,
+    prose) outside code blocks; ``COMMAND`` stands for any command and is skipped."""
+    out, in_code = [], False
+    for n, line in enumerate(path.read_text(encoding="utf-8").splitlines(), 1):
+        if FENCE.match(line.strip()):
+            in_code = not in_code
+            continue
+        if not in_code:
+            out += [(n, m.group(1)) for m in INLINE.finditer(line) if "COMMAND" not in m.group(1)]
+    return out
+
+
 def _all_commands() -> list[tuple[str, str]]:
     cases = []
     for doc in DOCS:
         for n, cmd in _bash_commands(doc):
             cases.append((f"{doc.relative_to(REPO)}:{n}", cmd))
     return cases
+
+
+def _all_mentions() -> list[tuple[str, str]]:
+    return [(f"{doc.relative_to(REPO)}:{n}", cmd) for doc in DOCS for n, cmd in _inline_commands(doc)]
 
 
 COMMANDS = _all_commands()
@@ -105,7 +125,9 @@ def test_command_in_docs_is_valid(where, command):
         if argv is not None:
             try:
                 build_parser().parse_args(argv)
-            except SystemExit as exc:  # argparse reports and exits on a bad command line
+            except SystemExit as exc:  # argparse exits: 0 after --help, 2 on a bad line
+                if exc.code == 0 and ("--help" in argv or "-h" in argv):
+                    continue
                 pytest.fail(f"{where}: `{part}` is not a valid regtrack command line "
                             f"(argparse exit {exc.code})")
             continue
@@ -117,6 +139,34 @@ def test_command_in_docs_is_valid(where, command):
             assert not missing, f"{where}: `{part}`: no Makefile target {sorted(missing)}"
         if prog == "python" and words[1:2] and words[1].endswith(".py"):
             assert (REPO / words[1]).is_file(), f"{where}: `{part}`: {words[1]} not found"
+
+
+MENTIONS = _all_mentions()
+
+
+def _subparsers():
+    root = build_parser()
+    return root, root._subparsers._group_actions[0].choices
+
+
+@pytest.mark.parametrize("where, mention", MENTIONS, ids=[w for w, _ in MENTIONS])
+def test_command_mentioned_in_text_exists(where, mention):
+    """A ``regtrack VERB --option ...`` code span in the text names a real command and only
+    options it has (a mention need not be a complete command line)."""
+    words = shlex.split(mention)
+    words = words[1:] if words[0] == "regtrack" else words[3:]
+    root, verbs = _subparsers()
+    global_opts = {o for a in root._actions for o in a.option_strings}
+    rest = [w for w in words if w not in global_opts]
+    if not rest:
+        return
+    verb = rest[0]
+    assert verb in verbs, f"{where}: `{mention}`: no command {verb!r}"
+    options = {o for a in verbs[verb]._actions for o in a.option_strings}
+    for w in rest[1:]:
+        if w.startswith("-"):
+            opt = w.split("=", 1)[0]
+            assert opt in options, f"{where}: `{mention}`: regtrack {verb} has no option {opt}"
 
 
 def _links() -> list[tuple[str, str, Path]]:
