@@ -612,7 +612,7 @@ ARGS: list[tuple[str, Callable[[Path, Path], list[str]], str]] = [
     ("run --out below a file", lambda c, w: ["run", str(c), "--out", str(_file(w) / "sub")],
      r"--out .*afile/sub: .*afile is a file, so the folder cannot be created"),
     ("run unknown view", lambda c, w: ["run", str(c), "--views", "CC,AP"],
-     r"view\(s\) AP requested but the case has CC, MLO"),
+     r"--views: unknown view .AP.; use CC and/or MLO"),
     # --- regtrack mesh: numbers range-checked before meshing
     ("mesh --element-size -1",
      lambda c, w: ["mesh", "--labels", str(c / "mri/labels.nii.gz"), "--element-size", "-1"],
