@@ -77,7 +77,7 @@ def mock_solver(X, fixed, *, increments=4, fail_at=None):
 def _run(protocol, body=None, **kw):
     body = body or _body()
     runner = ProtocolRunner(body, protocol, mock_solver(body.points, body.fixed, **kw),
-                            config=ContactConfig(friction=0.1))
+                            config=ContactConfig(friction=0.1, chest_wall_contact=False))
     return runner.run(), runner
 
 
@@ -166,7 +166,7 @@ def test_a_failed_plate_move_is_retried_once_with_a_lower_penalty_growth_cap():
                 raise SolverDidNotConvergeError("mock: cycling", load_fraction=0.6)
         return inner(u0, g0, g1, contribs, name)
 
-    cfg = ContactConfig(friction=0.1)
+    cfg = ContactConfig(friction=0.1, chest_wall_contact=False)
     runner = ProtocolRunner(body, shipped_protocol("cc"), solve, config=cfg)
     res = runner.run()
     # the move is solved in two parts (a first short one, then the rest): the first
@@ -245,7 +245,8 @@ def test_a_crawling_plate_move_is_retried_with_a_plate_increment_cap_first():
     # crawls unless the plate travel is capped (the first 2 mm part is one increment)
     solve, calls = _crawling_solver(body, crawls=lambda kw: "initial_increment" not in kw
                                     and "max_increment" not in kw)
-    cfg = ContactConfig(friction=0.1, max_plate_increment_mm=0.0)  # uncapped first attempt
+    cfg = ContactConfig(friction=0.1, max_plate_increment_mm=0.0,  # uncapped first attempt
+                        chest_wall_contact=False)
     runner = ProtocolRunner(body, shipped_protocol("cc"), solve, config=cfg)
     res = runner.run()
     assert res.complete
@@ -382,20 +383,26 @@ def test_plates_start_clear_of_a_thick_base_behind_their_edge():
     assert plates["upper"].plate.query(X[over]).gap.min() > 2.0 + 1.0  # backed off for the base
 
 
-def test_chest_wall_contact_pushes_skin_back_in_front_of_the_wall():
-    """``[contact] chest_wall_contact``: a frictionless rigid wall at the chest-wall plane
-    (x = -40 mm here) on the free skin nodes, off by default.  A skin node moved 0.1 mm
-    behind the plane feels the penalty force eps_N * 0.1 mm * A, along +x only; the fixed
-    nodes are no candidates; the runner hands the wall to the solver with the plates."""
+def test_chest_wall_contact_pushes_tissue_back_in_front_of_the_wall():
+    """``[contact] chest_wall_contact`` (on by default): a frictionless rigid wall at the
+    chest-wall plane (x = -40 mm here) on every free node.  A node moved 0.1 mm behind the
+    plane feels the penalty force eps_N * 0.1 mm * A, along +x only; the fixed nodes are no
+    candidates; skin nodes carry their tributary skin area; the runner hands the wall to
+    the solver with the plates."""
+    from regtrack.mechanics.contact import tributary_areas
     from regtrack.mechanics.protocol_run import chest_wall
 
     body = _body()
-    assert chest_wall(body, ContactConfig()) is None
-    assert "chest-wall" not in ProtocolRunner(body, shipped_protocol("cc"), mock_solver(
-        body.points, body.fixed)).contacts
-    wall = chest_wall(body, ContactConfig(chest_wall_contact=True))
+    assert chest_wall(body, ContactConfig(chest_wall_contact=False)) is None
+    wall = chest_wall(body, ContactConfig())
     assert wall.mu == 0.0 and wall.name == "chest-wall"
     assert not body.fixed[wall.nodes].any()
+    np.testing.assert_array_equal(wall.nodes, np.flatnonzero(~body.fixed))
+    skin = np.unique(body.skin)
+    on_skin = np.isin(wall.nodes, skin)
+    np.testing.assert_allclose(wall.areas[on_skin],
+                               tributary_areas(body.points, body.skin)[wall.nodes[on_skin]])
+    assert np.all(wall.areas > 0)
     assert np.allclose(wall.plate.origin[0], -40.0) and np.allclose(wall.plate.normal, [1, 0, 0])
     i = int(np.flatnonzero(np.isclose(body.points[wall.nodes, 0], -35.0))[0])
     node = wall.nodes[i]
@@ -407,8 +414,7 @@ def test_chest_wall_contact_pushes_skin_back_in_front_of_the_wall():
     f = -r.reshape(-1, 3)  # force on the body
     assert f[node] == pytest.approx([wall.eps_n * 0.1 * wall.areas[i], 0.0, 0.0], rel=1e-9)
     assert np.count_nonzero(np.abs(f).sum(axis=1)) == 1
-    runner = ProtocolRunner(body, shipped_protocol("cc"), mock_solver(body.points, body.fixed),
-                            config=ContactConfig(chest_wall_contact=True))
+    runner = ProtocolRunner(body, shipped_protocol("cc"), mock_solver(body.points, body.fixed))
     assert set(runner.contacts) == {"lower", "upper", "chest-wall"}
     assert set(runner.plates) == {"lower", "upper"}
 

@@ -30,10 +30,11 @@ class SolverOptions:
       the increment.
     """
 
-    method: str = param("newton", "", "'energy': each increment minimises the incremental "
+    method: str = param("energy", "", "'energy': each increment minimises the incremental "
                         "potential (regtrack.mechanics.minimise: Newton with inertia correction and "
                         "a line search on the potential, contact and friction as potentials); "
-                        "'newton': the residual-based Newton solver (regtrack.mechanics.solver)",
+                        "'newton': the former residual-based Newton solver "
+                        "(regtrack.mechanics.solver), kept for comparison until it is removed",
                         choices=("newton", "energy"))
     balance_tol: float = param(1e-3, "-", "method 'energy': an increment has converged only when "
                                "the resultant of the residual over the free nodes is below this "

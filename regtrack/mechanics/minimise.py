@@ -264,7 +264,23 @@ class Minimiser:
             return s
         raise SolverDidNotConvergeError(
             f"no equilibrium in {self.max_iterations} Newton iterations (|R| = "
-            f"{np.linalg.norm(s.R[self.free]):.3g} N, reference {s.f_ref:.3g} N)")
+            f"{np.linalg.norm(s.R[self.free]):.3g} N, reference {s.f_ref:.3g} N; {self.where(s, plates)})")
+
+    def where(self, s: _State, plates: Sequence[PlatePotential]) -> str:
+        """The node region of the largest residual: the node, its position (mm), its
+        distance from the chest-wall plane and the nearest plate."""
+        r = np.where(self.free, s.R, 0.0).reshape(-1, 3)
+        i = int(np.argmax(np.linalg.norm(r, axis=1)))
+        x = self.p.X[i] + s.u[i]
+        text = (f"largest residual {np.linalg.norm(r[i]):.3g} N at node {i}, x = "
+                f"({x[0]:.1f}, {x[1]:.1f}, {x[2]:.1f}) mm, {x[0] - self.p.X[:, 0].min():.1f} mm "
+                "in front of the chest-wall plane")
+        gaps = [(float(pl.c.plate.query(x[None]).gap[0]), pl.name) for pl in plates
+                if pl.name != "chest-wall"]
+        if gaps:
+            g, name = min(gaps)
+            text += f", {g:.1f} mm from the {name} plate"
+        return text
 
 
 def _constraint_positions(problem: Problem, dofs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -156,19 +156,30 @@ class ProtocolResult:
 
 
 def chest_wall(body: BodySetup, config: ContactConfig) -> PlateContact | None:
-    """Frictionless rigid wall at the chest-wall plane, facing ``+x``: free skin nodes may
-    not pass behind it (the torso is there).  The plane is ``x = min x`` of the model, the
+    """Frictionless rigid wall at the chest-wall plane, facing ``+x``: no free node may
+    pass behind it (the torso is there).  The plane is ``x = min x`` of the model, the
     most posterior node (the chest-wall nodes of a model cut from an MRI lie within 0.3 mm
-    of it), so that no node starts behind it.  None when ``chest_wall_contact`` is off or
-    the body has no fixed node."""
+    of it), so that no node starts behind it.  Every free node is a contact candidate: a
+    skin node with its tributary skin area, an interior node with the area ``V_i / h`` of
+    its nodal volume ``V_i`` (mm^3) over the mean skin edge ``h`` (mm), so the wall's
+    penalty stiffness per node is of the same order inside as on the skin.  None when
+    ``chest_wall_contact`` is off or the body has no fixed node."""
     from dataclasses import replace
 
     if not config.chest_wall_contact or not body.fixed.any():
         return None
-    nodes, areas, eps = _skin_contact(body, config)
-    wall = RigidPlate(name="chest-wall", origin=(float(body.points[:, 0].min()), 0.0, 0.0),
+    skin_nodes, skin_areas, eps = _skin_contact(body, config)
+    X = body.points
+    e = X[body.tets]
+    vol = np.abs(np.einsum("ij,ij->i", np.cross(e[:, 1] - e[:, 0], e[:, 2] - e[:, 0]),
+                           e[:, 3] - e[:, 0])) / 6.0
+    areas = np.bincount(body.tets.reshape(-1), weights=np.repeat(vol / 4.0, 4),
+                        minlength=len(X)) / mean_edge_length(X, body.skin)
+    areas[skin_nodes] = skin_areas
+    nodes = np.flatnonzero(~body.fixed & (areas > 0))
+    wall = RigidPlate(name="chest-wall", origin=(float(X[:, 0].min()), 0.0, 0.0),
                       normal=(1.0, 0.0, 0.0), e1=(0.0, 1.0, 0.0))
-    return PlateContact(wall, body.points, nodes, areas, config=replace(config, friction=0.0),
+    return PlateContact(wall, X, nodes, areas[nodes], config=replace(config, friction=0.0),
                         penalty=eps)
 
 

@@ -26,7 +26,7 @@ import numpy as np
 
 from regtrack._io import atomic_path, write_json
 from regtrack.config import parse_section, to_table
-from regtrack.errors import ConfigError
+from regtrack.errors import ConfigError, ResultCheckError, SolverDidNotConvergeError
 from regtrack.mechanics.contact import ContactConfig
 from regtrack.mechanics.protocol import Protocol, protocol_for_view
 from regtrack.mechanics.protocol_run import (BodySetup, ProtocolResult, ProtocolRunner,
@@ -116,13 +116,33 @@ def simulate_view(case: Any, model: BreastModel, view: str, *, out_dir: str | Pa
         ov = getattr(case, "overrides", {}).get(f"protocol.{v}")
         protocol = protocol_for_view(v, ov.table if ov is not None else None, where=where,
                                      base_dir=getattr(case, "root", None))
-    result, timing = run_protocol_on_model(model, protocol, mechanics=mechanics, contact=contact,
-                                           progress=progress)
     case_id = getattr(case, "id", "model")
+    try:
+        result, timing = run_protocol_on_model(model, protocol, mechanics=mechanics, contact=contact,
+                                               progress=progress)
+    except (SolverDidNotConvergeError, ResultCheckError) as err:
+        _keep_partial(err, model, Path(out_dir), f"{case_id}_{v.lower()}_partial")
+        raise
     files = write_outputs(result, model, Path(out_dir), stem=f"{case_id}_{v.lower()}",
                           configs={"mechanics": to_table(mechanics), "contact": to_table(contact)},
                           timing=timing)
     return ViewResult(view=v, result=result, files=files, summary=summarise(result, timing))
+
+
+def _keep_partial(err: Exception, model: BreastModel, out_dir: Path, stem: str) -> None:
+    """Write the balanced steps of a stopped run (``err.last_converged``, a
+    :class:`ProtocolResult`) as ``<stem>.vtu/.json/_steps.png`` and name them in the error's
+    message, so that nothing computed is lost; the caller does not go on with them."""
+    partial = getattr(err, "last_converged", None)
+    if not isinstance(partial, ProtocolResult) or not partial.steps:
+        return
+    try:
+        files = write_outputs(partial, model, out_dir, stem=stem)
+    except OSError as exc:
+        log.warning("could not keep the balanced steps of the stopped run: %s", exc)
+        return
+    err.args = (f"{err.args[0] if err.args else err}; the {len(partial.steps)} balanced "
+                f"step(s) before it are kept in {files['vtu']}",)
 
 
 def summarise(result: ProtocolResult, timing: dict | None = None) -> dict:
