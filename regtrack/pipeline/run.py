@@ -242,6 +242,8 @@ def provenance(ctx: RunContext, mesh_out, results) -> dict:
     """Configuration, versions, inputs and timings of a run (written into every output)."""
     import importlib.metadata as md
 
+    from regtrack.pipeline.outputs import input_digests
+
     versions = {"regtrack": __version__, "python": platform.python_version()}
     for pkg in ("numpy", "scipy", "gmsh", "pydicom", "scikit-image", "opencv-python-headless",
                 "shapely", "meshio", "pypardiso", "numba"):
@@ -253,6 +255,7 @@ def provenance(ctx: RunContext, mesh_out, results) -> dict:
         "case_id": ctx.case.id,
         "config": {k: to_table(v) for k, v in ctx.configs.items()},
         "protocol_overrides": ctx.protocol_tables,
+        "inputs": input_digests(ctx.case),
         "stage_keys": {"mesh": mesh_out.key, **{f"simulate_{r.view}": r.sim_key for r in results}},
         "cache": {"hits": ctx.cache.hits, "misses": ctx.cache.misses},
         "timings_s": ctx.timings,

@@ -316,66 +316,8 @@ def virtual_only(ctx, sim: SimOutput, vm, view: str) -> ViewOutcome:
 
 # -- outputs ------------------------------------------------------------------------------
 def report_stage(ctx, mesh: MeshOutput, results: list[ViewOutcome], out: Path, prov: dict) -> Path:
-    """Per-view JSON and figures, then the PDF report."""
-    from regtrack.report import figures as F
-    from regtrack.report.pdf import CaseReport, ViewReport, write_pdf
+    """Per-view JSON and figures, the 3-D files, the tracking and the PDF report
+    (:func:`regtrack.pipeline.outputs.write_report`)."""
+    from regtrack.pipeline.outputs import write_report
 
-    t0 = time.perf_counter()
-    ctx.say("report: figures and PDF")
-    views = []
-    for r in results:
-        vdir = out / r.view.lower()
-        _io.write_json(vdir / "virtual.json", ctx.clean(r.virtual.view.to_dict()))
-        _io.write_json(vdir / "simulation.json", ctx.clean({"summary": r.sim.summary,
-                                                            "steps": r.sim.steps}))
-        if r.real is not None:
-            _io.write_json(vdir / "real.json", ctx.clean(r.real.to_dict()))
-            _io.write_json(vdir / "alignment.json", ctx.clean(r.alignment.to_dict()))
-            F.save_figure(F.overlay_figure(r.real, r.virtual.view, r.alignment), vdir / "overlay.png")
-            F.save_figure(F.images_figure(r.real, r.virtual.view), vdir / "images.png")
-        else:
-            F.save_figure(F.virtual_figure(r.virtual.view), vdir / "virtual.png")
-        for p in r.sim.pictures:
-            _io.write_bytes(vdir / f"compression{p.suffix}", p.read_bytes())
-        steps = [{"step": s.get("name"), "D": s.get("D"), "force_N": (s.get("contact") or {})
-                  .get("upper", {}).get("normal_force_N"), "max_penetration_mm":
-                  s.get("max_penetration_mm"), "behind_wall_mm": s.get("behind_chest_wall_mm"),
-                  "increments": (s.get("solver") or {}).get("increments"),
-                  "iterations": (s.get("solver") or {}).get("iterations"),
-                  "seconds": (s.get("solver") or {}).get("seconds")} for s in r.sim.steps]
-        views.append(ViewReport(r.view, r.row, r.real, r.virtual.view, r.alignment, steps,
-                                [vdir / "compression.png"]))
-    model = mesh.model
-    ms = {"nodes": model.n_nodes, "tetrahedra": model.n_tets,
-          "tumours": int(model.tumour_id.max(initial=0)), "skin triangles": len(model.skin),
-          "fixed (chest-wall) nodes": int(model.fixed.sum()), "side": model.frame.side}
-    for k in ("quality", "checks"):
-        if isinstance(model.meta.get(k), dict):
-            ms.update({f"{k}.{a}": b for a, b in list(model.meta[k].items())[:8]
-                       if not isinstance(b, (dict, list))})
-    pics = []
-    for p in mesh.pictures:
-        pics.append(_io.write_bytes(out / "model" / p.name, p.read_bytes()))
-    tracking = _tracking_section(mesh, results, out) if all(r.real is not None for r in results) else None
-    rep = CaseReport(ctx.case.id, ctx.case.title, views, ms, pics, prov["config"], prov,
-                     extra_pages=[tracking] if tracking else [])
-    path = write_pdf(rep, out / "report.pdf")
-    _timed(ctx, "report", t0)
-    return path
-
-
-def _tracking_section(mesh: MeshOutput, results: list[ViewOutcome], out: Path):
-    """Where the MRI tumour lands in each real mammogram (``tracking.json`` + a PDF page)."""
-    from regtrack.tracking.figures import draw_tracking_page, report_section
-    from regtrack.tracking.session import viewmap_from_outcome
-    from regtrack.tracking.mri_to_view import track_tumour
-    from regtrack.tracking.track import TrackResult
-
-    if int(mesh.model.tumour_id.max(initial=0)) < 1:
-        return None
-    vms = {r.view: viewmap_from_outcome(r) for r in results}
-    res = TrackResult(results[0].row["case_id"], views={v: {} for v in vms},
-                      mri=track_tumour(mesh.model, vms))
-    _io.write_json(out / "tracking.json", report_section(res))
-    reals = {r.view: r.real for r in results}
-    return lambda fig: draw_tracking_page(fig, res, reals)
+    return write_report(ctx, mesh, results, out, prov)
