@@ -157,9 +157,13 @@ def render_pages(report: CaseReport) -> Iterator[Any]:
 
 def figure_text(fig) -> list[str]:
     """Every text string drawn on ``fig`` (titles, labels, table cells, legends)."""
+    from matplotlib.table import Table
     from matplotlib.text import Text
 
-    return [t.get_text() for t in fig.findobj(Text) if t.get_text()]
+    texts = [t.get_text() for t in fig.findobj(Text)]
+    for table in fig.findobj(Table):
+        texts += [c.get_text().get_text() for c in table.get_celld().values()]
+    return [t for t in texts if t]
 
 
 def write_pdf(report: CaseReport, path: str | Path) -> Path:
