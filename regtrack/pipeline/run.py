@@ -34,6 +34,10 @@ from regtrack.privacy import (IDENTIFYING_KEYWORDS, Identifiers, identifiers_of_
 log = logging.getLogger(__name__)
 
 Progress = Callable[[str], None]
+#: ``sim_progress(view, step, t, **info)`` after every converged increment of a simulation
+#: (``info``: ``increment`` in the step, and whatever the solver reports, e.g. ``D``,
+#: ``force_N``); ``step`` None when the view's simulation has finished
+SimProgress = Callable[..., None]
 
 
 @dataclass
@@ -48,9 +52,12 @@ class RunContext:
     progress: Progress | None = None
     #: identifiers to keep out of outputs (empty with --keep-identifiers)
     ids: Identifiers = field(default_factory=Identifiers)
+    sim_progress: SimProgress | None = None
+    #: (stage, key) of the stages produced in this run (by this process or its workers)
+    produced: set = field(default_factory=set)
 
     def say(self, msg: str) -> None:
-        msg = self.ids.scrub(msg)
+        msg = self.ids.scrub(msg, console=True)
         log.info(msg)
         if self.progress is not None:
             self.progress(msg)
@@ -100,7 +107,8 @@ def run_case(case_dir: str | Path, *, overrides: dict | None = None,
              views: tuple[str, ...] | list[str] | None = None, cache_dir: str | Path | None = None,
              out_dir: str | Path | None = None, progress: Progress | None = None,
              report: bool = True, keep_identifiers: bool = False,
-             concurrent: bool | None = None) -> list[dict]:
+             concurrent: bool | None = None, sim_progress: SimProgress | None = None
+             ) -> list[dict]:
     """Run the whole pipeline on a case; return one flat metrics row per view.
 
     Parameters
@@ -117,6 +125,10 @@ def run_case(case_dir: str | Path, *, overrides: dict | None = None,
         Where metrics, figures and the PDF go; nothing is written there when None.
     progress : callable, optional
         Called with one line per stage.
+    sim_progress : callable, optional
+        Called inside each simulation after every converged increment (see
+        :data:`SimProgress`), from this process or, for views simulated at the same time,
+        from a thread relaying the worker processes' reports.
     report : bool
         Write figures and the PDF (``out_dir`` required).
     keep_identifiers : bool
@@ -137,6 +149,7 @@ def run_case(case_dir: str | Path, *, overrides: dict | None = None,
         return _run_case(case_dir, found, ids, overrides=overrides, views=views,
                          cache_dir=cache_dir, out_dir=out_dir, progress=progress, report=report,
                          keep_identifiers=keep_identifiers, t_start=t_start,
+                         sim_progress=sim_progress,
                          concurrent=concurrent_default() if concurrent is None else concurrent)
 
 
@@ -150,7 +163,8 @@ def concurrent_default() -> bool:
 
 
 def _run_case(case_dir, found: Identifiers, ids: Identifiers, *, overrides, views, cache_dir,
-              out_dir, progress, report, keep_identifiers, t_start, concurrent) -> list[dict]:
+              out_dir, progress, report, keep_identifiers, t_start, concurrent,
+              sim_progress=None) -> list[dict]:
     from regtrack.case import load_case
 
     case = load_case(case_dir)
@@ -178,7 +192,8 @@ def _run_case(case_dir, found: Identifiers, ids: Identifiers, *, overrides, view
     if not keep_identifiers:
         case = dataclasses.replace(case, id=pseudonymous_id(case.id, found),
                                    title=found.scrub(case.title))
-    ctx = RunContext(case, configs, protocol_tables, cache, progress=progress, ids=ids)
+    ctx = RunContext(case, configs, protocol_tables, cache, progress=progress, ids=ids,
+                     sim_progress=sim_progress)
     # the real mammograms first: a bad DICOM fails in seconds, before any stage is
     # computed or cached
     reals = {view: stages.real_stage(ctx, view) for view in views if view in case.views}

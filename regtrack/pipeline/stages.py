@@ -7,8 +7,10 @@ simulation, so changing a registration setting never re-simulates.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
+import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -143,18 +145,42 @@ def simulate_stage(ctx, mesh: MeshOutput, view: str) -> SimOutput:
         ctx.say(f"simulate {view}: {protocol.name} protocol ({len(protocol.steps)} steps)")
         with ctx.cache.produce("simulate", key, info={"view": view}) as d:
             simulate_view(ctx.case, mesh.model, view, out_dir=d, mechanics=mech, contact=contact,
-                          protocol=protocol, progress=None)
+                          protocol=protocol, progress=increment_hook(ctx, view))
             for f in d.iterdir():  # fixed names inside the cache folder
                 suffix = "_steps.png" if f.name.endswith("_steps.png") else f.suffix
                 f.rename(d / f"result{suffix}")
             _checked_result(ctx, d, mesh, view)  # a failed check never enters the cache
         hit = ctx.cache.folder("simulate", key)
-    else:
+        ctx.produced.add(("simulate", key))
+        if ctx.sim_progress is not None:
+            ctx.sim_progress(view, None, 1.0)
+        ctx.say(f"simulate {view}: done ({time.perf_counter() - t0:.0f} s)")
+    elif ("simulate", key) not in ctx.produced:  # not just simulated by a worker process
         ctx.say(f"simulate {view}: found in the cache")
     doc, positions = _checked_result(ctx, hit, mesh, view)
     angle = (doc.get("plate_frame") or {}).get("angle_deg")
     _timed(ctx, f"simulate_{view}", t0)
     return SimOutput(view, key, hit, doc["summary"], doc["steps"], positions, angle)
+
+
+def increment_hook(ctx, view: str):
+    """The solver's ``progress(step_name, t, **info)`` callback (called after every
+    converged increment) relayed to ``ctx.sim_progress(view, step, t, increment=k,
+    **info)``, with ``k`` the increment's number in its step (counted here: it restarts
+    when a step starts again from a smaller t, as an automatic retry does).  None when
+    nobody listens."""
+    if ctx.sim_progress is None:
+        return None
+    state = {"step": None, "t": 0.0, "k": 0}
+
+    def hook(step_name: str, t: float, *_: Any, **info: Any) -> None:
+        t = float(t)
+        if step_name != state["step"] or t < state["t"]:
+            state.update(step=step_name, k=0)
+        state["k"] += 1
+        state["t"] = t
+        ctx.sim_progress(view, step_name, t, **{"increment": state["k"], **info})
+    return hook
 
 
 def simulate_concurrently(ctx, mesh: MeshOutput, views, *, worker=None) -> dict[str, Exception]:
@@ -177,42 +203,103 @@ def simulate_concurrently(ctx, mesh: MeshOutput, views, *, worker=None) -> dict[
     in strict CNR mode, :mod:`regtrack.mechanics.linsolve`).
     """
     import concurrent.futures as cf
-    import dataclasses
     import multiprocessing
 
-    todo = [v for v in views
-            if ctx.cache.lookup("simulate", simulate_key(ctx, mesh.key, v)) is None]
+    keys = {v: simulate_key(ctx, mesh.key, v) for v in views}
+    todo = [v for v in views if ctx.cache.lookup("simulate", keys[v]) is None]
     if len(todo) < 2:
         return {}
     t0 = time.perf_counter()
     ctx.say(f"simulate {' and '.join(todo)} at the same time ({len(todo)} processes)")
-    lite = dataclasses.replace(ctx, progress=None, timings={})
+    lite = dataclasses.replace(ctx, progress=None, timings={}, sim_progress=None)
     failed: dict[str, Exception] = {}
-    with cf.ProcessPoolExecutor(max_workers=len(todo),
-                                mp_context=multiprocessing.get_context("spawn")) as pool:
-        futures = {pool.submit(worker or _simulate_worker, lite, mesh, v): v for v in todo}
-        for fut in cf.as_completed(futures):
-            view = futures[fut]
-            try:
-                seconds = fut.result()
-                ctx.say(f"simulate {view}: done ({seconds:.0f} s)")
-            except RegtrackError as exc:
-                failed[view] = exc
-                ctx.say(f"simulate {view}: failed")
-            except Exception as exc:  # a dead worker, an error that did not pickle
-                log.warning("simulate %s: the worker process failed (%s: %s); simulating it "
-                            "again in this process", view, type(exc).__name__, exc)
+    mp = multiprocessing.get_context("spawn")
+    reports = mp.Queue()  # the workers' increments and log records
+    relay = threading.Thread(target=_relay, args=(reports, ctx), daemon=True)
+    relay.start()
+    try:
+        with cf.ProcessPoolExecutor(max_workers=len(todo), mp_context=mp, initializer=_init_worker,
+                                    initargs=(reports, ctx.sim_progress is not None)) as pool:
+            futures = {pool.submit(worker or _simulate_worker, lite, mesh, v): v for v in todo}
+            for fut in cf.as_completed(futures):
+                view = futures[fut]
+                try:
+                    seconds = fut.result()  # the worker said "finished" on the queue
+                    ctx.produced.add(("simulate", keys[view]))
+                    ctx.say(f"simulate {view}: done ({seconds:.0f} s)")
+                except RegtrackError as exc:
+                    failed[view] = exc
+                    reports.put((view, None, 1.0, {}))  # after the worker's increments
+                    ctx.say(f"simulate {view}: failed")
+                except Exception as exc:  # a dead worker, an error that did not pickle
+                    reports.put((view, None, 1.0, {}))
+                    log.warning("simulate %s: the worker process failed (%s: %s); simulating "
+                                "it again in this process", view, type(exc).__name__, exc)
+    finally:
+        reports.put(None)
+        relay.join(timeout=5)
     _timed(ctx, "simulate_concurrent", t0)
     return failed
 
 
+#: in a worker process of :func:`simulate_concurrently`: the queue to the parent, and
+#: whether the parent shows the increments
+_REPORTS: Any = None
+_SHOW_INCREMENTS = False
+
+
+def _init_worker(reports, show_increments: bool) -> None:
+    """Worker start-up: log records go to the parent (which filters, scrubs and prints
+    them once, like its own), and so do the increments when the parent shows them."""
+    import logging.handlers
+
+    global _REPORTS, _SHOW_INCREMENTS
+    _REPORTS, _SHOW_INCREMENTS = reports, show_increments
+    root = logging.getLogger()
+    for h in list(root.handlers):
+        root.removeHandler(h)
+    root.addHandler(logging.handlers.QueueHandler(reports))
+    root.setLevel(logging.WARNING)
+
+
+def worker_context(ctx):
+    """``ctx`` in a worker process, its ``sim_progress`` sending the increments to the
+    parent when the parent shows them (unchanged elsewhere)."""
+    if _REPORTS is None or not _SHOW_INCREMENTS:
+        return ctx
+    reports = _REPORTS
+
+    def relay(view, step, t, **info):
+        reports.put((view, step, t, info))
+    return dataclasses.replace(ctx, sim_progress=relay)
+
+
+def _relay(reports, ctx) -> None:
+    """Parent thread: hand the workers' reports on until ``None`` arrives."""
+    while True:
+        try:
+            item = reports.get()
+        except (EOFError, OSError):
+            return
+        if item is None:
+            return
+        if isinstance(item, logging.LogRecord):
+            logging.getLogger(item.name).handle(item)
+        elif ctx.sim_progress is not None:
+            view, step, t, info = item
+            ctx.sim_progress(view, step, t, **info)
+
+
 def _simulate_worker(ctx, mesh: MeshOutput, view: str) -> float:
     """One view's :func:`simulate_stage` in a worker process of
-    :func:`simulate_concurrently`; warnings go to stderr, scrubbed like the caller's."""
+    :func:`simulate_concurrently`; its warnings and increments go to the parent
+    (:func:`_init_worker`), scrubbed like the caller's."""
     from regtrack.privacy import scrub_logs
 
-    logging.basicConfig(level=logging.WARNING,
-                        format=f"[{view}] %(levelname)s %(name)s: %(message)s")
+    if _REPORTS is None:  # not started by simulate_concurrently: print warnings here
+        logging.basicConfig(level=logging.WARNING,
+                            format=f"[{view}] %(levelname)s %(name)s: %(message)s")
+    ctx = worker_context(ctx)
     t0 = time.perf_counter()
     with scrub_logs(ctx.ids):
         simulate_stage(ctx, mesh, view)
