@@ -218,3 +218,14 @@ def test_truth_table_rows(tmp_path, missing):
     assert rows[0] == ["In-plane rotation (°)", "CC", "5.00", "3.72", "-1.28"]
     assert rows[1][-1] == "0.0" and rows[2][-1] == "+6.2"
     assert rows[3][-1] == "0.7 mm apart"
+
+
+def test_a_case_without_mammograms_gets_virtual_pages_and_no_verdict(tmp_path):
+    _, virt = _views()
+    rep = CaseReport("case02", "no mammograms", [ViewReport("CC", {"view": "CC", "D": 0.38},
+                                                            virtual=virt)])
+    assert case_checks(rep) == []
+    joined = "\n".join(_texts(rep))
+    assert "No quality check could be made" in joined and "virtual CC (R)" in joined
+    data = write_pdf(rep, tmp_path / "r.pdf").read_bytes()
+    assert len(re.findall(rb"/Type\s*/Page\b", data)) == 2

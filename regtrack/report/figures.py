@@ -161,7 +161,8 @@ def draw_sequence(axes, points: np.ndarray, skin: np.ndarray, steps: list[dict],
             line = _plate_outline(pl, e_x, n, x_max)
             ax.plot(line[:, 0], line[:, 1], color="#3050a0", lw=1.5)
         D = st.get("D")
-        ax.set_title(st.get("name", "") + ("" if D is None else f"\nD = {100 * D:.1f} %"),
+        ax.set_title(str(st.get("name", "")).replace("-", " ")
+                     + ("" if D is None else f"\nD = {100 * D:.1f} %"),
                      fontsize=8)
         ax.set_aspect("equal")
         ax.autoscale_view()
