@@ -108,10 +108,11 @@ def summary_page(fig, report, checks, verdict: str, metrics_head, metrics_rows, 
             fig.text(0.05, y, line, fontsize=8.5, color="0.25", va="top")
             y -= 0.016
     flagged = any(c.ok is False for c in checks)
+    colour = "0.2" if not checks else "#b35a00" if flagged else "#1d6b1d"
     y -= 0.008
     lines = textwrap.wrap("Verdict: " + verdict, 100)
     fig.text(0.05, y, "\n".join(lines), fontsize=10.5, weight="bold", va="top",
-             color="#b35a00" if flagged else "#1d6b1d")
+             color=colour)
     y -= 0.017 * (len(lines) - 1)
     views = [v.view for v in report.views]
     head, rows, colours = verdict_cells(checks, views)
@@ -143,9 +144,12 @@ def summary_page(fig, report, checks, verdict: str, metrics_head, metrics_rows, 
                            title=f"{v.view}: virtual rotated by θp = "
                                  f"{num(v.alignment.theta_p, 2, signed=True)}°", legend=False)
         F.overlay_legend(fig, ax, y=0.005)
-    elif report.views and report.views[0].virtual is not None:
-        ax = fig.add_axes([0.1, 0.08, 0.8, top - 0.14])
-        F.draw_virtual(ax, report.views[0].virtual)
+    else:  # no registration: the virtual mammograms
+        shown = [v for v in report.views if v.virtual is not None]
+        w = 0.86 / max(len(shown), 1)
+        for k, v in enumerate(shown):
+            F.draw_virtual(fig.add_axes([0.08 + k * (w + 0.02), 0.06, w - 0.06, top - 0.12]),
+                           v.virtual)
 
 
 def steps_cells(steps: list[dict]) -> tuple[list[str], list[list[str]]]:
