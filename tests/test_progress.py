@@ -5,7 +5,6 @@ helpers, and console paths named as the user gave them."""
 from __future__ import annotations
 
 import logging
-from pathlib import Path
 
 import pytest
 

@@ -18,7 +18,6 @@ from typing import Any
 
 import numpy as np
 
-from regtrack import _io
 from regtrack.config import to_table
 from regtrack.errors import RegtrackError
 from regtrack.pipeline.cache import file_digest, fingerprint

@@ -1,7 +1,7 @@
 """The report's verdict: fit-quality checks of each view against stated thresholds.
 
-A check that fails does not stop the pipeline: it is printed on the report's first page
-(and in ``metrics.json``) so that a poor fit is never read as a good one.  The thresholds:
+A check that fails does not stop the pipeline: it is printed on the report's first page,
+so that a poor fit is never read as a good one.  The thresholds:
 
 * **BS_Av >= 30 %** (:data:`BS_AV_MIN`).  BS_Av is the share of the summed breast-contour
   distance left by the nipple superposition that the rotation theta_p removes (eq. 4 of
