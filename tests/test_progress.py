@@ -107,3 +107,19 @@ def test_console_lines_name_files_as_the_user_gave_them(tmp_path, monkeypatch, c
     ids = identifiers_of_case_folder("cases/p01")
     assert ids.scrub(f"{case.resolve()}/mammo/mlo.dcm", console=console) == shown
     assert Identifiers().scrub("/a/b.dcm", console=console) == "/a/b.dcm"
+
+
+def test_the_log_handlers_get_their_streams_back(capsys):
+    import sys
+
+    from rich.console import Console
+
+    h = logging.StreamHandler(sys.stderr)
+    logging.getLogger().addHandler(h)
+    try:
+        for terminal in (False, True):
+            with SimulationProgress(Console(stderr=True, force_terminal=terminal)):
+                pass
+            assert h.stream is sys.stderr
+    finally:
+        logging.getLogger().removeHandler(h)

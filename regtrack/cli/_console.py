@@ -72,8 +72,11 @@ class SimulationProgress:
         self.bar.start()
         for h in logging.getLogger().handlers:
             h.addFilter(self.once)
-            if isinstance(h, logging.StreamHandler) and h.stream in (sys.__stderr__, sys.stderr):
-                self._streams.append((h, h.setStream(self.console.file)))
+            live = self.console.file  # the live display's proxy of stderr on a terminal
+            if (isinstance(h, logging.StreamHandler) and h.stream is not live
+                    and h.stream in (sys.__stderr__, sys.stderr)):
+                self._streams.append((h, h.stream))
+                h.setStream(live)
         return self
 
     def __exit__(self, *exc: Any) -> None:
