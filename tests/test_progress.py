@@ -123,3 +123,25 @@ def test_the_log_handlers_get_their_streams_back(capsys):
             assert h.stream is sys.stderr
     finally:
         logging.getLogger().removeHandler(h)
+
+
+@pytest.mark.parametrize("quiet", [True, False])
+def test_run_is_quiet_under_q(monkeypatch, capsys, tmp_path, quiet):
+    """``regtrack -q run``: no stage lines, no live lines, no summary; warnings still."""
+    import regtrack.pipeline.run as pr
+    from regtrack.cli import main
+    from tests.conftest import SAMPLE_CASES
+
+    got = {}
+
+    def fake_run_case(case, **kw):
+        got.update(kw)
+        if kw["progress"] is not None:
+            kw["progress"]("mesh: found in the cache")
+        return [{"view": "CC", "BS_Av": 56.8}]
+    monkeypatch.setattr(pr, "run_case", fake_run_case)
+    argv = ["-q"] * quiet + ["run", str(SAMPLE_CASES / "phantom01"), "--out", str(tmp_path)]
+    assert main(argv) == 0
+    err = capsys.readouterr().err
+    assert (got["progress"] is None and got["sim_progress"] is None) == quiet
+    assert ("report written" in err) != quiet and ("found in the cache" in err) != quiet
