@@ -148,19 +148,15 @@ def write_report(ctx, mesh, results: list, out: Path, prov: dict) -> Path:
                                 _steps_rows(r.sim.steps), [vdir / "compression.png"],
                                 {"summary": r.sim.summary, "steps": r.sim.steps}, seq))
     tracked = None
-    extra = []
     if all(r.real is not None for r in results):
         tracked = _tracking(mesh, results, out, truth)
-        if tracked is not None:
-            res, reals = tracked
-            from regtrack.tracking.figures import draw_tracking_page
-
-            txy = None if truth is None else truth.tumour_xy()
-            extra.append(lambda fig: draw_tracking_page(fig, res, reals, truth=txy))
     lesion = None if tracked is None or tracked[0].mri is None else tracked[0].mri.lps_mm
     write_3d_outputs(model, states, out, lesion_lps=lesion,
                      lesion_label="tumour centroid (MRI, tracked)")
+    for p in mesh.pictures:  # model_3d.png, model_sections.png
+        _io.write_bytes(out / "model" / p.name, p.read_bytes())
     appendix = []
+    truth_section = None
     if truth is not None:
         res_by_view = {r.view: {"theta_p": r.row.get("theta_p"), "D": r.row.get("D"),
                                 "force_N": r.row.get("force_N")} for r in results}
@@ -171,8 +167,16 @@ def write_report(ctx, mesh, results: list, out: Path, prov: dict) -> Path:
         head, rows = truth_table(truth, res_by_view,
                                  tumour_volume_mm3=float(vol[np.asarray(model.region) == 2].sum()),
                                  nipple_lps_mm=model.frame.origin)
-        appendix.append((f"Ground truth ({', '.join(truth.files)}) against the result", head,
-                         rows, [0.05, 0.36, 0.43, 0.60, 0.77], [48, 6, 26, 26, 26]))
+        truth_section = (f"Ground truth ({', '.join(truth.files)}) against the result", head,
+                         rows, [0.05, 0.36, 0.43, 0.60, 0.77], [48, 6, 26, 26, 26])
+    extra = []
+    if tracked is not None:
+        page, on_page = _tracking_page(tracked, truth, truth_section)
+        extra.append(page)
+        if truth_section is not None and not on_page:
+            appendix.append(truth_section)
+    elif truth_section is not None:
+        appendix.append(truth_section)
     appendix.append(("Patient model", ["Item", "Value"], model_rows(model), [0.05, 0.27],
                      [34, 112]))
     changed = changed_settings(ctx.configs, prov.get("protocol_overrides"))
@@ -186,6 +190,27 @@ def write_report(ctx, mesh, results: list, out: Path, prov: dict) -> Path:
     path = write_pdf(rep, out / "report.pdf")
     ctx.timings["report"] = ctx.timings.get("report", 0.0) + time.perf_counter() - t0
     return path
+
+
+def _tracking_page(tracked, truth, truth_section):
+    """The tracking page's drawing function, and whether it carries the truth table (in
+    the space the tracking text leaves above the panels, when the table fits there)."""
+    import textwrap
+
+    from regtrack.report.pages import flow_table
+    from regtrack.tracking.figures import draw_tracking_page, summary_lines
+
+    res, reals = tracked
+    txy = None if truth is None else truth.tumour_xy()
+    n = len([w for ln in summary_lines(res) for w in (textwrap.wrap(ln, 115) or [""])][:22])
+    top = 0.92 - 0.0105 * n - 0.03  # below the tracking text (7 pt lines)
+    fits = truth_section is not None and top - 0.03 - 0.0165 * (len(truth_section[2]) + 1) > 0.58
+
+    def draw(fig) -> None:
+        draw_tracking_page(fig, res, reals, truth=txy)
+        if fits:
+            flow_table(fig, top, *truth_section[:3], x=truth_section[3], wrap=truth_section[4])
+    return draw, fits
 
 
 def _tracking(mesh, results: list, out: Path, truth):
