@@ -237,6 +237,7 @@ def simulate_concurrently(ctx, mesh: MeshOutput, views, *, worker=None) -> dict[
     finally:
         reports.put(None)
         relay.join(timeout=5)
+        reports.close()
     _timed(ctx, "simulate_concurrent", t0)
     return failed
 
