@@ -215,7 +215,12 @@ def view_page(fig, v) -> None:
 def appendix_page(fig, sections: list[tuple[str, list[str], list[list[str]], list[float], list[int]]]
                   ) -> None:
     """The appendix: a title and each ``(heading, head, rows, x, wrap)`` table in turn."""
-    title(fig, "Appendix: ground truth, model, settings and provenance", size=13)
+    names = ["ground truth" if h.startswith("Ground truth") else h.split(" (")[0].lower()
+             for h, *_ in sections]
+    names = ["model" if n == "patient model" else "settings" if n.startswith("settings") else n
+             for n in names]
+    title(fig, "Appendix: " + (", ".join(names[:-1]) + " and " + names[-1] if len(names) > 1
+                               else names[0]), size=13)
     y = 0.935
     for heading, head, rows, x, wrap in sections:
         y = flow_table(fig, y, heading, head, rows, x=x, wrap=wrap)
