@@ -178,8 +178,9 @@ def view_page(fig, v) -> None:
         axes = [fig.add_axes([0.07 + j * w, 0.745, w - 0.025, 0.18]) for j in range(k)]
         F.draw_sequence(axes, seq.points, seq.skin, seq.steps, seq.states, seq.plate_frame)
         same_limits(axes)
-        for a in axes[1:]:
+        for a in axes[1:]:  # same limits: the first panel's scale serves all
             a.set_ylabel("")
+            a.tick_params(labelleft=False)
     elif v.pictures and v.pictures[0].is_file():
         import matplotlib.pyplot as plt
 
