@@ -105,11 +105,17 @@ class Identifiers:
         Every form to scrub (PN components, date formats, ...), at least 3 characters.
     paths : dict
         Absolute paths (the case folder) replaced by a neutral label.
+    shown : dict
+        The same paths as the user gave them on the command line: log records and
+        progress lines (the user's own console) name the case's files this way, so a
+        warning says ``cases/p01/mammo/mlo.dcm``, not ``<case>/mammo/mlo.dcm``; output
+        files keep the neutral label.  Identifiers inside them are still redacted.
     """
 
     by_keyword: dict[str, list[str]] = field(default_factory=dict)
     values: set[str] = field(default_factory=set)
     paths: dict[str, str] = field(default_factory=dict)
+    shown: dict[str, str] = field(default_factory=dict)
 
     REDACTED = "[redacted]"
 
@@ -128,11 +134,12 @@ class Identifiers:
         alts = sorted(self.values, key=len, reverse=True)  # longest first
         return re.compile("|".join(re.escape(a) for a in alts), re.IGNORECASE)
 
-    def scrub(self, text: str) -> str:
+    def scrub(self, text: str, *, console: bool = False) -> str:
         """``text`` with every identifier replaced by ``[redacted]`` and every recorded
-        absolute path by its label (case-insensitive)."""
+        absolute path by its label (case-insensitive); ``console``: by the path as the
+        user gave it (:attr:`shown`), for log records and progress lines."""
         for p, label in sorted(self.paths.items(), key=lambda kv: -len(kv[0])):
-            text = text.replace(p, label)
+            text = text.replace(p, self.shown.get(p, label) if console else label)
         pat = self._pattern()
         return text if pat is None else pat.sub(self.REDACTED, text)
 
@@ -242,6 +249,8 @@ def identifiers_of_case_folder(path: str | os.PathLike) -> Identifiers:
     given = str(root)
     if len(given) >= 3 and given.strip("./"):
         ids.paths[given] = "<case>"
+    for p in list(ids.paths):
+        ids.shown[p] = given
     try:
         doc = tomllib.loads(toml.read_text(encoding="utf-8"))
     except Exception:  # noqa: BLE001 - the loader reports a bad case.toml
@@ -294,7 +303,7 @@ class ScrubFilter(logging.Filter):
             msg = record.getMessage()
         except Exception:  # noqa: BLE001 - leave malformed records to logging
             return True
-        clean = self.ids.scrub(msg)
+        clean = self.ids.scrub(msg, console=True)
         if clean != msg or record.args:
             record.msg, record.args = clean, None
         return True

@@ -34,37 +34,37 @@ def run(args: argparse.Namespace) -> int:
     from rich.console import Console
 
     from regtrack.case import load_case
+    from regtrack.cli._console import SimulationProgress
     from regtrack.pipeline.run import run_case
-
     from regtrack.cli._checks import writable_folder
+    from regtrack.privacy import Identifiers, identifiers_of_case_folder, pseudonymous_id, scrub_logs
 
     console = Console(stderr=True)
+    quiet = bool(getattr(args, "quiet", False))
     # everything the command line decides is checked before the case is read or any
     # stage runs: the override keys and the folders written at the end
     overrides = parse_sets(args.set)
     writable_folder(args.out, "--out")
     writable_folder(args.cache, "--cache")
-    from regtrack.privacy import Identifiers, identifiers_of_case_folder, pseudonymous_id, scrub_logs
-
-    found = identifiers_of_case_folder(args.case)
-    with scrub_logs(Identifiers() if args.keep_identifiers else found):
-        case = load_case(args.case, deep=False)
-    case_id = case.id if args.keep_identifiers else pseudonymous_id(case.id, found)
-    out = Path(args.out) if args.out else Path("reports") / case_id
-    writable_folder(out, "--out")
-    views = tuple(v.strip().upper() for v in args.views.split(",")) if args.views else None
     t0 = time.perf_counter()
-
-    def progress(msg: str) -> None:
-        console.print(f"[dim]{time.perf_counter() - t0:7.1f} s[/dim]  {msg}")
-
     # stage messages go to the console; keep library INFO logs for --debug
     if not logging.getLogger().isEnabledFor(logging.DEBUG):
         logging.getLogger("regtrack").setLevel(logging.WARNING)
-    rows = run_case(args.case, overrides=overrides, views=views, cache_dir=args.cache,
-                    out_dir=out, progress=progress, report=not args.no_report,
-                    keep_identifiers=args.keep_identifiers,
-                    concurrent=False if args.serial_views else None)
+    with SimulationProgress(console) as shown:  # from here on, each warning once
+        found = identifiers_of_case_folder(args.case)
+        with scrub_logs(Identifiers() if args.keep_identifiers else found):
+            case = load_case(args.case, deep=False)
+        case_id = case.id if args.keep_identifiers else pseudonymous_id(case.id, found)
+        out = Path(args.out) if args.out else Path("reports") / case_id
+        writable_folder(out, "--out")
+        views = tuple(v.strip().upper() for v in args.views.split(",")) if args.views else None
+        rows = run_case(args.case, overrides=overrides, views=views, cache_dir=args.cache,
+                        out_dir=out, progress=None if quiet else shown.say,
+                        sim_progress=None if quiet else shown.increment,
+                        report=not args.no_report, keep_identifiers=args.keep_identifiers,
+                        concurrent=False if args.serial_views else None)
+    if quiet:
+        return 0
     for r in rows:
         def f(k, fmt):
             v = r.get(k)

@@ -35,6 +35,10 @@ from regtrack.views import VIEWS
 log = logging.getLogger(__name__)
 
 Progress = Callable[[str], None]
+#: ``sim_progress(view, step, t, **info)`` after every converged increment of a simulation
+#: (``info``: ``increment`` in the step, and whatever the solver reports, e.g. ``D``,
+#: ``force_N``); ``step`` None when the view's simulation has finished
+SimProgress = Callable[..., None]
 
 
 @dataclass
@@ -48,9 +52,12 @@ class RunContext:
     progress: Progress | None = None
     #: identifiers to keep out of outputs (empty with --keep-identifiers)
     ids: Identifiers = field(default_factory=Identifiers)
+    sim_progress: SimProgress | None = None
+    #: (stage, key) of the stages produced in this run (by this process or its workers)
+    produced: set = field(default_factory=set)
 
     def say(self, msg: str) -> None:
-        msg = self.ids.scrub(msg)
+        msg = self.ids.scrub(msg, console=True)
         log.info(msg)
         if self.progress is not None:
             self.progress(msg)
@@ -64,7 +71,8 @@ def run_case(case_dir: str | Path, *, overrides: dict | None = None,
              views: tuple[str, ...] | list[str] | None = None, cache_dir: str | Path | None = None,
              out_dir: str | Path | None = None, progress: Progress | None = None,
              report: bool = True, keep_identifiers: bool = False,
-             concurrent: bool | None = None) -> list[dict]:
+             concurrent: bool | None = None, sim_progress: SimProgress | None = None
+             ) -> list[dict]:
     """Run the whole pipeline on a case; return one flat metrics row per view.
 
     Parameters
@@ -81,6 +89,10 @@ def run_case(case_dir: str | Path, *, overrides: dict | None = None,
         Where metrics, figures and the PDF go; nothing is written there when None.
     progress : callable, optional
         Called with one line per stage.
+    sim_progress : callable, optional
+        Called inside each simulation after every converged increment (see
+        :data:`SimProgress`), from this process or, for views simulated at the same time,
+        from a thread relaying the worker processes' reports.
     report : bool
         Write figures and the PDF (``out_dir`` required).
     keep_identifiers : bool
@@ -101,6 +113,7 @@ def run_case(case_dir: str | Path, *, overrides: dict | None = None,
         return _run_case(case_dir, found, ids, overrides=overrides, views=views,
                          cache_dir=cache_dir, out_dir=out_dir, progress=progress, report=report,
                          keep_identifiers=keep_identifiers, t_start=t_start,
+                         sim_progress=sim_progress,
                          concurrent=concurrent_default() if concurrent is None else concurrent)
 
 
@@ -114,7 +127,8 @@ def concurrent_default() -> bool:
 
 
 def _run_case(case_dir, found: Identifiers, ids: Identifiers, *, overrides, views, cache_dir,
-              out_dir, progress, report, keep_identifiers, t_start, concurrent) -> list[dict]:
+              out_dir, progress, report, keep_identifiers, t_start, concurrent,
+              sim_progress=None) -> list[dict]:
     from regtrack.case import load_case, resolve_configs
 
     case = load_case(case_dir)
@@ -130,7 +144,7 @@ def _run_case(case_dir, found: Identifiers, ids: Identifiers, *, overrides, view
         case = dataclasses.replace(case, id=pseudonymous_id(case.id, found),
                                    title=found.redact(case.title, "[case] title"))
     ctx = open_run(case, resolve_configs(case, overrides), cache_dir=cache_dir,
-                   progress=progress, ids=ids)
+                   progress=progress, ids=ids, sim_progress=sim_progress)
     mesh_out, results = run_stages(ctx, views, concurrent=concurrent)
     rows = [r.row for r in results]
     ctx.timings["total"] = time.perf_counter() - t_start
@@ -173,7 +187,8 @@ def select_views(case: Any, views: tuple[str, ...] | list[str] | None = None) ->
 
 
 def open_run(case: Any, configs: Configs, *, cache_dir: str | Path | None = None,
-             progress: Progress | None = None, ids: Identifiers | None = None) -> RunContext:
+             progress: Progress | None = None, ids: Identifiers | None = None,
+             sim_progress: SimProgress | None = None) -> RunContext:
     """The context every stage of a run of ``case`` reads: its ``configs``
     (:func:`regtrack.case.resolve_configs`) and the stage cache (``cache_dir``, default
     :data:`~regtrack.pipeline.cache.DEFAULT_CACHE`).
@@ -184,7 +199,7 @@ def open_run(case: Any, configs: Configs, *, cache_dir: str | Path | None = None
     """
     cache = StageCache(Path(cache_dir) if cache_dir else DEFAULT_CACHE)
     return RunContext(case, configs, cache, progress=progress,
-                      ids=ids if ids is not None else Identifiers())
+                      ids=ids if ids is not None else Identifiers(), sim_progress=sim_progress)
 
 
 def missing_stages(ctx: RunContext, views: tuple[str, ...] | list[str]) -> list[str]:
@@ -246,6 +261,8 @@ def provenance(ctx: RunContext, mesh_out, results) -> dict:
     """Configuration, versions, inputs and timings of a run (written into every output)."""
     import importlib.metadata as md
 
+    from regtrack.pipeline.outputs import input_digests
+
     versions = {"regtrack": __version__, "python": platform.python_version()}
     for pkg in ("numpy", "scipy", "gmsh", "pydicom", "scikit-image", "opencv-python-headless",
                 "shapely", "meshio", "pypardiso", "numba"):
@@ -258,6 +275,7 @@ def provenance(ctx: RunContext, mesh_out, results) -> dict:
         "config": ctx.configs.to_tables(),
         "protocol_overrides": ctx.configs.protocol_tables,
         "overrides": ctx.configs.overrides,
+        "inputs": input_digests(ctx.case),
         "stage_keys": {"mesh": mesh_out.key, **{f"simulate_{r.view}": r.sim_key for r in results}},
         "cache": {"hits": ctx.cache.hits, "misses": ctx.cache.misses},
         "timings_s": ctx.timings,

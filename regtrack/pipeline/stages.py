@@ -7,8 +7,10 @@ simulation, so changing a registration setting never re-simulates.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
+import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -16,7 +18,6 @@ from typing import Any
 
 import numpy as np
 
-from regtrack import _io
 from regtrack.config import to_table
 from regtrack.errors import RegtrackError
 from regtrack.pipeline.cache import file_digest, fingerprint
@@ -129,18 +130,42 @@ def simulate_stage(ctx, mesh: MeshOutput, view: str) -> SimOutput:
         ctx.say(f"simulate {view}: {protocol.name} protocol ({len(protocol.steps)} steps)")
         with ctx.cache.produce("simulate", key, info={"view": view}) as d:
             simulate_view(ctx.case, mesh.model, view, out_dir=d, mechanics=mech, contact=contact,
-                          protocol=protocol, progress=None)
+                          protocol=protocol, progress=increment_hook(ctx, view))
             for f in d.iterdir():  # fixed names inside the cache folder
                 suffix = "_steps.png" if f.name.endswith("_steps.png") else f.suffix
                 f.rename(d / f"result{suffix}")
             _checked_result(ctx, d, mesh, view)  # a failed check never enters the cache
         hit = ctx.cache.folder("simulate", key)
-    else:
+        ctx.produced.add(("simulate", key))
+        if ctx.sim_progress is not None:
+            ctx.sim_progress(view, None, 1.0)
+        ctx.say(f"simulate {view}: done ({time.perf_counter() - t0:.0f} s)")
+    elif ("simulate", key) not in ctx.produced:  # not just simulated by a worker process
         ctx.say(f"simulate {view}: found in the cache")
     doc, positions = _checked_result(ctx, hit, mesh, view)
     angle = (doc.get("plate_frame") or {}).get("angle_deg")
     _timed(ctx, f"simulate_{view}", t0)
     return SimOutput(view, key, hit, doc["summary"], doc["steps"], positions, angle)
+
+
+def increment_hook(ctx, view: str):
+    """The solver's ``progress(step_name, t, **info)`` callback (called after every
+    converged increment) relayed to ``ctx.sim_progress(view, step, t, increment=k,
+    **info)``, with ``k`` the increment's number in its step (counted here: it restarts
+    when a step starts again from a smaller t, as an automatic retry does).  None when
+    nobody listens."""
+    if ctx.sim_progress is None:
+        return None
+    state = {"step": None, "t": 0.0, "k": 0}
+
+    def hook(step_name: str, t: float, *_: Any, **info: Any) -> None:
+        t = float(t)
+        if step_name != state["step"] or t < state["t"]:
+            state.update(step=step_name, k=0)
+        state["k"] += 1
+        state["t"] = t
+        ctx.sim_progress(view, step_name, t, **{"increment": state["k"], **info})
+    return hook
 
 
 def simulate_concurrently(ctx, mesh: MeshOutput, views, *, worker=None) -> dict[str, Exception]:
@@ -163,49 +188,115 @@ def simulate_concurrently(ctx, mesh: MeshOutput, views, *, worker=None) -> dict[
     CNR mode, :mod:`regtrack.mechanics.linsolve`).
     """
     import concurrent.futures as cf
-    import dataclasses
     import multiprocessing
 
-    todo = [v for v in views
-            if ctx.cache.lookup("simulate", simulate_key(ctx, mesh.key, v)) is None]
+    from regtrack._signals import stop_pool
+
+    keys = {v: simulate_key(ctx, mesh.key, v) for v in views}
+    todo = [v for v in views if ctx.cache.lookup("simulate", keys[v]) is None]
     if len(todo) < 2:
         return {}
     t0 = time.perf_counter()
     ctx.say(f"simulate {' and '.join(todo)} at the same time ({len(todo)} processes)")
-    lite = dataclasses.replace(ctx, progress=None, timings={})
-    from regtrack._signals import init_worker, stop_pool
-
+    lite = dataclasses.replace(ctx, progress=None, timings={}, sim_progress=None)
     failed: dict[str, Exception] = {}
-    pool = cf.ProcessPoolExecutor(max_workers=len(todo), initializer=init_worker,
-                                  mp_context=multiprocessing.get_context("spawn"))
+    mp = multiprocessing.get_context("spawn")
+    reports = mp.Queue()  # the workers' increments and log records
+    relay = threading.Thread(target=_relay, args=(reports, ctx), daemon=True)
+    relay.start()
+    pool = cf.ProcessPoolExecutor(max_workers=len(todo), mp_context=mp, initializer=_init_worker,
+                                  initargs=(reports, ctx.sim_progress is not None))
     try:
         futures = {pool.submit(worker or _simulate_worker, lite, mesh, v): v for v in todo}
         for fut in cf.as_completed(futures):
             view = futures[fut]
             try:
-                seconds = fut.result()
+                seconds = fut.result()  # the worker said "finished" on the queue
+                ctx.produced.add(("simulate", keys[view]))
                 ctx.say(f"simulate {view}: done ({seconds:.0f} s)")
             except RegtrackError as exc:
                 failed[view] = exc
+                reports.put((view, None, 1.0, {}))  # after the worker's increments
                 ctx.say(f"simulate {view}: failed")
             except Exception as exc:  # a dead worker, an error that did not pickle
-                log.warning("simulate %s: the worker process failed (%s: %s); simulating it "
-                            "again in this process", view, type(exc).__name__, exc)
+                reports.put((view, None, 1.0, {}))
+                log.warning("simulate %s: the worker process failed (%s: %s); simulating "
+                            "it again in this process", view, type(exc).__name__, exc)
     except BaseException:  # Ctrl-C, SIGTERM: stop the workers now, do not wait for them
         stop_pool(pool)
         raise
+    finally:
+        reports.put(None)
+        relay.join(timeout=5)
+        reports.close()
     pool.shutdown(wait=True)
     _timed(ctx, "simulate_concurrent", t0)
     return failed
 
 
+#: in a worker process of :func:`simulate_concurrently`: the queue to the parent, and
+#: whether the parent shows the increments
+_REPORTS: Any = None
+_SHOW_INCREMENTS = False
+
+
+def _init_worker(reports, show_increments: bool) -> None:
+    """Worker start-up: SIGINT ignored and SIGTERM a clean exit (:func:`regtrack._signals.
+    init_worker`); log records go to the parent (which filters, scrubs and prints them
+    once, like its own), and so do the increments when the parent shows them."""
+    import logging.handlers
+
+    from regtrack._signals import init_worker
+
+    init_worker()
+
+    global _REPORTS, _SHOW_INCREMENTS
+    _REPORTS, _SHOW_INCREMENTS = reports, show_increments
+    root = logging.getLogger()
+    for h in list(root.handlers):
+        root.removeHandler(h)
+    root.addHandler(logging.handlers.QueueHandler(reports))
+    root.setLevel(logging.WARNING)
+
+
+def worker_context(ctx):
+    """``ctx`` in a worker process, its ``sim_progress`` sending the increments to the
+    parent when the parent shows them (unchanged elsewhere)."""
+    if _REPORTS is None or not _SHOW_INCREMENTS:
+        return ctx
+    reports = _REPORTS
+
+    def relay(view, step, t, **info):
+        reports.put((view, step, t, info))
+    return dataclasses.replace(ctx, sim_progress=relay)
+
+
+def _relay(reports, ctx) -> None:
+    """Parent thread: hand the workers' reports on until ``None`` arrives."""
+    while True:
+        try:
+            item = reports.get()
+        except (EOFError, OSError):
+            return
+        if item is None:
+            return
+        if isinstance(item, logging.LogRecord):
+            logging.getLogger(item.name).handle(item)
+        elif ctx.sim_progress is not None:
+            view, step, t, info = item
+            ctx.sim_progress(view, step, t, **info)
+
+
 def _simulate_worker(ctx, mesh: MeshOutput, view: str) -> float:
     """One view's :func:`simulate_stage` in a worker process of
-    :func:`simulate_concurrently`; warnings go to stderr, scrubbed like the caller's."""
+    :func:`simulate_concurrently`; its warnings and increments go to the parent
+    (:func:`_init_worker`), scrubbed like the caller's."""
     from regtrack.privacy import scrub_logs
 
-    logging.basicConfig(level=logging.WARNING,
-                        format=f"[{view}] %(levelname)s %(name)s: %(message)s")
+    if _REPORTS is None:  # not started by simulate_concurrently: print warnings here
+        logging.basicConfig(level=logging.WARNING,
+                            format=f"[{view}] %(levelname)s %(name)s: %(message)s")
+    ctx = worker_context(ctx)
     t0 = time.perf_counter()
     with scrub_logs(ctx.ids):
         simulate_stage(ctx, mesh, view)
@@ -309,66 +400,8 @@ def virtual_only(ctx, sim: SimOutput, vm, view: str) -> ViewOutcome:
 
 # -- outputs ------------------------------------------------------------------------------
 def report_stage(ctx, mesh: MeshOutput, results: list[ViewOutcome], out: Path, prov: dict) -> Path:
-    """Per-view JSON and figures, then the PDF report."""
-    from regtrack.report import figures as F
-    from regtrack.report.pdf import CaseReport, ViewReport, write_pdf
+    """Per-view JSON and figures, the 3-D files, the tracking and the PDF report
+    (:func:`regtrack.pipeline.outputs.write_report`)."""
+    from regtrack.pipeline.outputs import write_report
 
-    t0 = time.perf_counter()
-    ctx.say("report: figures and PDF")
-    views = []
-    for r in results:
-        vdir = out / r.view.lower()
-        _io.write_json(vdir / "virtual.json", ctx.clean(r.virtual.view.to_dict()))
-        _io.write_json(vdir / "simulation.json", ctx.clean({"summary": r.sim.summary,
-                                                            "steps": r.sim.steps}))
-        if r.real is not None:
-            _io.write_json(vdir / "real.json", ctx.clean(r.real.to_dict()))
-            _io.write_json(vdir / "alignment.json", ctx.clean(r.alignment.to_dict()))
-            _io.save_figure(F.overlay_figure(r.real, r.virtual.view, r.alignment), vdir / "overlay.png")
-            _io.save_figure(F.images_figure(r.real, r.virtual.view), vdir / "images.png")
-        else:
-            _io.save_figure(F.virtual_figure(r.virtual.view), vdir / "virtual.png")
-        for p in r.sim.pictures:
-            _io.write_bytes(vdir / f"compression{p.suffix}", p.read_bytes())
-        steps = [{"step": s.get("name"), "D": s.get("D"), "force_N": (s.get("contact") or {})
-                  .get("upper", {}).get("normal_force_N"), "max_penetration_mm":
-                  s.get("max_penetration_mm"), "behind_wall_mm": s.get("behind_chest_wall_mm"),
-                  "increments": (s.get("solver") or {}).get("increments"),
-                  "iterations": (s.get("solver") or {}).get("iterations"),
-                  "seconds": (s.get("solver") or {}).get("seconds")} for s in r.sim.steps]
-        views.append(ViewReport(r.view, r.row, r.real, r.virtual.view, r.alignment, steps,
-                                [vdir / "compression.png"]))
-    model = mesh.model
-    ms = {"nodes": model.n_nodes, "tetrahedra": model.n_tets,
-          "tumours": int(model.tumour_id.max(initial=0)), "skin triangles": len(model.skin),
-          "fixed (chest-wall) nodes": int(model.fixed.sum()), "side": model.frame.side}
-    for k in ("quality", "checks"):
-        if isinstance(model.meta.get(k), dict):
-            ms.update({f"{k}.{a}": b for a, b in list(model.meta[k].items())[:8]
-                       if not isinstance(b, (dict, list))})
-    pics = []
-    for p in mesh.pictures:
-        pics.append(_io.write_bytes(out / "model" / p.name, p.read_bytes()))
-    tracking = _tracking_section(ctx, mesh, results, out) if all(r.real is not None for r in results) else None
-    rep = CaseReport(ctx.case.id, ctx.case.title, views, ms, pics, prov["config"], prov,
-                     extra_pages=[tracking] if tracking else [])
-    path = write_pdf(rep, out / "report.pdf")
-    _timed(ctx, "report", t0)
-    return path
-
-
-def _tracking_section(ctx, mesh: MeshOutput, results: list[ViewOutcome], out: Path):
-    """Where the MRI tumour lands in each real mammogram (``tracking.json`` + a PDF page)."""
-    from regtrack.tracking.figures import draw_tracking_page, report_section
-    from regtrack.tracking.mri_to_view import track_tumour
-    from regtrack.tracking.track import TrackResult
-    from regtrack.tracking.viewmap import viewmap_from_outcome
-
-    if int(mesh.model.tumour_id.max(initial=0)) < 1:
-        return None
-    vms = {r.view: viewmap_from_outcome(r) for r in results}
-    res = TrackResult(results[0].row["case_id"], views={v: {} for v in vms},
-                      mri=track_tumour(mesh.model, vms, config=ctx.configs.tracking))
-    _io.write_json(out / "tracking.json", report_section(res))
-    reals = {r.view: r.real for r in results}
-    return lambda fig: draw_tracking_page(fig, res, reals)
+    return write_report(ctx, mesh, results, out, prov)

@@ -46,27 +46,126 @@ def _closed(c: np.ndarray) -> np.ndarray:
 
 
 def draw_overlay(ax, real: MammogramView, virtual: MammogramView, alignment: Alignment, *,
-                 theta_deg: float, title: str) -> None:
-    """Real (blue) and virtual (red) contours, centroids (+) and nipple (o) on ``ax``."""
+                 theta_deg: float, title: str, legend: bool = True) -> None:
+    """Real (blue) and virtual (red) contours on ``ax``: breast (solid) with its area
+    centroid (+), tumour (dashed) with its centroid (x), and the nipple (black dot)."""
     vb = alignment.transform(virtual.breast_contour, theta_deg)
     ax.plot(*real.breast_contour.T, color=REAL, lw=1.6, label="real breast")
     ax.plot(*vb.T, color=VIRTUAL, lw=1.6, label="virtual breast")
-    ax.plot(*centroid(real.breast_contour), "+", color=REAL, ms=11, mew=2)
-    ax.plot(*centroid(vb), "+", color=VIRTUAL, ms=11, mew=2)
+    ax.plot(*centroid(real.breast_contour), "+", color=REAL, ms=11, mew=2,
+            label="real breast centroid")
+    ax.plot(*centroid(vb), "+", color=VIRTUAL, ms=11, mew=2, label="virtual breast centroid")
     for k, t in enumerate(real.tumour_contours):
         ax.plot(*_closed(t).T, color=REAL, lw=1.2, ls="--", label="real tumour" if k == 0 else None)
-        ax.plot(*centroid(t), "x", color=REAL, ms=7, mew=1.5)
+        ax.plot(*centroid(t), "x", color=REAL, ms=7, mew=1.5,
+                label="real tumour centroid" if k == 0 else None)
     for k, t in enumerate(virtual.tumour_contours):
         vt = alignment.transform(t, theta_deg)
         ax.plot(*_closed(vt).T, color=VIRTUAL, lw=1.2, ls="--", label="virtual tumour" if k == 0 else None)
-        ax.plot(*centroid(vt), "x", color=VIRTUAL, ms=7, mew=1.5)
-    ax.plot(*alignment.nipple, "o", color="k", ms=5, label="nipple")
+        ax.plot(*centroid(vt), "x", color=VIRTUAL, ms=7, mew=1.5,
+                label="virtual tumour centroid" if k == 0 else None)
+    ax.plot(*alignment.nipple, "o", color="k", ms=5, label="nipple (superposed)")
     ax.set_title(title, fontsize=10)
     ax.set_aspect("equal")
     ax.invert_yaxis()
     ax.set_xlabel("x (mm)")
     ax.set_ylabel("y (mm)")
-    ax.legend(fontsize=6, loc="best")
+    if legend:
+        ax.legend(fontsize=6.5, loc="best")
+
+
+#: legend order of :func:`draw_overlay`'s artists: real, then virtual, then the nipple
+LEGEND_ORDER = ("real breast", "real breast centroid", "real tumour", "real tumour centroid",
+                "virtual breast", "virtual breast centroid", "virtual tumour",
+                "virtual tumour centroid", "nipple (superposed)")
+
+
+def overlay_legend(fig, ax, *, y: float = 0.0, fontsize: float = 7.5) -> None:
+    """One legend for a row of :func:`draw_overlay` panels, from ``ax``'s artists, in two
+    rows (real above virtual; matplotlib fills legend columns top to bottom)."""
+    by_label = dict(zip(*reversed(ax.get_legend_handles_labels())))
+    labels = [lab for lab in LEGEND_ORDER if lab in by_label]
+    labels += [lab for lab in by_label if lab not in labels]
+    real = [lab for lab in labels if lab.startswith("real")]
+    virt = [lab for lab in labels if lab.startswith("virtual")]
+    other = [lab for lab in labels if lab not in real and lab not in virt]
+    ncol = max(len(real), len(virt)) + (1 if other else 0)
+    rows = [real + [""] * (ncol - len(real)), virt + other + [""] * (ncol - len(virt) - len(other))]
+    order = [rows[r][c] for c in range(ncol) for r in range(2)]
+    from matplotlib.lines import Line2D
+
+    blank = Line2D([], [], lw=0)
+    fig.legend([by_label.get(lab, blank) for lab in order], order, loc="lower center",
+               ncol=ncol, fontsize=fontsize, frameon=False, bbox_to_anchor=(0.5, y))
+
+
+def draw_images(ax_real, ax_virtual, real: MammogramView, virtual: MammogramView,
+                alignment: Alignment) -> None:
+    """The real mammogram and the virtual one side by side on the same axes (mm of the
+    real image's frame): the virtual image is shifted so that its nipple lies on the real
+    nipple (``theta = 0``), and both axes get the union of the two images' extents."""
+    shift = np.asarray(alignment.translation, float)
+    boxes = []
+    for ax, v, name, col, d in ((ax_real, real, "real", REAL, np.zeros(2)),
+                                (ax_virtual, virtual, "virtual", VIRTUAL, shift)):
+        if v.image is not None:
+            left, right, bottom, top = image_extent(v)
+            ext = (left + d[0], right + d[0], bottom + d[1], top + d[1])
+            ax.imshow(v.image, cmap="gray", extent=ext, vmin=0, vmax=1)
+            boxes.append(ext)
+        ax.plot(*(v.breast_contour + d).T, color=col, lw=1.2, label=f"{name} breast")
+        for k, t in enumerate(v.tumour_contours):
+            ax.plot(*(_closed(t) + d).T, color="tab:orange", lw=1.0,
+                    label=f"{name} tumour" if k == 0 else None)
+        ax.plot(*(np.asarray(v.nipple) + d), "o", color="tab:orange", ms=4, label="nipple")
+        ax.set_title(f"{name} {v.view}" + (" (shifted to the real nipple)" if name == "virtual"
+                                            else ""), fontsize=9)
+        ax.set_aspect("equal")
+        ax.set_xlabel("x (mm)")
+        ax.legend(fontsize=6.5, loc="lower left")
+    ax_real.set_ylabel("y (mm)")
+    pts = [real.breast_contour, virtual.breast_contour + shift]
+    xs = [b[0] for b in boxes] + [b[1] for b in boxes] + [float(p[:, 0].min()) for p in pts] \
+        + [float(p[:, 0].max()) for p in pts]
+    ys = [b[2] for b in boxes] + [b[3] for b in boxes] + [float(p[:, 1].min()) for p in pts] \
+        + [float(p[:, 1].max()) for p in pts]
+    for ax in (ax_real, ax_virtual):
+        ax.set_xlim(min(xs), max(xs))
+        ax.set_ylim(max(ys), min(ys))  # y down
+
+
+def draw_sequence(axes, points: np.ndarray, skin: np.ndarray, steps: list[dict],
+                  states: list[np.ndarray], plate_frame: dict) -> None:
+    """The compressed breast between the plates after each step, one panel per step (a side
+    view of the plates, as Figure 4 of Lapuebla-Ferri et al.).
+
+    ``steps``: the step records of the result JSON (``name``, ``D``, ``plates``);
+    ``states``: the displacement (N, 3) mm of each step, model frame.
+    """
+    from matplotlib.collections import PolyCollection
+
+    from regtrack.mechanics.pictures import _plate_outline
+
+    e_x = np.asarray(plate_frame["e_x"], float)
+    n = np.asarray(plate_frame["normal"], float)
+    x_max = max(float(((points + u) @ e_x).max()) for u in states) + 10
+    for ax, st, u in zip(axes, steps, states):
+        x = points + u
+        poly = np.stack([x[skin] @ e_x, x[skin] @ n], axis=-1)
+        ax.add_collection(PolyCollection(poly, facecolors="#f3c6a5", edgecolors="#b07050",
+                                         linewidths=0.1, alpha=0.6))
+        for pl in (st.get("plates") or {}).values():
+            line = _plate_outline(pl, e_x, n, x_max)
+            ax.plot(line[:, 0], line[:, 1], color="#3050a0", lw=1.5)
+        D = st.get("D")
+        ax.set_title(str(st.get("name", "")).replace("-", " ")
+                     + ("" if D is None else f"\nD = {100 * D:.1f} %"),
+                     fontsize=8)
+        ax.set_aspect("equal")
+        ax.autoscale_view()
+        ax.tick_params(labelsize=6.5)
+        ax.set_xlabel("chest wall → nipple (mm)", fontsize=7)
+    axes[0].set_ylabel("along the plate normal (mm)", fontsize=7)
 
 
 def overlay_figure(real: MammogramView, virtual: MammogramView, alignment: Alignment):
@@ -81,30 +180,18 @@ def overlay_figure(real: MammogramView, virtual: MammogramView, alignment: Align
     return fig
 
 
-def images_figure(real: MammogramView, virtual: MammogramView, alignment: Alignment | None = None):
-    """Real mammogram beside the X-ray-like virtual image, with their contours."""
+def images_figure(real: MammogramView, virtual: MammogramView, alignment: Alignment):
+    """Real mammogram beside the X-ray-like virtual image on the same axes
+    (:func:`draw_images`)."""
     plt = _plt()
     fig, axes = plt.subplots(1, 2, figsize=(10, 5))
-    for ax, v, name, col in ((axes[0], real, "real", REAL), (axes[1], virtual, "virtual", VIRTUAL)):
-        if v.image is not None:
-            ax.imshow(v.image, cmap="gray", extent=image_extent(v), vmin=0, vmax=1)
-        ax.plot(*v.breast_contour.T, color=col, lw=1.2)
-        for t in v.tumour_contours:
-            ax.plot(*_closed(t).T, color="tab:orange", lw=1.0)
-        ax.plot(*v.nipple, "o", color="tab:orange", ms=4)
-        ax.set_title(f"{name} {v.view} ({v.laterality})", fontsize=10)
-        ax.set_aspect("equal")
-        if v.image is None:
-            ax.invert_yaxis()
-        ax.set_xlabel("x (mm)")
+    draw_images(axes[0], axes[1], real, virtual, alignment)
     fig.tight_layout()
     return fig
 
 
-def virtual_figure(virtual: MammogramView):
-    """The X-ray-like virtual mammogram with its contours (no real mammogram to compare)."""
-    plt = _plt()
-    fig, ax = plt.subplots(1, 1, figsize=(6, 5))
+def draw_virtual(ax, virtual: MammogramView) -> None:
+    """The X-ray-like virtual mammogram with its contours on ``ax``."""
     if virtual.image is not None:
         ax.imshow(virtual.image, cmap="gray", extent=image_extent(virtual), vmin=0, vmax=1)
     else:
@@ -118,6 +205,13 @@ def virtual_figure(virtual: MammogramView):
     ax.set_xlabel("x (mm)")
     ax.set_ylabel("y (mm)")
     ax.legend(fontsize=7, loc="lower left")
+
+
+def virtual_figure(virtual: MammogramView):
+    """The X-ray-like virtual mammogram with its contours (no real mammogram to compare)."""
+    plt = _plt()
+    fig, ax = plt.subplots(1, 1, figsize=(6, 5))
+    draw_virtual(ax, virtual)
     fig.tight_layout()
     return fig
 

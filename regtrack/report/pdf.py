@@ -1,46 +1,73 @@
-"""The case report: a PDF a radiologist or researcher can read, plus the tables.
+"""The case report: a PDF of at most six A4 pages a radiologist or researcher can read.
 
-Pages: (1) case summary and the metrics of every view (the quantities of Tables 3-4 of
-Lapuebla-Ferri et al.); (2) the model; (3) per view, the compression sequence and the
-simulation steps; (4) per view, real and virtual contours before and after the rotation
-with centroids (Figure 9) and the real image beside the X-ray-like virtual image;
-(5) parameters and provenance.
+Pages (:func:`render_pages`):
+
+1. the case, its mode, the verdict (fit-quality checks with their thresholds,
+   :mod:`regtrack.report.verdict`), the metrics of every view (the quantities of Tables
+   3-4 of Lapuebla-Ferri et al.) with units, and the overlays of every view after the
+   rotation theta_p;
+2. one page per view: the compression sequence (the breast between the plates after each
+   step), the simulation steps, the contours before and after the rotation with their
+   centroids (Figure 9 of the paper), and the real beside the virtual image on the same
+   axes;
+3. the extra pages the pipeline adds (lesion tracking);
+4. an appendix: the truth-vs-result table when the case has a ground truth, the model,
+   the settings that differ from the defaults, and provenance (versions, inputs by hash).
+
+The full configuration and every figure's numbers are in the JSON files beside the PDF;
+the PDF prints no raw JSON.
 """
 
 from __future__ import annotations
 
 import datetime as _dt
-import textwrap
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
 from regtrack import __version__, _io
-from regtrack.report import figures as F
+from regtrack.report import pages as P
+from regtrack.report.fmt import num
+from regtrack.report.verdict import Check, check_view, verdict_line
 
-#: (key in the metrics row, column title, format)
+#: (key in the metrics row, column title, decimals)
 METRIC_COLUMNS = (
-    ("view", "view", "{}"),
-    ("BS_Av", "BS_Av (%)", "{:.1f}"),
-    ("TS_Av", "TS_Av (%)", "{:.1f}"),
-    ("theta_p_b", "θp,b (°)", "{:.2f}"),
-    ("theta_p_t", "θp,t (°)", "{:.2f}"),
-    ("theta_p", "θp (°)", "{:.2f}"),
-    ("D", "D (%)", "{:.1f}"),
-    ("d_T", "d_T (mm)", "{:.2f}"),
-    ("d_B", "d_B (mm)", "{:.2f}"),
-    ("force_N", "F (N)", "{:.1f}"),
+    ("view", "View", None),
+    ("BS_Av", "BS_Av (%)", 1),
+    ("TS_Av", "TS_Av (%)", 1),
+    ("theta_p_b", "θp,b (°)", 2),
+    ("theta_p_t", "θp,t (°)", 2),
+    ("theta_p", "θp (°)", 2),
+    ("D", "D (%)", 1),
+    ("d_T", "d_T (mm)", 2),
+    ("d_B", "d_B (mm)", 2),
+    ("force_N", "Force (N)", 1),
 )
 
 EXPLANATION = (
-    "BS_Av, TS_Av: breast and tumour similarity (%) = (1 - Σ‖d‖ at θp / Σ‖d‖ at θ=0)·100, "
-    "closest-point distances from the virtual to the real contour (eqs. 4-5). "
-    "θp,b, θp,t: optimal in-plane rotations (golden-section search) for the breast and the "
-    "tumour; θp is their mean. D: compression degree, relative reduction of the mean breast "
-    "thickness between the plates. d_T, d_B: distances between the centroids of the real and "
-    "virtual tumour and breast contours after alignment. F: upper-plate force."
+    "BS_Av, TS_Av: breast and tumour similarity, the share of the summed closest-point "
+    "distance (virtual to real contour) left by the nipple superposition that the rotation "
+    "θp removes (eqs. 4-5). θp,b, θp,t: optimal in-plane rotations of the breast and the "
+    "tumour (golden-section search); θp is their mean. D: compression degree, the relative "
+    "reduction of the breast thickness between the plates. d_T, d_B: distances between the "
+    "centroids of the real and virtual tumour and breast after alignment. Force: on the "
+    "upper plate at the end of the compression."
 )
+
+
+@dataclass
+class Sequence:
+    """What the compression-sequence panels need: the reference mesh (model frame, mm),
+    the step records and each step's displacement."""
+
+    points: np.ndarray
+    skin: np.ndarray
+    steps: list[dict]
+    states: list[np.ndarray]
+    plate_frame: dict
 
 
 @dataclass
@@ -49,33 +76,32 @@ class ViewReport:
 
     view: str
     metrics: dict
-    real: object = None  # MammogramView
-    virtual: object = None  # MammogramView
-    alignment: object = None  # Alignment
-    steps: list[dict] = field(default_factory=list)  # per simulation step
-    pictures: list[Path] = field(default_factory=list)  # compression-sequence PNGs
+    real: Any = None  # MammogramView
+    virtual: Any = None  # MammogramView
+    alignment: Any = None  # Alignment
+    steps: list[dict] = field(default_factory=list)  # rows of the steps table
+    pictures: list[Path] = field(default_factory=list)  # sequence PNG (without ``sequence``)
+    simulation: dict = field(default_factory=dict)  # {"summary", "steps"} of the result JSON
+    sequence: Sequence | None = None
+
+
+#: an appendix table: (heading, column titles, rows, column x positions, wrap widths)
+AppendixTable = tuple[str, list[str], list[list[str]], list[float], list[int]]
 
 
 @dataclass
 class CaseReport:
+    """Everything the PDF shows.  ``header``: lines under the title (the mode, the
+    model); ``appendix``: the appendix tables in order (the pipeline adds truth, model,
+    settings and provenance; a caller may add more)."""
+
     case_id: str
     title: str = ""
     views: list[ViewReport] = field(default_factory=list)
-    model_summary: dict = field(default_factory=dict)
-    model_pictures: list[Path] = field(default_factory=list)
-    config: dict = field(default_factory=dict)
-    provenance: dict = field(default_factory=dict)
+    header: list[str] = field(default_factory=list)
+    appendix: list[AppendixTable] = field(default_factory=list)
     #: callables drawing extra A4 pages (e.g. the lesion-tracking section) on a Figure
-    extra_pages: list = field(default_factory=list)
-
-
-def _fmt(value, fmt: str) -> str:
-    if value is None or (isinstance(value, float) and not np.isfinite(value)):
-        return "–"
-    try:
-        return fmt.format(value)
-    except (ValueError, TypeError):
-        return str(value)
+    extra_pages: list[Callable] = field(default_factory=list)
 
 
 def metrics_table(rows: list[dict]) -> tuple[list[str], list[list[str]]]:
@@ -86,122 +112,69 @@ def metrics_table(rows: list[dict]) -> tuple[list[str], list[list[str]]]:
         r = dict(r)
         if r.get("D") is not None:
             r["D"] = 100.0 * r["D"]
-        cells.append([_fmt(r.get(k), f) for k, _, f in METRIC_COLUMNS])
+        cells.append([str(r.get(k, "–")) if d is None else num(r.get(k), d)
+                      for k, _, d in METRIC_COLUMNS])
     return head, cells
 
 
-def _text_page(pdf, title: str, lines: list[str], *, plt) -> None:
-    per_page = 62
-    for start in range(0, max(len(lines), 1), per_page):
-        fig = plt.figure(figsize=(8.27, 11.69))
-        fig.text(0.06, 0.96, title + (" (cont.)" if start else ""), fontsize=13, weight="bold")
-        fig.text(0.06, 0.93, "\n".join(lines[start:start + per_page]), fontsize=7,
-                 family="monospace", va="top")
-        pdf.savefig(fig)
-        plt.close(fig)
+def case_checks(report: CaseReport) -> list[Check]:
+    """The verdict's checks of every view with a registration."""
+    checks: list[Check] = []
+    for v in report.views:
+        if v.real is None:
+            continue
+        nipple = (getattr(v.real, "meta", None) or {}).get("nipple")
+        checks += check_view(v.view, v.metrics, simulation=v.simulation, nipple=nipple)
+    return checks
 
 
-def _table(ax, head, cells, *, fontsize=8):
-    ax.axis("off")
-    if not cells:
-        ax.text(0.5, 0.5, "no rows", ha="center")
-        return
-    t = ax.table(cellText=cells, colLabels=head, loc="upper center", cellLoc="center")
-    t.auto_set_font_size(False)
-    t.set_fontsize(fontsize)
-    t.scale(1, 1.4)
-
-
-def _image_page(pdf, title: str, paths: list[Path], *, plt) -> None:
-    paths = [p for p in paths if Path(p).is_file()]
-    if not paths:
-        return
-    n = len(paths)
-    fig, axes = plt.subplots(n, 1, figsize=(8.27, 11.69))
-    axes = np.atleast_1d(axes)
-    for ax, p in zip(axes, paths):
-        ax.imshow(plt.imread(str(p)))
-        ax.axis("off")
-    fig.suptitle(title, fontsize=13, weight="bold")
-    pdf.savefig(fig)
-    plt.close(fig)
-
-
-def write_pdf(report: CaseReport, path: str | Path) -> Path:
-    """Write the report PDF atomically; return its path."""
+def render_pages(report: CaseReport) -> Iterator[Any]:
+    """Yield each page of the report as an A4 matplotlib figure (closed by the caller)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+
+    checks = case_checks(report)
+    header = [*report.header, f"regtrack {__version__} · {_dt.date.today().isoformat()}"]
+    fig = plt.figure(figsize=P.A4)
+    head, rows = metrics_table([v.metrics for v in report.views])
+    P.summary_page(fig, report, checks, verdict_line(checks), head, rows, EXPLANATION, header)
+    yield fig
+    for v in report.views:
+        fig = plt.figure(figsize=P.A4)
+        P.view_page(fig, v)
+        yield fig
+    for draw in report.extra_pages:
+        fig = plt.figure(figsize=P.A4)
+        draw(fig)
+        yield fig
+    if report.appendix:
+        fig = plt.figure(figsize=P.A4)
+        P.appendix_page(fig, report.appendix)
+        yield fig
+
+
+def figure_text(fig) -> list[str]:
+    """Every text string drawn on ``fig`` (titles, labels, table cells, legends)."""
+    from matplotlib.table import Table
+    from matplotlib.text import Text
+
+    texts = [t.get_text() for t in fig.findobj(Text)]
+    for table in fig.findobj(Table):
+        texts += [c.get_text().get_text() for c in table.get_celld().values()]
+    return [t for t in texts if t]
+
+
+def write_pdf(report: CaseReport, path: str | Path) -> Path:
+    """Write the report PDF atomically; return its path."""
+    import matplotlib.pyplot as plt
     from matplotlib.backends.backend_pdf import PdfPages
 
     with _io.atomic_path(path) as tmp, PdfPages(tmp) as pdf:
-        # 1. summary
-        fig = plt.figure(figsize=(8.27, 11.69))
-        fig.text(0.06, 0.95, f"regtrack report: case {report.case_id}", fontsize=16, weight="bold")
-        fig.text(0.06, 0.925, report.title, fontsize=10)
-        fig.text(0.06, 0.905, f"regtrack {__version__} · {_dt.date.today().isoformat()}", fontsize=8,
-                 color="0.4")
-        ax = fig.add_axes([0.04, 0.62, 0.92, 0.25])
-        head, cells = metrics_table([v.metrics for v in report.views])
-        _table(ax, head, cells)
-        fig.text(0.06, 0.58, "\n".join(textwrap.wrap(EXPLANATION, 110)), fontsize=8, va="top")
-        ms = report.model_summary
-        if ms:
-            lines = [f"{k}: {v}" for k, v in ms.items()]
-            fig.text(0.06, 0.45, "Model\n" + "\n".join(lines[:20]), fontsize=8, va="top",
-                     family="monospace")
-        pdf.savefig(fig)
-        plt.close(fig)
-        # 2. model
-        _image_page(pdf, "Patient model", list(report.model_pictures)[:2], plt=plt)
-        # 3-4. views
-        for v in report.views:
-            _image_page(pdf, f"{v.view}: compression sequence", list(v.pictures)[:2], plt=plt)
-            if v.steps:
-                fig = plt.figure(figsize=(8.27, 11.69))
-                fig.text(0.06, 0.95, f"{v.view}: simulation steps", fontsize=13, weight="bold")
-                keys = [k for k in ("step", "D", "force_N", "max_penetration_mm", "behind_wall_mm",
-                                    "increments", "iterations", "seconds")
-                        if any(k in s for s in v.steps)]
-                cells = [[_fmt(s.get(k), "{:.4g}" if k != "step" else "{}") for k in keys] for s in v.steps]
-                _table(fig.add_axes([0.04, 0.5, 0.92, 0.4]), keys, cells)
+        for fig in render_pages(report):
+            try:
                 pdf.savefig(fig)
+            finally:
                 plt.close(fig)
-            if v.real is None and v.virtual is not None:
-                fig = F.virtual_figure(v.virtual)
-                fig.suptitle(f"{v.view}: virtual mammogram (no real mammogram in the case)",
-                             fontsize=11)
-                pdf.savefig(fig)
-                plt.close(fig)
-            if v.real is not None and v.virtual is not None and v.alignment is not None:
-                fig = plt.figure(figsize=(8.27, 11.69))
-                axes = [fig.add_axes([0.07, 0.56, 0.4, 0.36]), fig.add_axes([0.55, 0.56, 0.4, 0.36])]
-                F.draw_overlay(axes[0], v.real, v.virtual, v.alignment, theta_deg=0.0,
-                               title=f"{v.view}: at the nipple (θ = 0°)")
-                F.draw_overlay(axes[1], v.real, v.virtual, v.alignment, theta_deg=v.alignment.theta_p,
-                               title=f"{v.view}: θp = {v.alignment.theta_p:.2f}°")
-                for k, (img_v, name) in enumerate(((v.real, "real"), (v.virtual, "virtual"))):
-                    ax = fig.add_axes([0.07 + 0.48 * k, 0.08, 0.4, 0.4])
-                    if img_v.image is not None:
-                        ax.imshow(img_v.image, cmap="gray", extent=F.image_extent(img_v), vmin=0, vmax=1)
-                    ax.plot(*img_v.breast_contour.T, color=F.REAL if k == 0 else F.VIRTUAL, lw=1)
-                    ax.set_title(f"{name} {v.view}", fontsize=10)
-                    ax.set_aspect("equal")
-                    ax.set_xlabel("x (mm)")
-                pdf.savefig(fig)
-                plt.close(fig)
-        for draw in report.extra_pages:
-            fig = plt.figure(figsize=(8.27, 11.69))
-            draw(fig)
-            pdf.savefig(fig)
-            plt.close(fig)
-        # 5. provenance
-        lines = []
-        for title, obj in (("configuration", report.config), ("provenance", report.provenance)):
-            lines.append(f"[{title}]")
-            lines += _io.to_json(obj, indent=1).splitlines()
-            lines.append("")
-        wrapped = [w for ln in lines for w in (textwrap.wrap(ln, 120, subsequent_indent="    ") or [""])]
-        _text_page(pdf, "Parameters and provenance", wrapped, plt=plt)
     return Path(path)
