@@ -23,6 +23,8 @@ class FakeContext:
     cache: Any
     progress: Any = None
     timings: dict = field(default_factory=dict)
+    sim_progress: Any = None
+    produced: set = field(default_factory=set)
 
     def say(self, msg: str) -> None:
         pass

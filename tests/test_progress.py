@@ -15,7 +15,7 @@ from regtrack.privacy import Identifiers
 
 
 def _ctx(**kw) -> RunContext:
-    return RunContext(case=None, configs={}, protocol_tables={}, cache=None, **kw)
+    return RunContext(case=None, configs=None, cache=None, **kw)
 
 
 def test_the_increment_hook_numbers_the_increments_of_each_step():

@@ -367,7 +367,10 @@ def minimise_step(problem: Problem, u0: np.ndarray, *, gravity: Callable[[float]
             for pl in plates:
                 pl.commit(u)
             if progress is not None:
-                progress(step_name, t)
+                force = {f"{pl.name}_force_N": -float(pl.c.plate.normal @ e.grad.reshape(-1, 3).sum(axis=0))
+                         for pl, e in zip(plates, s.plates) if pl.name == "upper"}
+                progress(step_name, t, **{("force_N" if k == "upper_force_N" else k): v
+                                          for k, v in force.items()})
     m.stats.t_total = time.perf_counter() - t_start
     return u, m.stats, R.reshape(-1, 3)
 
