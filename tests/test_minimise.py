@@ -250,3 +250,33 @@ def test_result_does_not_depend_on_threads_or_mkl_code_path(tmp_path):
     assert a["penetration"] <= 0.1 and b["penetration"] <= 0.1
     assert b["force"] == pytest.approx(a["force"], rel=5e-3)
     assert np.abs(xa - xb).max() <= 0.1
+
+
+def test_a_stopped_view_keeps_its_balanced_steps_and_names_them(tmp_path, monkeypatch):
+    """A protocol step that cannot be balanced stops the view with one error naming the
+    step and the file that keeps the steps balanced before it; nothing is lost."""
+    import types
+
+    import regtrack.mechanics.minimise as minimise
+    from regtrack.errors import SolverDidNotConvergeError
+    from regtrack.mechanics.meshes import hemisphere_model
+    from regtrack.mechanics.run_view import simulate_view
+
+    real = minimise.minimise_step
+
+    def failing(problem, u0, *, step_name="", **kw):
+        if step_name == "standing-gravity":
+            raise SolverDidNotConvergeError("no equilibrium at t = 0.5 (largest residual at node 7)",
+                                            load_fraction=0.25, last_converged=u0)
+        return real(problem, u0, step_name=step_name, **kw)
+
+    monkeypatch.setattr(minimise, "minimise_step", failing)
+    model = hemisphere_model(30.0, 9.0)
+    case = types.SimpleNamespace(id="hemi", toml_path="case.toml", overrides={})
+    with pytest.raises(SolverDidNotConvergeError) as err:
+        simulate_view(case, model, "CC", out_dir=tmp_path)
+    msg = str(err.value)
+    assert "standing-gravity" in msg and "node 7" in msg and "hemi_cc_partial.vtu" in msg
+    doc = json.loads((tmp_path / "hemi_cc_partial.json").read_text())
+    assert [s["name"] for s in doc["steps"]] == ["gravity-unloading", "lower-plate-contact"]
+    assert not (tmp_path / "hemi_cc.vtu").exists()

@@ -29,7 +29,7 @@ def model():
 
 def _balance(model, rec):
     weight = 1000.0 * model.tet_volumes().sum() * 1e-9  # N per (m/s^2)
-    on_body = -(np.asarray(rec.contact["upper"]["force_N"]) + np.asarray(rec.contact["lower"]["force_N"]))
+    on_body = -sum(np.asarray(c["force_N"]) for c in rec.contact.values())  # plates + chest wall
     return np.asarray(rec.solver["chest_wall_reaction_N"]) + on_body + weight * rec.gravity_ms2
 
 
