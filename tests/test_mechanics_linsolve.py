@@ -191,7 +191,7 @@ def test_mixed_precision_falls_back_to_double_when_too_inaccurate():
     """With one GMRES iteration allowed, float32 factors (error ~1e-6) cannot reach 1e-10:
     the solver switches to float64 factors for good and still solves.  (1e-10, not 1e-12:
     with MKL 2026.x one iteration on float64 factors gives 1.1e-12 on this system, and
-    float32 factors miss even 1e-8; measured in session 12.)"""
+    float32 factors miss even 1e-8.)"""
     A, b = anp_system(0.05)
     ls = LinearSolver(krylov_max=1, krylov_rtol=1e-10)
     x = ls.solve(A, b, symmetric=True)
@@ -280,8 +280,8 @@ def test_fixed_bound_preconditioner_needs_fewer_iterations_than_the_symmetric_pa
 
 def test_a_preconditioner_given_as_a_function_is_assembled_only_to_factorise():
     """The Newton solver hands over its preconditioning matrix as a function, since most
-    of its solves re-use the factors (session 37: ~7 ms saved per such iteration on the
-    9.5k-node benchmark).  Asserted, on the sliding-friction-like tangent above: the
+    of its solves re-use the factors (~7 ms saved per such iteration on the 9.5k-node
+    benchmark).  Asserted, on the sliding-friction-like tangent above: the
     function is called once per factorisation and never for a solve on re-used factors;
     its solutions equal, to the last bit, those with the matrix given directly."""
     A, b = anp_system(0.05)

@@ -521,7 +521,7 @@ def test_a_stabilised_run_skips_the_undamped_attempts_but_probes(monkeypatch):
 def test_polish_damps_less_after_each_proximal_solve_that_converges(monkeypatch):
     """The polish at t = 1 halves the proximal weight after each proximal solve that
     converges (a state creeping towards a distant equilibrium gets there in fewer rounds;
-    Pelicano exam 10's 10k MLO standing-gravity step, session 9) and quadruples it after
+    Pelicano exam 10's 10k MLO standing-gravity step) and quadruples it after
     one that fails; the result is still the undamped equilibrium (1e-8 mm)."""
     pr, g = _hanging_box()
     real, real_stab = S._increment, S._stabilised_increment

@@ -483,7 +483,7 @@ def test_force_balance_is_the_residual_resultant_over_the_free_nodes():
 @pytest.mark.parametrize("ok", [True, False])
 def test_a_step_whose_forces_do_not_balance_warns(ok):
     """A solver whose state misses the force balance by more than its tolerance (an
-    increment accepted at its best iterate, session 39: 0.42 N of a 40.8 N plate force)
+    increment accepted at its best iterate: 0.42 N of a 40.8 N plate force was measured)
     makes the step warn, naming the step, the figures and the setting; the summary
     reports the largest relative imbalance of the steps."""
     from regtrack.mechanics.run_view import summarise

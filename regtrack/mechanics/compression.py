@@ -14,7 +14,7 @@ thickness between the undeformed and the deformed configuration)
 * ``T`` (mm): the compressed thickness = the gap between the two plate faces.
 
 This is the clinical definition (the compressed breast thickness read on the unit) and
-it counts only the compressed part of the breast, never the chest-wall base (DESIGN.md,
+it counts only the compressed part of the breast, never the chest-wall base (docs/design.md,
 "Thickness means the compressed part").  A second, volumetric measure is reported
 beside it: the *mean* thickness ``T_mean = V / A_n`` of the breast over the plate, with
 ``V`` its volume and ``A_n`` its area projected along ``n``

@@ -19,9 +19,14 @@ TISSUE_MODELS = ("homogeneous", "composition", "heterogeneous")
 
 @dataclass(frozen=True)
 class SolverOptions:
-    """Newton-Raphson with line search and adaptive load stepping.
+    """Options of the step solvers (``[mechanics.solver]``).
 
-    Convergence of an increment requires *both*
+    ``method = "energy"`` (the default, :mod:`.minimise`) uses the force and balance
+    tolerances, ``max_iterations``, ``initial_increment``, ``max_augmentations``,
+    ``stall_force_tol`` and the linear-solver options; the other options belong to the
+    residual Newton solver (``"newton"``, :mod:`.solver`), kept for comparison.
+
+    Convergence of a Newton increment requires *both*
 
     * force: ``||R_free||_2 <= force_tol * F_ref`` with ``F_ref = max(||f_ext||_2,
       ||reaction||_2, ||f_contact||_2, ||f_int||_2 / sqrt(ndof), force_floor_n)``;
@@ -62,12 +67,10 @@ class SolverOptions:
     stall_force_tol: float = param(5e-3, "-", "an increment whose Newton iterations stagnate or run "
                                    "out accepts its best iterate if that one's residual is below this "
                                    "fraction of F_ref (and the constraints are met), instead of cutting "
-                                   "back; counted in the step's stalled_accepts (0: never).  Skin nodes "
-                                   "pinched between the plate's rounded edge and the fixed chest wall "
-                                   "have a near-singular tangent (Newton corrections of 10-200 mm there, "
-                                   "consistent with finite differences) and Newton wanders at 1e-4 to "
-                                   "5e-3 F_ref; 5e-3 is the default force criterion of Abaqus (R_n); "
-                                   "2e-3 left the phantom MLO compression stopped at t = 0.66", ge=0, lt=1)
+                                   "back; counted in the step's stalled_accepts (0: never).  Skin "
+                                   "pinched between a plate edge and the fixed chest wall has a "
+                                   "near-singular tangent on which Newton wanders at 1e-4 to 5e-3 "
+                                   "F_ref; 5e-3 is Abaqus's default force criterion (R_n)", ge=0, lt=1)
     initial_increment: float = param(0.25, "-", "first pseudo-time increment of a step", gt=0, le=1)
     min_increment: float = param(1e-4, "-", "smallest increment before giving up", gt=0, le=1)
     max_increment: float = param(1.0, "-", "largest increment", gt=0, le=1)
@@ -91,32 +94,18 @@ class SolverOptions:
     max_augmentations: int = param(20, "-", "augmented-Lagrangian updates per increment", ge=1)
     augmentation: str = param("final", "", "when augmented-Lagrangian multipliers are iterated: "
                               "'every' increment re-solves until penetration_tol_mm is met; "
-                              "'final' (Uzawa across increments): an increment before the end of a "
-                              "step takes one multiplier update after it converges, with no "
-                              "re-solve, and carries it into the next; the last increment (t = 1) "
-                              "iterates to the tolerance, so the returned state meets the same "
-                              "criteria.  The default since session 33 (with the 2.5 mm plate "
-                              "cap): over 15 Pelicano runs (8.8k-13.5k nodes) 9,350 Newton "
-                              "iterations against 11,938 with 'every' (CPU -8 %), and exam 02's "
-                              "CC completes in 437 (with 'every' it failed); benchmark "
-                              "hemisphere CC + MLO 174.5 s against 237.3 s.  Four runs took 2-17 "
-                              "% more iterations; plate forces moved by 0.1-5 %, exams 11 and 30 "
-                              "MLO by 13 and 14 % (halving the cap moved exam 30's by 0.4 % with "
-                              "'final', 7 % with 'every', and exam 11's by 8 % with 'final'); "
-                              "see solver.py",
+                              "'final' (Uzawa across increments, 22 % fewer Newton iterations on "
+                              "the Pelicano protocols): increments before t = 1 take one "
+                              "multiplier update each, and the last iterates to the tolerance",
                               choices=("every", "final"))
     augmentation_force_tol: float = param(0.0, "-", "relative residual tolerance (like force_tol) "
                                           "of the Newton solves of an increment while its contact "
                                           "multipliers are still being updated; the state that "
                                           "meets penetration_tol_mm is then solved to force_tol "
                                           "and checked again (0: every solve to force_tol).  "
-                                          "Opt-in: 1e-2 saved a third to a half of the "
-                                          "compression iterations on most measured models "
-                                          "(benchmark hemisphere CC 175 instead of 316), but "
-                                          "Pelicano exam 10's 8.9k-node CC took another "
-                                          "frictional path and 3.7x the iterations (session "
-                                          "19; with the 2.5 mm plate cap, session 32: "
-                                          "hemisphere CC 197 against 300; see solver.py)",
+                                          "Opt-in: 1e-2 saves a third to a half of the "
+                                          "iterations on most models but sent one real CC "
+                                          "along another frictional path at 3.7x the cost",
                                           ge=0.0, lt=1.0)
     stabilisation: str = param("auto", "", "'auto': an increment that fails is solved again with "
                                "proximal (viscous-like) stabilisation before it is cut back, then "
@@ -135,7 +124,7 @@ class SolverOptions:
     settle_multipliers: str = param("stabilised", "", "the undamped settle solve after a "
                                     "stabilised increment starts from the stabilised solve's "
                                     "augmented-Lagrangian multipliers ('stabilised') or from the "
-                                    "last committed ones ('committed', as before session 30); "
+                                    "last committed ones ('committed'); "
                                     "either way a failed settle returns to the stabilised "
                                     "solve's multipliers (see solver.py)",
                                     choices=("stabilised", "committed"))
@@ -143,10 +132,9 @@ class SolverOptions:
                                         "increments that each needed stabilisation, the next "
                                         "ones skip the undamped attempt (it failed in each of "
                                         "them) and are solved stabilised at once, but for every "
-                                        "stabilised_probe-th one (0: off).  Pelicano exams 30, "
-                                        "18 and 11 MLO at 10k nodes: 1,276 / 1,289 / 1,828 "
-                                        "Newton iterations instead of 1,510 / 1,494 / 2,176, "
-                                        "the same forces (session 29; see solver.py)", ge=0)
+                                        "stabilised_probe-th one (0: off); about 15 % fewer "
+                                        "Newton iterations on the real MLOs that need it, plate "
+                                        "forces within 1 %", ge=0)
     stabilised_skip_settle: bool = param(True, "", "an increment that skips its undamped "
                                          "attempt (stabilised_first_after) skips the settle "
                                          "solve too and is committed stabilised (see solver.py)")
@@ -159,13 +147,11 @@ class SolverOptions:
                                   "consecutive accepted increments that each needed "
                                   "stabilisation, a step whose rest would take more than "
                                   "crawl_remaining further increments of their mean size "
-                                  "stops, to be retried from its start (0: off).  Measured: "
-                                  "Pelicano exam 10's 8.9k-node MLO crawled from t = 0.45 in "
-                                  "stabilised increments of 0.004, 22 s each (session 21)", ge=0)
+                                  "stops, to be retried from its start (0: off)", ge=0)
     crawl_remaining: float = param(40.0, "-", "crawl guard: the most further increments (of the "
-                                   "stabilised ones' mean size) a stabilised run may still need; "
-                                   "session 9's exam 05 CC, which finished, had about 24 left when "
-                                   "its stabilised run began, exam 10's MLO about 137", gt=0)
+                                   "stabilised ones' mean size) a stabilised run may still need "
+                                   "(a run that finished had about 24 left, one that crawled "
+                                   "about 137)", gt=0)
     linear_solver: str = param("auto", "", "sparse solver", choices=("auto", "pardiso", "splu"))
     assembly_threads: int = param(0, "-", "threads of the tetrahedron force/tangent kernel (0: the "
                                   "CPUs this process may use, at most 4, and at most a study worker's "
@@ -185,10 +171,9 @@ class SolverOptions:
     preconditioner: str = param("fixed-bound", "", "matrix factorised to precondition GMRES when "
                                 "sliding friction makes the tangent non-symmetric: 'fixed-bound' "
                                 "(the tangent less the sliding nodes' friction-bound term "
-                                "mu d(p)/du, which is symmetric: on the benchmark hemisphere's CC "
-                                "fresh factorisations needed 1-4 GMRES iterations, median 2, "
-                                "instead of 1-16, median 5) or 'symmetric-part' "
-                                "((K + K^T) / 2, the behaviour before session 20); linsolve.py",
+                                "mu d(p)/du, which is symmetric; GMRES then needs 1-4 iterations "
+                                "on fresh factors, against 1-16) or 'symmetric-part' "
+                                "((K + K^T) / 2); linsolve.py",
                                 choices=("fixed-bound", "symmetric-part"))
     forcing_max: float = param(1e-2, "-", "largest relative linear-solve tolerance of inexact Newton "
                                "(Eisenstat-Walker forcing term cap)", gt=0, lt=1)
@@ -197,15 +182,14 @@ class SolverOptions:
     reuse_budget: float = param(0.5, "-", "GMRES budget of a solve on a re-used factorisation "
                                 "before it is refactorised, as a fraction of the estimated cost "
                                 "ratio rho of a factorisation to a GMRES iteration: k_max = "
-                                "clip(reuse_budget * rho, 4, krylov_max) (linsolve.py; 1.0 was "
-                                "measured in session 39: README)", gt=0.0, le=10.0)
+                                "clip(reuse_budget * rho, 4, krylov_max) (linsolve.py)",
+                                gt=0.0, le=10.0)
     increment_refactor: str = param("adaptive", "", "fresh factorisation at the first Newton "
                                     "iteration of an increment (not of a re-solve after a "
                                     "multiplier update): 'adaptive' in every later increment of "
                                     "a step once an increment's first solve has failed on the "
-                                    "re-used factors (plate moves: they fail there as a rule; "
-                                    "solver.py, session 40), 'never' (the behaviour before "
-                                    "session 40) or 'always'",
+                                    "re-used factors (plate moves: they fail there as a rule), "
+                                    "'never' or 'always'",
                                     choices=("never", "adaptive", "always"))
     krylov_max: int = param(60, "-", "cap of the GMRES iterations on a re-used factorisation before "
                             "refactorising (the actual limit follows the estimated cost ratio and "
@@ -260,7 +244,7 @@ class MechanicsConfig:
     skin_c20_pa: float = param(50.0, "Pa", "skin c20", ge=0)
     skin_c02_pa: float = param(60.0, "Pa", "skin c02", ge=0)
     solver: SolverOptions = field(default_factory=SolverOptions,
-                                  metadata={"unit": "", "doc": "Newton solver options ([mechanics.solver])"})
+                                  metadata={"unit": "", "doc": "step solver options ([mechanics.solver])"})
 
     def problems(self) -> list[str]:
         """Cross-field checks (called by :func:`regtrack.config.parse_section`)."""

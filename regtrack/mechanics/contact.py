@@ -14,8 +14,7 @@ Normal contact (augmented Lagrangian, or pure penalty with ``lambda = 0``)
 with the multipliers updated after each converged solve (Uzawa): ``lambda_i <- p_i``
 until the largest penetration is below ``penetration_tol_mm``.  The penetration is then
 bounded by the tolerance whatever the tissue stiffness; plain penalty leaves ``|g| ~ p /
-eps_N``.  By default (solver ``augmentation = "final"``) that loop runs in a step's last
-increment; each increment before it takes one update and carries it on (no re-solve).
+eps_N``.
 
 Automatic penalty (pressure per mm of penetration, MPa/mm)
 
@@ -25,83 +24,43 @@ Automatic penalty (pressure per mm of penetration, MPa/mm)
 
 with ``E`` the tissue's small-strain Young modulus (MPa), ``h`` the mean skin edge length
 of the contact surface (mm) and ``kappa = penalty_factor``: a penetration of ``h/kappa``
-costs a pressure equal to ``E``, the stress of a unit strain of the tissue, so the
-contact stiffness stays ``kappa`` times the local stiffness of the surface elements
-whatever the mesh size or material (well conditioned, yet small penetration).
+costs a pressure equal to ``E``, so the contact stiffness stays ``kappa`` times the local
+stiffness of the surface elements whatever the mesh size or material.
 
-Node-wise penalty growth (augmented Lagrangian): Uzawa reduces a node's violation by
-about ``k_i / (k_i + eps_N A_i)`` per multiplier update, where ``k_i`` is the stiffness of
-the body under that node.  Skin nodes pressed by the rounded plate edge next to the fixed
-chest wall have ``k_i >~ eps_N A_i`` (measured on Pelicano exam 03: the violation halved at
-each update, so six to eight re-solves per increment).  A node whose violation fell by
-less than ``slow_uzawa_ratio`` in one update gets ``eps_i <- penalty_growth * eps_i``
-(at most ``penalty_growth_max * eps_N``); the multipliers carry the converged pressure,
-so the growth changes the path of the iteration, not its limit (``g_i -> 0``).  A node
-that the updates cannot move at all (skin pinned between a plate's rounded edge and the
-fixed chest wall, its multiplier rising by the same amount at every update) would run out
-``max_augmentations``; once the worst node's penalty is at the cap and its violation has
-fallen by less than 1 % in ``stalled_uzawa_updates`` updates in a row, the increment is
-cut back instead (:meth:`PlateContact._check_stall`).
-A Newton update of the multipliers was also tried (session 38, README). It solved ``C dlambda
-= -g`` over the violating nodes, with the compliance ``C`` taken from the factorised
-tangent; Uzawa is its diagonal approximation ``1 / eps``. On the benchmark CC's last
-increment it took the violation from 6.51 to 0.81 mm in one update, but then stagnated
-at 0.2 to 0.8 mm. That tangent leaves out the sliding nodes' friction term and the edge
-curvature term, and the pinched nodes are strongly nonlinear, so the linear prediction
-misses. It took 182 iterations against 165, and was not kept.
+Node-wise penalty growth: Uzawa reduces a node's violation by about ``k_i / (k_i + eps_N
+A_i)`` per update (``k_i`` the stiffness of the body under the node), which is slow where
+skin is pressed by the rounded plate edge next to the fixed chest wall.  A node whose
+violation fell by less than ``slow_uzawa_ratio`` in one update gets ``eps_i <-
+penalty_growth * eps_i`` (at most ``penalty_growth_max * eps_N``); the multipliers carry the
+converged pressure, so the growth changes the path of the iteration, not its limit.  A node
+whose multiplier only grows at the cap (skin pinned between a plate edge and the chest
+wall) stalls the updates; after ``stalled_uzawa_updates`` such updates the increment is
+cut back (:meth:`PlateContact._check_stall`).
 
 Regularised Coulomb friction (stick/slip return mapping, :mod:`.friction`): with the
 stick point ``a_i`` (plate-local, committed at the end of each converged increment) and
 ``g_T = (I - n n^T)(x_i - a_i)``, ``t = -eps_T g_T`` while ``eps_T |g_T| <= B`` (stick),
 else ``t = -B g_T / |g_T|`` (slip; the stick point is then dragged so that
-``|g_T| = B / eps_T``: slip history), with the slip bound ``B = mu p``.
-
-Options, measured on the peers 'mammo' case with friction 0.1 (3,102 nodes; Newton
-iterations gravity step + plate step; frictionless: 49 + 26):
-
-* ``friction_bound = "current"`` (default): ``p`` of the current iterate, consistent
-  non-symmetric tangent: 57 + 62-65.
-* ``friction_bound = "multiplier"``: ``p`` of the last converged solve (Simo & Laursen
-  1992), fixed while Newton iterates (Tresca problem per solve), updated after each solve
-  until the friction forces agree with the exact bound within ``friction_tol``: 84-95 +
-  57 (the extra solves cost more than they save).
-* ``stick_slip_freeze`` > 0: freeze the state after that many Newton iterations of a solve,
-  checked after convergence: 141 with 3 cut-backs (gravity step, freeze after 4).
-* ``slip_predictor``: nodes that slipped in the last increment start the next one as
-  slipping: helps the plate step with the multiplier bound (57 vs 63), hurts otherwise.
-* ``predictor``: extrapolate the multipliers in pseudo-time: 72 vs 57 (gravity step).
+``|g_T| = B / eps_T``), with the slip bound ``B = mu p``: of the current iterate
+(``friction_bound = "current"``, consistent non-symmetric tangent, the default) or of the
+last converged solve (``"multiplier"``, Simo & Laursen 1992, re-solved until the friction
+forces agree within ``friction_tol``).  ``stick_slip_freeze``, ``slip_predictor`` and
+``predictor`` are opt-in variants of the residual Newton solver.
 
 The nodal force on the body is ``f_i = A_i (p_i n_i + t_i)``; the residual added to the
-solver's ``R = f_int - f_ext`` is ``-f_i`` and the tangent is its exact derivative for the
-current bound and state (non-symmetric with ``friction_bound = "current"`` or on the
-rounded plate edges).
+solver's ``R = f_int - f_ext`` is ``-f_i`` and the tangent is its derivative for the
+current bound and state.
 
-*Edge curvature term.*  On a rounded edge of radius ``R`` the normal turns as a node slides,
-and the exact tangent of the normal force has the term ``-A p dn/dx`` (``dn/dx`` = ``(I -
-n n^T)/(R + g)`` across the edge), a negative tangential stiffness ``-A p / (R + g)``.  Where a
-node is pinched between the edge and the fixed chest wall, ``A p / R`` exceeds the tissue's
-tangential stiffness (about 0.05 against 0.008 N/mm for a 7.5 mm element of 0.54 kPa
-tissue), the tangent turns indefinite, and Newton corrections of 10-250 mm on those nodes
-stall the compression.  By default (``curvature_tangent = false``) the term is left out of
-the tangent (of the normal and the friction force): the tangent stays positive
-semi-definite there, the residual is unchanged and exact, so a converged state is the same
-equilibrium; convergence on edge nodes is linear instead of quadratic.
-``curvature_tangent = true`` gives the exact tangent (the finite-difference tests use it).
-Neither tangent alone completes every case (phantom, 1,841 nodes: MLO frictionless
-completes only without the term, MLO at the defaults only with it), so a failed increment
-is retried with the other tangent before a cut-back (``swap_tangent``, counted in
-``tangent_retries``).  With that retry, CC at c1 = 0.671 kPa (which stopped at t = 0.13
-with the term alone) completes in 537 iterations, both default views in 569 / 611 (729 /
-1,039 before); MLO frictionless still stops at t = 0.575 (issue 5).
-
-Why most compression solves take five to eight Newton iterations (session 36, benchmark
-hemisphere CC, residual histories): the first iterations of an increment fall by only
-3 to 10x each, as nodes enter contact and change stick/slip state; without friction the
-rates are similar (178 iterations in all, against 165 with friction).  The term only
-slows the last iterations: switched on inside a solve once its residual had fallen below 2 % of the
-solve's first (the exact tangent near the solution), the solves ended quadratically
-(e.g. 4.3e-3 -> 2.2e-4 -> 6.2e-7 N) but took as many iterations, and the path changed
-further on (172 in all).  Not kept.
+*Edge curvature term.*  On a rounded edge of radius ``R`` the normal turns as a node
+slides, and the exact tangent of the normal force has the term ``-A p dn/dx`` (``dn/dx =
+(I - n n^T)/(R + g)``), a negative tangential stiffness ``-A p / (R + g)``.  Where skin is
+pinched between the edge and the fixed chest wall it exceeds the tissue's tangential
+stiffness and the tangent turns indefinite.  By default (``curvature_tangent = false``)
+the term is left out of the tangent: the residual stays exact, so a converged state is the
+same equilibrium, and convergence on edge nodes is linear instead of quadratic.  The
+residual Newton solver retries a failed increment with the other tangent
+(``swap_tangent``, counted in ``tangent_retries``).  Measured figures:
+docs/performance-mechanics.md.
 """
 
 from __future__ import annotations
@@ -165,11 +124,8 @@ class ContactConfig:
     max_plate_increment_mm: float = param(
         2.5, "mm", "protocols: largest plate travel per increment of a plate move (0: the "
         "solver's own max_increment only).  Long increments land on another equilibrium of "
-        "the compressed breast (friction is integrated per increment, and the result moves "
-        "even without friction).  Session 31, uncapped -> 2.5 -> 1.25 mm: phantom CC (1.8k "
-        "nodes) theta_p 4.65 -> 3.81 -> 3.81 deg (frictionless: 5.18 -> 3.81); Pelicano exam "
-        "30 MLO (8.9k nodes) upper force 93.4 -> 42.7 -> 45.6 N, nipple-relative in-plane "
-        "node positions 5.4 and 1.6 mm (median) off the 1.25 mm run", ge=0.0)
+        "the compressed breast (friction is integrated per increment); on the phantom CC the "
+        "result no longer changes below 2.5 mm", ge=0.0)
     predictor: bool = param(False, "", "extrapolate multipliers and friction bound from the "
                             "last two increments of a step")
     curvature_tangent: bool = param(False, "", "include the rounded-edge curvature term "
@@ -217,10 +173,7 @@ class ContactConfig:
                                             "max_plate_increment_mm lowered to this (half the "
                                             "user's cap if that is smaller; 0: no such retry).  "
                                             "A crawl is retried so first, a non-convergence "
-                                            "after the penalty retry.  Pelicano exam 10's "
-                                            "8.9k-node MLO crawled uncapped and completed "
-                                            "with 5 mm (session 26); at the 2.5 mm default "
-                                            "it needs no retry (session 31)", ge=0.0)
+                                            "after the penalty retry", ge=0.0)
 
 
 def tributary_areas(points: np.ndarray, tris: np.ndarray) -> np.ndarray:

@@ -1,4 +1,4 @@
-"""Result files of ``regtrack simulate`` (DESIGN.md file contract).
+"""Result files of ``regtrack simulate`` (docs/design.md, "File contracts between stages").
 
 * ``R.vtu``: the model mesh with point data ``displacement`` (final, mm),
   ``displacement_<k>_<name>`` after every step (mm) and ``reaction`` (final, N: force of

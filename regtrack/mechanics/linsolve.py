@@ -3,144 +3,55 @@
 Direct solver: MKL PARDISO (located through pypardiso, called directly with our own
 ``iparm``); ``splu`` (SuperLU, scipy) is the fallback without MKL (logged).  Every solve
 is right-preconditioned GMRES (:func:`right_gmres`) on a stored factorisation, to the
-relative residual the caller asks for.
+relative residual the caller asks for.  The design choices, each with its reason (figures
+in docs/performance-mechanics.md):
 
-Measured on the 10.5k-node gmsh hemisphere (ANP augmented system, 42k unknowns,
-``pipelines/bench_mechanics.py``; CPU seconds, one MKL thread, shared 2-core machine):
-
-* factorisation 1.5-1.8 s (41 GFlop), forward/backward solve 0.03 s: a solve costs
-  ~1/50 of a factorisation.  (The earlier finding "a solve costs ~1/2 of a
-  factorisation" came from PARDISO's default ``iparm`` -- matching, scaling,
-  refinement -- and from MKL threads spinning against other jobs.)
-* the condensed ANP tangent (2-ring, ``mtype 2``) needs 97 GFlop, 2.4x the augmented
-  1-ring system; plain P1 needs 17 GFlop.  Cholesky (``mtype 2``) is not cheaper than
-  LDL^T (``mtype -2``) on the same matrix (same flops, times within noise), so LDL^T is
-  used throughout: it also survives the indefinite tangents of contact and buckling.
-* float32 factors (``precision = "mixed"``, PARDISO ``iparm(28) = 1``): factorisation
-  1.07 s instead of 1.8 s, solve 0.023 s instead of 0.035 s, half the factor memory;
-  their solution has a relative residual ~1e-4, so GMRES in float64 reaches 1e-10 in 2-3
-  iterations.  If a fresh float32 factorisation cannot bring its own matrix to the
-  tolerance (ill-conditioned), the solver switches to float64 for good (logged).
-* ordering (session 9): METIS nested dissection of the *node* graph, each node's
-  unknowns eliminated together (:func:`node_ordering`, handed to PARDISO as ``perm``),
-  with the off-diagonal pattern of the chest-wall (Dirichlet) dofs left out of the
-  factorised matrix (``decoupled``).  Float32 factorisation alone, 2 threads, median wall
-  seconds of 7 alternated runs (``pipelines/bench_mechanics.py`` prints both orderings):
-
-  ======================================  =========  ===========  ======  ===========
-  model (unknowns)                         PARDISO    + decoupled  nodes   + decoupled
-  ======================================  =========  ===========  ======  ===========
-  hemisphere, 10.5k nodes (42,103)          0.524      0.451        0.436   0.383
-  Pelicano exam 05, 9.5k nodes (38,214)     0.404      0.365        0.305   0.284
-  ======================================  =========  ===========  ======  ===========
-
-  Factor non-zeros fall 5 % (node order) and 10-15 % (decoupled); the rest of the gain
-  is wider supernodes (76 -> 90 GFlop/s on the hemisphere).
-  ``ordering = "pardiso"`` restores PARDISO's own METIS on the dof graph.
-* ``iparm``: PARDISO's METIS when it orders (its parallel nested dissection was not
-  faster on 2 cores; its two-level factorisation, ``iparm(24)`` 1 or 10, and the VBSR
-  format, ``iparm(37) < 0``, were measured: no gain, and VBSR about 2x slower);
-  no weighted matching or scaling for the symmetric systems (the ANP system
-  [[K, B^T], [B, -D]] is quasi-definite when K is positive definite (D > 0 diagonal), so
-  LDL^T needs no pivoting; matching made the analysis 1.6x slower and added 5 % flops);
-  pivot perturbation 1e-8 (symmetric) / 1e-13 with matching and scaling (LU);
-  zero-based indices (no per-call copies); no matrix checker.
+* LDL^T (``mtype -2``) throughout: not slower than Cholesky on the same matrix, and it
+  survives the indefinite tangents of contact and buckling.  The ANP system ``[[K, B^T],
+  [B, -D]]`` is quasi-definite, so no weighted matching or scaling (they made the analysis
+  1.6x slower); pivot perturbation 1e-8.
+* float32 factors refined by float64 GMRES (``precision = "mixed"``, ``iparm(28) = 1``):
+  about 1.7x faster factorisations and half the memory; their solutions have a relative
+  residual ~1e-4, so GMRES reaches 1e-10 in 2-3 iterations.  If a fresh float32
+  factorisation cannot bring its own matrix to the tolerance, the solver switches to
+  float64 for good (logged).
+* ordering (``ordering = "nodes"``): METIS nested dissection of the *node* graph, each
+  node's unknowns eliminated together (:func:`node_ordering`, handed to PARDISO as
+  ``perm``), with the couplings of the chest-wall (Dirichlet) dofs left out of the
+  factorised matrix (``decoupled``): factorisations 27-30 % faster than PARDISO's own METIS
+  on the dof graph (``ordering = "pardiso"``).
 * unsymmetric tangents (sliding friction) are solved by GMRES preconditioned with LDL^T
-  factors of a symmetric matrix of the same pattern (one analysis, and the factors stay
-  valid while the stick/slip state flips): the caller's ``preconditioner`` (the Newton
-  solver passes the tangent without the sliding nodes' friction-bound term, see
-  :meth:`regtrack.mechanics.contact.PlateContact.preconditioner_tangent`), else the
-  symmetric part ``(A + A^T) / 2``.  Only if a fresh factorisation cannot reach the
-  tolerance does the solver switch to LU (``mtype 11``) for the unsymmetric systems
-  (logged).  LU is not used from the start because it costs far more: on the hemisphere
-  (38k unknowns, float32, 2 threads) PARDISO's LU took 1.7-1.9 s with matching and
-  scaling (61.7 M factor entries) against 0.36 s for LDL^T (21.4 M).
-  Why not the symmetric part (session 20): in the benchmark hemisphere's CC the slip
-  term ``-A mu eps ghat n^T`` is of the order of ``mu`` times the normal penalty, far above
-  the tissue's tangential stiffness; halved into both triangles it leaves the sliding
-  nodes' blocks nearly indefinite, and a *fresh* float32 factorisation of the symmetric
-  part needed 1 to 16 GMRES iterations (median 5, all 157 fresh solves of the protocol,
-  mostly to 1e-2); float64 factors did not help (same residual after one solve).  With
-  the term dropped, the preconditioned operator is the identity plus node-local rank-one,
-  nearly nilpotent terms: 1 to 4 iterations (median 2, the first 78).  Over the CC compression
-  (one thread, the default path) that took the GMRES iterations from 3,449 to 2,638 and
-  the factorisations from 147 to 115 (fewer re-used solves run out their budget), and
-  the linear-solve time from 211 to 164 s.
+  factors of a symmetric matrix of the same pattern (one analysis; the factors stay valid
+  while the stick/slip state flips): the caller's ``preconditioner`` (the tangent without
+  the sliding nodes' friction-bound term,
+  :meth:`regtrack.mechanics.contact.PlateContact.preconditioner_tangent`: the
+  preconditioned operator is the identity plus node-local rank-one terms, 1-4 GMRES
+  iterations), else the symmetric part ``(A + A^T) / 2``.  Only if a fresh factorisation
+  cannot reach the tolerance does the solver switch to LU (``mtype 11``), which costs
+  about 5x an LDL^T factorisation.
 
-Because a solve is so much cheaper than a factorisation, the factorisation is
-**re-used** (``reuse_factorisation``, default on): a new matrix is first solved on the
-old factors (``A P^{-1} y = b``, ``x = P^{-1} y``: the residual GMRES monitors is the
-true one) to the tolerance the Newton solver asks for (inexact Newton, :mod:`.solver`).
-It is refactorised when
+Because a solve costs about 1/50 of a factorisation, the factorisation is **re-used**
+(``reuse_factorisation``, default on): a new matrix is first solved on the old factors
+(``A P^{-1} y = b``, ``x = P^{-1} y``: the residual GMRES monitors is the true one) to the
+tolerance the Newton solver asks for (inexact Newton).  It is refactorised when
 
-* GMRES does not reach ``rtol`` within ``k_max`` iterations, where ``k_max`` follows
-  the estimated cost ratio ``rho`` of a factorisation to a GMRES iteration,
-  ``k_max = clip(b rho, 4, krylov_max)`` with the budget ``b = reuse_budget`` (default
-  0.5: a failed attempt wastes at most half a factorisation; 1.0 measured in session 39,
-  below), or
+* GMRES does not reach ``rtol`` within ``k_max = clip(b rho, 4, krylov_max)`` iterations,
+  with the budget ``b = reuse_budget`` (0.5: a failed attempt wastes at most half a
+  factorisation), or
 * the previous re-used solve already cost more than a quarter of a factorisation
-  (``k > rho / 4``: the preconditioner has gone stale, refactorise at once).
+  (``k > rho / 4``: the preconditioner has gone stale).
 
-The ratio is estimated from the factor size, not measured on the fly (earlier versions
-used the measured CPU times, which made the Newton path, and so the increments of a
-contact problem, depend on the machine's load: runs were not reproducible):
+``rho``, the cost of a factorisation in GMRES iterations, is estimated from the factor
+size, not timed, so that the Newton path does not depend on the machine's load:
 
 .. math::
 
     \\rho = 2.2 \\sqrt{\\mathrm{nnz}(L) / (2 n)}
 
-An operation count alone (a factorisation ``sum_j c_j^2 ~ nnz(L)^2 / n`` operations, a
-GMRES iteration ``~ 2 nnz(L)``, so ``rho ~ nnz(L) / (2 n)``, used until session 8)
-overestimates the ratio 4-8x, because the supernodal factorisation runs at BLAS-3 speed
-and the triangular solves are memory-bound.  Measured on this machine, one MKL thread,
-CPU seconds of a float32 factorisation over one GMRES iteration (solve + product), against
-the operation estimate and the fit above:
-
-=================  ==========  ========  ============  ========
-model               unknowns   measured  nnz(L)/(2n)   fit
-=================  ==========  ========  ============  ========
-phantom, 1.8k n.       7,502      30          121          24
-phantom, 3.4k n.      13,757      22          159          28
-exam 05, 9.5k n.      38,214      35          269          36
-exam 02, 12.6k n.     52,589      41          309          39
-=================  ==========  ========  ============  ========
-
-With the operation estimate a re-used factorisation was kept for up to 60 GMRES
-iterations per solve (about 1.7 factorisations' worth) and never marked stale: on
-Pelicano exam 05's 10k CC compression, 26,773 GMRES iterations in 855 re-used solves (31
-per solve) made 860 of the step's 970 s.
-
-Krylov subspace recycling was tried (session 36, offline on 60 consecutive compression
-systems of the benchmark CC, with the same re-use and refactorisation rules): GCRO, each
-solve minimising over the recycled space ``U`` (``A U`` recomputed for the new matrix)
-plus its own Krylov space, ``U`` the last 20 or 60 preconditioned Krylov vectors of the
-solves before.  562 and 501 GMRES iterations against 519 without (25, 22 and 21
-factorisations), and 1,404 and 3,689 extra products to form ``A U``: no gain.  With the
-matrix changing over the whole displacement block at every Newton iteration, the
-directions that the stale factors miss are not those of the previous Krylov spaces.
-Nor did the previous Newton correction help as a starting guess (session 37: GMRES from
-the multiple of it that minimises the residual, benchmark CC: 1,407 GMRES iterations and
-62 factorisations against 1,329 and 54).  The 18 failed re-uses of that run (324 GMRES
-iterations) cannot be cut short either: solves that end up converging start as slowly
-(README, session 37).
-Session 38 replayed the CC's 165 systems offline; the replay gives the run's counts exactly.
-A PARDISO solve of one vector (17.4 ms, 21.4 M float32 factor entries, about 10 GB/s where
-numpy reads 24 GB/s) is bound by latency rather than memory bandwidth: 4 right-hand sides
-cost 19.5 ms.  Block GMRES with random extra start vectors could use that, but it cut the
-GMRES iterations only from 1,329 to 1,252 (block of 2) and 1,160 (block of 4).  Deflating
-the 40 eigenvectors of the factored matrix nearest zero barely helped (e.g. 39 -> 32 and
-59 -> 58 iterations on stale factors): the spectrum near zero has no gap.
-Session 39 (README): on the same replay a budget ``reuse_budget = 1.0`` cut the failed
-re-uses from 18 to 2 and the factorisations from 54 to 43 at about the same GMRES count,
-but the real runs then take other Newton paths: over 16 protocol runs of 8.6k to 9.6k-node
-models timed in pairs it took 7 % less CPU time (faster in 14, -19 % to +15 % per run),
-yet 179 Newton iterations instead of 165 on the benchmark CC, and with it as the default
-one test's MLO at D = 50 % ended on a stalled increment with a 1 % force-balance error.
-So the default stays 0.5.
-Neither a background factorisation on the second core (the factors it can deliver are two
-or more Newton iterations old: 2,475 GMRES iterations on the replay instead of 1,329) nor
-a two-subdomain solve through PARDISO's Schur-complement mode (its own ordering: 22.7 M
-factor entries in the two halves against 19.8 M) pays on this two-core host.
+a fit to float32 factorisations against GMRES iterations (solve + product) measured on
+7.5k to 53k unknowns.  The operation count ``nnz(L) / (2 n)`` overestimates it 4-8x,
+because the supernodal factorisation runs at BLAS-3 speed and the triangular solves are
+memory-bound.
 """
 
 from __future__ import annotations
@@ -179,8 +90,8 @@ def serial_openblas():
     machine's core count.  OpenBLAS splits a dot product (or a norm) of more than 10,000
     entries across its threads, and each split sums in another order: on the 9,496-node
     benchmark hemisphere (28k-entry vectors) the default two threads took the CC
-    compression along another path than one thread (383 against 343 Newton iterations,
-    session 14), and the frictional pinch problems amplify such last-digit differences
+    compression along another path than one thread (383 against 343 Newton iterations),
+    and the frictional pinch problems amplify such last-digit differences
     into different plate forces.  Below 10,000 entries OpenBLAS uses one thread anyway,
     so the small models' results are unchanged.
 

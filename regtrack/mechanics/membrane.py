@@ -86,7 +86,7 @@ def membrane_forces(x: np.ndarray, tris: np.ndarray, G: np.ndarray, A0: np.ndarr
     wrinkled triangles' Newton solve (:func:`_relax`) stays in numpy.  Benchmark hemisphere
     (4,490 skin triangles, 3,445 of them wrinkled or slack at its compressed CC state): 2.6
     ms with the tangent (of which ``_relax`` 0.9 ms, ``_element`` 1.3 ms) and 0.95 ms
-    without, against 6.7 and 2.5 ms for the numpy code before (session 41).
+    without, against 6.7 and 2.5 ms for the equivalent numpy code.
     """
     X = x[tris]  # (T, 3 nodes, 3)
     F = _surface_gradient(X, G)  # (T, 3, 2)

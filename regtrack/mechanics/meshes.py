@@ -2,7 +2,7 @@
 
 * :func:`box_model`: structured Kuhn (6 tets per hexahedron) mesh of a box, conforming;
 * :func:`hemisphere_model`: gmsh Delaunay mesh of a hemisphere on a chest wall (z = 0),
-  the benchmark geometry of DESIGN.md;
+  the benchmark geometry of docs/design.md;
 * :func:`boundary_faces`: outward-oriented boundary triangles of a tet mesh.
 """
 

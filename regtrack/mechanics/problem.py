@@ -111,7 +111,7 @@ def _anp_pressure(of, V, Je, vol0, kappa):
     element's pressure ``p_e = mean_i kappa_g (J_g - 1)`` over its four corners' groups
     (E,).  The sums run in the order of the numpy code they replace (``np.bincount`` over
     the flat corners, ``mean(axis=1)`` left to right then / 4), so the values are the same
-    to the bit; 0.2 against 1.35 ms on the benchmark hemisphere (session 41)."""
+    to the bit; 0.2 against 1.35 ms on the benchmark hemisphere."""
     ng = vol0.shape[0]
     vg = np.zeros(ng)
     for e in range(of.shape[0]):

@@ -20,17 +20,11 @@ inside the plate, 6.5 mm deep on the phantom's MLO with ``posterior_edge_mm = 10
 
 Chest wall: the chest-wall nodes are fixed, and the plates' rounded edges reach to within
 ``posterior_edge_mm`` of them, so the tissue next to the wall is pinched between a plate
-and the fixed nodes.  By default (the paper's model) nothing else stops it: measured on
-Pelicano exams 03 and 10 at the default CC, it is squeezed 5 to 8 mm behind the
-chest-wall plane.  That tissue carries most of the plate force, and its share grows with
-mesh refinement: on exam 10 CC the skin that lay within 15 mm of the wall carries 39 N of
-45 N on 1.9k nodes and 81 N of 88 N on 8.9k (``edge_normal_force_N``, see
-``edge_band_mm``; pipelines/mesh_convergence.py and the session-10 note of issue 5).
-``[contact] chest_wall_contact`` adds a frictionless rigid wall at that plane
-(:func:`chest_wall`; with it, move the plate edges clear of the wall).  The paper's model
-stays the default (issue 5, session 13): moving the edges clear made Pelicano exam 10 CC
-(8.9k nodes) more than 4x slower without the wall and stop at t = 0.86 with it; the
-mesh-dependent part of the plate force is reported apart (``upper_body_force_N`` in
+and the fixed nodes.  Without a wall (the paper's model) that tissue is squeezed 5 to 12 mm
+behind the chest-wall plane, into the torso, and carries a mesh-dependent share of the
+plate force.  ``[contact] chest_wall_contact`` (on by default) adds a frictionless rigid
+wall at that plane (:func:`chest_wall`).  The force carried by the skin near the wall is
+reported apart (``edge_band_mm``; ``upper_body_force_N`` in
 :func:`regtrack.mechanics.run_view.summarise`).
 
 Targets of an upper-plate move: the plate is first brought to touch the breast (no
@@ -49,10 +43,7 @@ Force balance: every step reports ``solver.force_balance`` (:func:`force_balance
 resultant of the residual over the free nodes (the sum of chest-wall reaction, plate
 forces and weight) against the largest of those loads, and warns when it exceeds
 ``[mechanics.solver] stall_force_tol``: a state reached through increments accepted at
-their best iterate can miss the balance although its residual norm passed (session 40:
-Pelicano exam 03, 1,667 nodes, MLO at D = 50 % with ``reuse_budget = 1.0``: 0.51 N, 1.2 %
-of the 42.3 N load; with ``stall_force_tol = 1e-3`` the same run balanced to 2.7e-5 in
-510 Newton iterations instead of 296, plate force 40.58 against 40.78 N).
+their best iterate can miss the balance although its residual norm passed.
 """
 
 from __future__ import annotations
@@ -330,8 +321,8 @@ class ProtocolRunner:
         """Move a plate along its normal by ``distance`` (mm).
 
         A move longer than ``first_plate_increment_mm`` is solved in two parts: that first
-        travel on its own (where contact spreads from a few nodes to many: DESIGN.md,
-        "first-contact blow-up"), then the rest with the solver's own load stepping, in
+        travel on its own (where contact spreads from a few nodes to many, the hardest
+        increment of the move), then the rest with the solver's own load stepping, in
         increments of at most ``max_plate_increment_mm`` of travel (2.5 mm by default: longer
         increments land on another equilibrium, see that option).
         """
@@ -520,11 +511,9 @@ class ProtocolRunner:
 
         A crawl (:class:`SolverCrawlError`, ``[mechanics.solver] crawl_increments``) is
         retried with the plate cap first, a non-convergence with the penalty cap first.
-        Only the first attempt runs with the crawl guard: a retry crawls on to its end, as
-        every attempt did before the guard existed, because a run of small stabilised
-        increments may recover (measured, session 27: Pelicano exam 10's 8.9k-node MLO with
-        the 5 mm cap had 17 stabilised increments in a row by t = 0.62, the last 6 of less
-        than 0.01 on average, yet completes when let run: session 26).  Every attempt but
+        Only the first attempt runs with the crawl guard: a retry crawls on to its end,
+        because a run of small stabilised increments may recover (a real MLO with 17
+        stabilised increments in a row completed when let run).  Every attempt but
         the last runs with the stall guard (``stall_guard`` of
         :func:`regtrack.mechanics.solver.solve_step`: the last increment failing twice in a
         row with the multipliers stalled on the same node), whose cut-backs cannot change
@@ -535,14 +524,11 @@ class ProtocolRunner:
         rim of the contact zone, and Newton then cycles there.  Measured, Pelicano exam 03 CC
         at D = 50 % (1,667 nodes): at the rim of the upper plate's contact zone, one skin
         node went in and out of contact (gap +0.2 / -2.1 mm, |R| 0.2 / 4 N) at every
-        iteration next to pressed nodes 6 mm away with 16 and 64 times the automatic
-        penalty; the step stopped at t = 0.64.  With the cap at 16 the run completes (D =
-        0.50, 1,540 compression iterations); with 64 it stops as well.  A lower cap is not
-        the default: at 8.9k nodes it doubled the iterations of exam 10 CC (909 against
-        459).  Why the plate cap: a crawl is a frictional path stuck in the chest-wall
-        pinch, and the plate travel per increment changes the path (friction is integrated
-        per increment); Pelicano exam 10's 8.9k-node MLO crawls at the defaults and
-        completes with a 5 mm cap (session 26).
+        iteration next to pressed nodes with 16 and 64 times the automatic penalty, and the
+        step stopped; with the cap at 16 it completes.  A lower cap is not the default: at
+        8.9k nodes it doubled the iterations of exam 10 CC.  Why the plate cap: a crawl is a
+        frictional path stuck in the chest-wall pinch, and the plate travel per increment
+        changes the path (friction is integrated per increment).
 
         The retry is recorded in the step's solver statistics (``retry``: the setting that
         worked, the first attempt's error and wall time, and ``failed_attempts``; the
@@ -627,7 +613,7 @@ def force_balance(problem: Any, u: np.ndarray, r: np.ndarray, g_ms2: np.ndarray,
     round-off (about 1e-6 of the load at 10k nodes); an increment accepted at its best
     iterate (``stall_force_tol``, counted in ``stalled_accepts``) can leave a resultant up
     to ``sqrt(free nodes)`` times larger, since many small nodal errors of one sign add
-    up (session 39: 0.42 N, 1.0 % of a 40.8 N plate force).  ``ok`` is False when the
+    up (measured: 0.42 N, 1.0 % of a 40.8 N plate force).  ``ok`` is False when the
     relative imbalance exceeds ``tol`` (the caller passes ``stall_force_tol``)."""
     fixed = problem.model.fixed
     imbalance = float(np.linalg.norm(r[~fixed].sum(axis=0)))

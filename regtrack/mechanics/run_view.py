@@ -153,7 +153,7 @@ def summarise(result: ProtocolResult, timing: dict | None = None) -> dict:
     chest wall at the defaults).  That tissue is attached to the fixed chest wall; on
     Pelicano exam 10 CC it carries 87 to 93 % of the plate force: 39 N on 1.9k nodes and
     81 N on 8.9k, while the rest of the breast carries 5.4 to 6.6 N on every mesh
-    (pipelines/mesh_convergence.py; issue 5, session-10 note).  ``upper_body_force_N`` is
+    (pipelines/mesh_convergence.py).  ``upper_body_force_N`` is
     the rest, ``upper_force_N - upper_edge_force_N``: the force of the breast between the
     plates, the part that does not grow with mesh refinement.  ``retried_steps``: the
     plate moves that converged only on an automatic retry (``[contact]

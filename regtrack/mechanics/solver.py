@@ -1,4 +1,7 @@
-"""Quasi-static Newton-Raphson solver with line search and adaptive load stepping.
+"""Quasi-static residual Newton-Raphson solver with line search and adaptive load stepping.
+
+Kept for comparison (``[mechanics.solver] method = "newton"``); the default step solver
+minimises the incremental potential (:mod:`.minimise`).
 
 A step runs a pseudo-time ``t`` from 0 to 1 in increments.  Each increment solves
 
@@ -6,133 +9,58 @@ A step runs a pseudo-time ``t`` from 0 to 1 in increments.  Each increment solve
     u = u_D(t)                                       on the constrained dofs,
 
 (``f_int``: tissue + skin, :mod:`.problem`; ``r_c``: contributions such as contact,
-:mod:`.contributions`; ``f_ext``: gravity) by Newton with the consistent tangent.
-Constrained rows/columns are replaced by the identity in the fixed sparsity pattern, so
-the factorisation analysis is re-used; the prescribed increment enters the first
-iteration's right-hand side (``-K_fc du_c``), which is the linear predictor.
+:mod:`.contributions`; ``f_ext``: gravity; forces in N, displacements in mm) by Newton with
+the consistent tangent.  Constrained rows/columns are replaced by the identity in the fixed
+sparsity pattern, so the factorisation analysis is re-used; the prescribed increment
+enters the first iteration's right-hand side (``-K_fc du_c``), the linear predictor.
 
-Convergence (both, see :class:`.config.SolverOptions`): ``||R_free|| <= force_tol * F_ref``
+Convergence (both, :class:`.config.SolverOptions`): ``||R_free|| <= force_tol * F_ref``
 with ``F_ref = max(F_ext, ||reaction||, F_c, ||f_int|| / sqrt(ndof), force_floor)``
-(``F_ext``: the larger of the L2 norm and the resultant of the external load, i.e. the
-weight under gravity; ``F_c``: the largest resultant force of a contribution, i.e. the
-plate force, a load on the body like gravity.  The L2 norms of nodal forces used alone
-before are smaller than the load carried by about the square root of the number of
-loaded nodes (0.1 N against a 4 N weight on the 1,841-node phantom), which made the
-relative tests of the contact runs 10-40x stricter than the loads justify), and
-``||du||_inf <= max(disp_tol * max(||u - u_start||_inf, disp_floor), disp_abs_tol)``
-(constraints met); ``u_start`` is the state at the start of the increment, also for the
-re-solves after a multiplier update.
+(``F_ext``: the larger of the L2 norm and the resultant of the external load; ``F_c``: the
+largest resultant force of a contribution, i.e. the plate force.  Resultants, because the
+L2 norm of nodal forces is smaller than the load carried by about the square root of the
+number of loaded nodes), and ``||du||_inf <= max(disp_tol * max(||u - u_start||_inf,
+disp_floor), disp_abs_tol)``, ``u_start`` the state at the increment's start.
 
-Contact-state chatter control: when the residual stops falling (after 3 iterations, above
-``stagnation_ratio`` of the smallest of the 3 before), the contributions are asked to
-``freeze()`` their state (stick/slip) for the rest of the solve; they check it after
-convergence (:meth:`.contact.PlateContact.augment`).  An increment whose residual still
-falls tenfold per iteration at ``max_iterations`` gets up to ``extra_iterations`` more.
-An increment whose iterations run out all the same accepts its best iterate (constraints
-met) when that one's residual is below ``stall_force_tol * F_ref`` (5e-3, Abaqus's default
-force criterion): Newton then wanders at a small residual on soft tangential modes
-of contact nodes, which a cut-back does not cure (measured on the phantom CC run: cut-backs
-down to increments of 1e-4 at ``|R| / F_ref ~ 1e-4 - 1e-3``).  Such increments are counted
-(``stalled_accepts``) with their worst residual (``stalled_residual_max``).  Such an
-increment stops as soon as it stagnates (from the fifth iteration: none of the last three
-residuals below ``stagnation_ratio`` of the one before them) instead of running out its
-iterations (and ``extra_iterations``).
-Line search (:meth:`_Newton.line_search`): by default accept the step length ``a`` when
-``du.R(u + a du) <= ratio |du.R(u)|`` (else secant update, bounded to [0.1, 1] of the
-current ``a``); ``line_search_merit = "residual"`` backtracks on ``|R|`` instead (Armijo),
-which is a descent test for any tangent, indefinite ones included; the default ``"auto"``
-retries an increment that failed with the first on the second before cutting it back
-(``merit_retries``), and then with the contributions' other tangent (plate contact: with
-or without the rounded-edge curvature term, ``tangent_retries``); elements may not invert.
-Stabilisation (``stabilisation = "auto"``, the default; after Abaqus's *STATIC, STABILIZE
-and the proximal-point method): an increment that fails is solved once more, from the same
-start ``u_n``, with the damping force ``c (u - u_n)`` added to the residual and ``diag(c)``
-to the tangent, ``c = alpha max(diag K(u_n), floor)`` (:meth:`_Newton.stabilise`,
-``alpha = stabilisation_factor``).  That solve minimises the energy plus
-``1/2 |u - u_n|^2_c``: near-singular soft modes (tissue pinched between a plate and the
-fixed chest wall) get the stiffness ``alpha K_ii`` and Newton no longer wanders along
-them.  Its state is not an equilibrium (it carries the damping force), so it is never
-returned: the next increment starts from it undamped, and a step whose last increment was
-stabilised ends with undamped Newton solves at ``t = 1`` (each failing one followed by one
-more proximal solve about the current state, its weight halved after each one that
-converges, at most ``stabilisation_polish`` rounds: ``_polish``).  Right after a
-stabilised increment, an undamped solve at the same load ("settle",
-``settled_increments``) tries to remove the damping lag at once: left in, the
-lag made the next undamped increment fail as well, and on Pelicano exam 10's 10k MLO every
-increment of the compression ended up stabilised and the final polish failed.  The settle
-starts from the stabilised solve's augmented-Lagrangian multipliers
-(``settle_multipliers = "stabilised"``; ``"committed"``, the behaviour before session 30,
-starts it from the last committed ones, so its first solve has the whole increment's
-pressure change to make up); a settle that fails returns the contributions to the
-stabilised solve's multipliers and stick/slip state, which the commit then stores (before
-session 30 it stored what the failed settle's multiplier updates had left).  The returned
-state is therefore converged to the same criteria as always;
-a failure reports and keeps the last *undamped* equilibrium.  ``"off"`` restores the
-line-search merit and contact-tangent retries (below).  Measured, compression step: phantom
-CC (1,841 nodes) 254 Newton iterations instead of 334; Pelicano exam 03 CC (1.5k nodes)
-445 instead of 344 (not a win at this size); at 10k nodes it lets the CC of exams 05 and
-10 complete where the retries and cut-backs crawled (see the session-7 note of issue 5).
-Predictor (``extrapolation = "linear"``, the default; Abaqus *STATIC's default too): an
-increment's Newton iterations start from ``u_n + min(dt / dt_prev, 2) (u_n - u_n-1)``, the
-linear extrapolation of the last two equilibria of the step, when no element inverts
-there and its residual is below that of ``u_n`` (:meth:`_Newton.start`).  The plate moves in pseudo-time, so ``u_n`` alone has
-the skin nodes under the advanced plate penetrating it by the whole travel of the
-increment; the extrapolated state has them about where they will be.  Measured,
-compression-step Newton iterations (1.5-1.8k-node models, CC + MLO, one thread): phantom
-107 + 66 instead of 198 + 72, Pelicano exam 03 240 + 85 instead of 445 + 114.  The
-frictional path, and with it the plate force, depends on the increments (return mapping
-per increment): on the phantom CC the force with the predictor (36.76 N) is closer to the
-path-converged one (plate travel capped at 2.5 mm per increment: 36.78 N with or without
-the predictor) than without it (33.71 N).
-Fresh factorisation at an increment's start (``increment_refactor = "adaptive"``, the
-default since session 40): the linear solver re-uses its last factorisation while GMRES
-converges on it within its budget (:mod:`.linsolve`).  In a plate move the first Newton
-iteration of an increment meets a plate 2.5 mm further on, new contact nodes and the
-predictor's state, and the factors of the last increment fail there as a rule (benchmark
-CC: 12 of the run's 18 failed re-uses, each 18 wasted GMRES iterations); the matrix
-change does not announce it (the relative Frobenius change of the failing systems, 7e-5
-to 2e-3, overlaps that of the converging ones, 8e-7 to 2e-3).  So once an increment's
-first solve has failed on re-used factors, each later increment of the step factorises
-at its first iteration (``increment_refactors``); the re-solves after a multiplier update
-keep re-using.  Gravity steps, whose first solves converge on old factors, are
-unchanged.  ``"always"`` factorises at every increment's start (session 38: 166
-iterations, 63 factorisations, 63.5 s on the benchmark CC against 165, 54, 62.2 s);
-``"never"`` restores the behaviour before.  Measured in session 40 (one MKL thread per
-run, ``"never"`` and ``"adaptive"`` side by side; Newton iterations, GMRES iterations, CPU s):
+Safeguards of an increment, each for a failure seen on frictional contact:
 
-==================================  ==================================  =====================
-model (nodes), view                  never                               adaptive
-==================================  ==================================  =====================
-benchmark hemisphere (9,496), CC     165, 1,329, 86.2                    167, 1,150, 83.3
-benchmark hemisphere, MLO            106, 860, 57.7                      107, 712, 54.0
-hemisphere lc 2.95 / 2.97 mm, CC     184 / 173, 100.8 / 89.6             187 / 157, 96.4 / 83.3
-hemisphere lc 3.05 / 3.1 mm, CC      152 / 157, 67.2 / 68.2              149 / 146, 62.7 / 63.1
-Pelicano exam 03 (8,703), CC / MLO   323 / 171, 132.6 / 66.3             303 / 164, 118.2 / 61.1
-Pelicano exam 10 (8,853), CC         277, 2,604, 138.2                   349, 2,799, 156.0
-==================================  ==================================  =====================
+* chatter control: when the residual stops falling (``stagnation_ratio``), the
+  contributions ``freeze()`` their stick/slip state for the rest of the solve and check it
+  after convergence; a residual still falling tenfold per iteration gets up to
+  ``extra_iterations`` more;
+* stalled acceptance: an increment whose iterations run out accepts its best iterate when
+  its residual is below ``stall_force_tol * F_ref`` (5e-3, Abaqus's default), because
+  Newton wanders at a small residual on soft tangential modes of contact nodes, which a
+  cut-back does not cure (counted in ``stalled_accepts``);
+* line search (:meth:`_Newton.line_search`): ``du.R(u + a du) <= ratio |du.R(u)|``, or
+  Armijo on ``|R|`` (``line_search_merit``); ``"auto"`` retries a failed increment with
+  the other merit and then with the contributions' other tangent; elements may not invert;
+* stabilisation (``stabilisation = "auto"``; Abaqus *STATIC, STABILIZE, the proximal-point
+  method): a failed increment is solved again from ``u_n`` with the damping force ``c (u -
+  u_n)``, ``c = alpha max(diag K(u_n), floor)``, i.e. it minimises the energy plus ``1/2
+  |u - u_n|^2_c``, which stiffens the near-singular modes of tissue pinched between a plate
+  and the fixed chest wall.  A damped state is never returned: an undamped "settle" solve
+  at the same load follows (from the stabilised multipliers, ``settle_multipliers``), and a
+  step whose last increment was damped ends with undamped solves at ``t = 1`` (``_polish``);
+* predictor (``extrapolation = "linear"``): an increment starts from ``u_n + min(dt /
+  dt_prev, 2) (u_n - u_n-1)`` when no element inverts there and its residual is below that
+  of ``u_n``, because with ``u_n`` alone the skin under the advanced plate penetrates it by
+  the whole travel of the increment;
+* fresh factorisation at an increment's start (``increment_refactor = "adaptive"``): once
+  an increment's first solve has failed on re-used factors, each later increment of the
+  step factorises at its first iteration, because in a plate move the old factors fail
+  there as a rule and the matrix change does not announce it.
 
-Faster in 8 of those 9 runs (-3 to -11 %); exam 10's CC took another Newton path (+13 %).
-The plate forces agree to 0.04 %.  Exam 10's MLO and exam 05's CC and MLO (9,468 nodes)
-ran identically (no increment's first solve failed on re-used factors: they had gone
-stale before).  All 12 runs: 1,547 against 1,576 CPU s (-1.9 %).  The benchmark CC alone
-on the idle host (two threads, the same path each time): 57.6 to 63.0 s over nine runs,
-median 58.9 s; alternated with ``"never"`` in one hour, 58.8 to 60.3 s against 62.9 to
-65.4 s; with session 41's bit-identical speed-ups of the evaluation
-(the membrane and ANP kernels), 57.9 to 58.6 s in four runs.
-An increment that fails (iterations exhausted, divergence, inversion, NaN) is rolled
-back and cut (``cutback``); easy increments grow the next one (``growth``).  Below
-``min_increment`` the step stops with :class:`SolverDidNotConvergeError`, which keeps
-the last converged state and the load fraction reached.  A caller that can retry a step
-another way (the protocol engine's plate moves) asks for the crawl guard
-(``crawl_guard``, :func:`_crawling`): a step that keeps needing stabilisation in small
-increments stops with :class:`SolverCrawlError` rather than crawl for an hour.  It also
-asks for the stall guard (``stall_guard``): when the last increment (to t = 1) fails with
-a contribution's multipliers stalled on the same node (:class:`_Stalled`, e.g. skin pinned
-between a plate edge and the chest wall at the penalty cap) twice in a row, the step stops
-with :class:`SolverCrawlError` at once.  The cut-backs in between only shorten the way to
-the same state at t = 1: on the lc 2.9 mm benchmark hemisphere's CC (10,420 nodes) a retry
-cut back six times, from t = 0.9949 to 0.9998, each ending in the same stall of one skin
-node held 5 mm deep, before it reached min_increment (session 37).
+An increment that fails (iterations exhausted, divergence, inversion, NaN) is rolled back
+and cut (``cutback``); easy increments grow the next one (``growth``).  Below
+``min_increment`` the step stops with :class:`SolverDidNotConvergeError`, which keeps the
+last converged state and the load fraction reached.  A caller that can retry a step
+another way (the protocol engine's plate moves) asks for the crawl guard (``crawl_guard``,
+:func:`_crawling`: a step that keeps needing stabilisation in small increments) and the
+stall guard (``stall_guard``: the last increment failing twice with a contribution's
+multipliers stalled on the same node, :class:`_Stalled`); both stop the step with
+:class:`SolverCrawlError`, since further cut-backs only shorten the way to the same state.
+Measured figures of these choices: docs/performance-mechanics.md.
 """
 
 from __future__ import annotations
@@ -710,10 +638,8 @@ def _crawling(run: list[float], t: float, o: SolverOptions) -> bool:
     current run of consecutive ones that needed stabilisation) all did, and the rest of the
     step, ``1 - t``, would take more than ``crawl_remaining`` increments of their mean size.
     Then the frictional path is stuck in the chest-wall pinch, and a retry on another path
-    (smaller plate travel per increment) costs less than crawling on: Pelicano exam 10's
-    8.9k-node MLO crawled from t = 0.45 in increments of 0.004 (22 s each, about 130 left:
-    session 21); session 9's exam 05 CC, whose stabilised run from t = 0.86 finished, had
-    about 24 left."""
+    (smaller plate travel per increment) costs less than crawling on (a real MLO that
+    crawled had about 130 increments left, one that finished about 24)."""
     n = o.crawl_increments
     return (n > 0 and len(run) >= n and t < 1.0 - 1e-12
             and (1.0 - t) > o.crawl_remaining * float(np.mean(run[-n:])))
@@ -728,35 +654,10 @@ def _skip_undamped(run: list[float], o: SolverOptions) -> bool:
     budget; the stabilised retry that follows such a failure starts from the same state
     (no extrapolated guess, the contributions rolled back), so where the attempt would
     have failed the path is the same but for the linear solver's factorisation re-use.
-
-    Measured (session 29, one thread, whole MLO protocol at the defaults on the 10k-node
-    Pelicano meshes whose compressions needed stabilisation in every increment; "skipped":
-    attempts skipped, and the Newton iterations of the failed first attempts left):
-
-    ============  ===============  ===============  ==============  ===============
-    exam (nodes)  iterations       upper force N    skipped (left)  CPU s
-    ============  ===============  ===============  ==============  ===============
-    30 (8,854)    1,510 -> 1,276   78.03 -> 78.03   18 (136)        1,188 -> 834
-    18 (9,770)    1,494 -> 1,289   51.03 -> 51.03   15 (125)        1,334 -> 1,048
-    11 (9,119)    2,176 -> 1,828   83.98 -> 83.98   25 (645 *)      1,571 -> 1,369
-    05 (9,468)    904 -> 763       103.72 -> 102.91 3 (139 *)       504 -> 444
-    ============  ===============  ===============  ==============  ===============
-
-    (*: with the failed settles' iterations, which were not counted in the first two runs.
-    The "before" runs, sessions 27 and 28, shared the two cores with one or two others, and
-    so did exam 11's "after" run, so compare their CPU seconds loosely).  On exams 30, 18 and 11 the increments,
-    augmentations, cut-backs and forces are the same: the same path.  Exam 05 (three
-    stabilised increments in a row before) took another path: 24 increments instead of
-    27, 0.8 % less force (a skipped attempt that would have passed, or the other
-    factorisation re-use; not traced).  The benchmark hemisphere never has two stabilised
-    increments in a row, so its path is unchanged (340 and 120 iterations, 128.04 and
-    52.75 N).  Skipping the settle as well where the last one had failed (a
-    prototype, not kept) saved a little more (1,260 and 1,103) but changed the frictional
-    path (88.81 and 84.60 N): a failed settle was not rolled back then, and the commit
-    stored the multipliers it left.  Since session 30 a failed settle returns to the
-    stabilised solve's state, so a skipped settle is one that failed, and the increments
-    that skip their attempt skip their settle too (``stabilised_skip_settle``; measured
-    with ``settle_multipliers = "stabilised"`` in README "Status")."""
+    On the real MLOs that need stabilisation in every increment this saves about 15 % of
+    the Newton iterations, plate forces within 1 % (docs/performance-mechanics.md).  A
+    failed settle returns to the stabilised solve's state, so the increments that skip
+    their attempt skip their settle too (``stabilised_skip_settle``)."""
     n = o.stabilised_first_after
     if n <= 0 or o.stabilisation != "auto" or len(run) < n:
         return False
@@ -921,89 +822,20 @@ def _increment(newton: _Newton, u: np.ndarray, t: float, gravity, dirichlet, his
     With ``augmentation = "final"`` an undamped increment that ends before ``t = 1`` skips
     the loop: each contribution takes one Uzawa update of its multipliers instead
     (``carry_multipliers``), which the caller's commit carries into the next increment,
-    whose plate motion the solve has to follow anyway.  The penetration of those intermediate states is bounded
-    by the penalty alone (about ``p / eps``); the step's last increment iterates the
-    multipliers to ``penetration_tol_mm`` as before, and only that state is returned.
-    Stabilised (damped) increments keep the loop: their state is not an equilibrium to
-    carry multipliers from.  Measured, one thread, compression-step Newton iterations
-    with ``"every"`` / ``"final"`` (session 12):
+    whose plate motion the solve has to follow anyway.  The penetration of those
+    intermediate states is bounded by the penalty alone (about ``p / eps``); the step's last
+    increment iterates the multipliers to ``penetration_tol_mm``, and only that state is
+    returned.  Stabilised (damped) increments keep the loop: their state is not an
+    equilibrium to carry multipliers from.  ``"final"`` saves about a fifth of the Newton
+    iterations over the Pelicano protocols (docs/performance-mechanics.md).
 
-    ==============================  ==============  =========
-    model (nodes)                    CC              MLO
-    ==============================  ==============  =========
-    phantom01 (1.8k)                 163 / 120       71 / 51
-    Pelicano exam 03 (1.5k)          400 / 317       131 / 50
-    Pelicano exam 10 (3.0k)          120 / 170       570 / 315
-    Pelicano exam 10 (8.9k)          409 / 410
-    Pelicano exam 03 (8.8k)          1,377 / 2,781
-    ==============================  ==============  =========
-
-    On the three small models the whole protocols took 1,868 / 1,364 iterations (-27 %).
-    At 10k nodes the option does not pay: exam 10's gravity steps took 56 iterations
-    instead of 78 and its compression as many, but it ended on another frictional path
-    (117 N on the upper plate instead of 88 N: more tissue pinched between the plate edge
-    and the chest wall); exam 03's compression took twice as many.  A first version, which
-    called ``augment`` once instead (it keeps a frozen stick/slip state when no multiplier
-    needs updating), took 1,180 compression iterations on exam 10: the paths are chaotic.
-    Hence opt-in then, for studies on coarse meshes.  With the 2.5 mm cap on the plate
-    travel per increment (session 31) the balance changed, and ``"final"`` is the default
-    since session 33.  Whole-protocol Newton iterations, one thread, ``"every"`` /
-    ``"final"`` (upper-plate force, N), the Pelicano meshes of ``regtrack mesh``
-    (sessions 31-33):
-
-    =========  ====================================  ======================================
-    exam       CC                                    MLO
-    =========  ====================================  ======================================
-    02         failed / 437 (148.51)                 392 / 241 (78.10 / 78.00)
-    03         1,586 / 1,048 (80.55 / 80.82)         351 / 305 (43.00 / 44.77)
-    05         887 / 916 (87.37 / 86.52)             395 / 422 (54.09 / 54.37)
-    10         397 / 299 (88.58 / 88.31)             805 / 464 (49.20 / 51.63)
-    11         768 / 298 (116.95 / 119.25)           1,006 / 987 (54.05 / 60.97)
-    18         1,023 / 509 (90.90 / 90.10)           1,682 / 1,723 (45.34 / 45.26)
-    30         476 / 346 (94.70 / 94.02)             955 / 1,117 (42.74 / 48.82)
-    41         815 / 384 (215.33 / 214.90)           400 / 291 (71.32 / 70.19)
-    =========  ====================================  ======================================
-
-    Over the 15 runs both finish: 11,938 / 9,350 iterations (-22 %); the CPU seconds of
-    the 13 with a figure for both fell by 8 % only (the saved re-solves were presumably the
-    cheap iterations on re-used factorisations; not counted).  Exam 02's CC failed with
-    ``"every"`` at t = 0.74 and in both automatic retries (uncapped, session 30, it had
-    completed in 806).  Four runs take 2 to 17 % more.  The forces move by 0.1 to 5 %, as
-    the chaotic frictional paths of the pinch move them, but exams 11 and 30 MLO by 13 and
-    14 %.  Halving the cap to 1.25 mm moved exam 30's MLO force by 0.4 % with ``"final"``
-    (48.82 -> 49.03 N) but by 7 % with ``"every"`` (42.74 -> 45.61 N, session 31), and
-    exam 11's by 8 % with ``"final"`` (60.97 -> 56.06 N, to 4 % from ``"every"``'s 2.5 mm
-    54.05 N): at 2.5 mm neither mode's MLO force is converged in the plate increment on
-    every exam. Benchmark hemisphere (``pipelines/bench_protocols.py``, 2 threads, idle
-    machine): CC 300 / 165 iterations, 149.4 / 104.5 s (128.05 / 128.13 N); MLO 186 / 107,
-    87.9 / 70.0 s (52.75 / 52.76 N). The phantom's recovered CC rotation (issue 7) moved
-    from 3.77 to 3.72 deg (phantom regenerated with "final" too).
-
-    With ``augmentation_force_tol > 0`` (opt-in, session 19) the solves of an increment
-    stop at that looser relative residual while its multipliers are still being updated
-    (after at least one Newton iteration; no displacement test).  Once a state passes the
-    multiplier check it is solved to ``force_tol`` with the same multipliers
-    (``tightening_solves``) and checked again, so the returned state meets the same
-    criteria as without the option.  Measured, compression-step Newton iterations
-    (one thread), default / ``1e-2``, and the upper-plate force (N):
-
-    ==============================  =========================  =========================
-    model (nodes)                    CC                         MLO
-    ==============================  =========================  =========================
-    benchmark hemisphere (9.5k)      316 / 175 (128.2 / 128.0)  103 / 69 (52.75 / 52.71)
-    phantom01 geometry (1.8k)        163 / 93 (33.4 / 33.7)     71 / 46 (12.9 / 13.4)
-    Pelicano exam 03 (1.7k)          366 / 219 (23.2 / 24.2)    115 / 79 (14.9 / 15.6)
-    Pelicano exam 10 (3.0k)          120 / 128 (56.3 / 56.0)    570 / 101 (34.3 / 40.0)
-    Pelicano exam 10 (8.9k)          409 / 1,526 (88.4 / 114.4)
-    Pelicano exam 03 (8.8k)          1,377 / 651 (80.0 / 80.3)
-    ==============================  =========================  =========================
-
-    (phantom01 with the default homogeneous tissue, not its case's composition model;
-    exam 10 8.9k default from session 15.)  ``5e-3``: hemisphere CC 234; ``3e-2``: the
-    hemisphere's CC failed increments from t = 0.56 and was stopped.  Most runs save a third
-    to a half of the iterations, but exam 10's 8.9k CC took the other frictional path (more
-    tissue pinched between the plate edge and the chest wall, as with ``penetration_tol_mm =
-    0.05`` in session 15) and 3.7x the iterations, so the option is not the default."""
+    With ``augmentation_force_tol > 0`` (opt-in) the solves of an increment stop at that
+    looser relative residual while its multipliers are still being updated (after at least
+    one Newton iteration; no displacement test).  Once a state passes the multiplier check
+    it is solved to ``force_tol`` with the same multipliers (``tightening_solves``) and
+    checked again, so the returned state meets the same criteria as without the option.
+    It is not the default because it can send a frictional compression along another path
+    (more tissue pinched at the chest wall) at several times the cost."""
     p, o = newton.p, newton.o
     for c in newton.contribs:
         c.set_time(t)
@@ -1055,8 +887,8 @@ def _increment(newton: _Newton, u: np.ndarray, t: float, gravity, dirichlet, his
         _log_solve(newton, t, "re-solve after a multiplier update", newton.stats.iterations - it1,
                    hist)
         if updates == o.max_augmentations and loose is None:
-            break  # the last re-solve is not checked (as before the inexact solves); an
-            # inexact one is, so that a state passing the check still gets its tightening solve
+            break  # the last exact re-solve is not checked; an inexact one is, so that a
+            # state passing the check still gets its tightening solve
     raise _Failed(f"augmented-Lagrangian multipliers not converged after {o.max_augmentations} updates")
 
 

@@ -39,12 +39,8 @@ class StepStats:
     iterations started from the linear extrapolation of the previous increment.
     ``line_search_trials`` counts the line-search residual evaluations and
     ``inverted_trials`` those rejected because an element inverted there (the step is then
-    halved).  Measured on the benchmark hemisphere's CC compression (session 16: 185
-    rejected trials, and 7 extrapolated starts refused for the same reason): the inverted
-    elements lie under the plates next to the fixed chest wall (in half of those 192 states
-    every one of them within 6.6 mm of it, reference position; two thirds of them touch a
-    skin node); the failed increment at t = 0.5 had 33 of its 51 trials rejected so, and
-    steps down to 0.01.
+    halved).  On the benchmark hemisphere's CC compression the inverted elements lie
+    under the plates next to the fixed chest wall.
     """
 
     name: str = ""
