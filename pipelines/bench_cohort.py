@@ -41,6 +41,7 @@ import csv
 import json
 import math
 import os
+import shutil
 import signal
 import statistics
 import subprocess
@@ -105,12 +106,12 @@ def exam_label_map(exam_dir: Path) -> Path | None:
 
 
 def write_case(folder: Path, *, case_id: str, labels: Path, side: str | None, D: float | None) -> Path:
-    """A case folder for one breast: ``case.toml`` and a link to the label map (a case's
-    paths must lie inside its folder); ``D`` sets ``target_D`` of both views."""
+    """A case folder for one breast: ``case.toml`` and a copy of the label map (a case's
+    paths must lie inside its folder, links included); ``D`` sets ``target_D`` of both views."""
     (folder / "mri").mkdir(parents=True, exist_ok=True)
-    link = folder / "mri" / labels.name
-    if not link.exists():
-        link.symlink_to(labels.resolve())
+    copy = folder / "mri" / labels.name
+    if not copy.exists():
+        shutil.copyfile(labels, copy)
     lines = ["[case]", f'id = "{case_id}"', "", "[mri]", f'labels = "mri/{labels.name}"',
              'scheme = "pelicano-simple"']
     if side:

@@ -280,6 +280,12 @@ def build_model(labels: LabelVolume, *, scheme: LabelScheme, config: MeshConfig,
                          "; ".join(fail), rounds, config.tumour_refinements)
                 continue  # same attempt settings, finer tumours
         log.warning("meshing attempt %d failed its checks: %s", i + 1, "; ".join(fail))
+        if best is not None:
+            # only the re-sizing for the node count keeps a passed mesh in hand: it met
+            # every check, so it is used rather than trading checks for the node count
+            log.warning("keeping the mesh before re-sizing: %d nodes (target %d), every check passed",
+                        best[1]["n_nodes"], config.target_nodes)
+            break
         i, rounds = i + 1, 0
     if best is None:
         last = attempts[-1] if attempts else {}
