@@ -20,7 +20,9 @@ What is read from the children (nothing else: the solver's internals may change)
 
 * ``regtrack mesh``: its exit code and the model sidecar ``model.json``, ``meta.quality``
   (``n_nodes``, ``n_tets``, ``min_dihedral_deg``, ``gamma_p5``, ``volume_error``,
-  ``tumours[*].volume_error`` / ``voxel_volume_mm3``), ``meta.attempts`` (their count) and
+  ``tumours[*].volume_error`` / ``voxel_volume_mm3``), ``meta.attempts`` (the last one's
+  ``attempt`` and ``tumour_refinement``: the attempt of the plan used and its tumour
+  refinement rounds; their count: the gmsh runs) and
   ``meta.preparation.tumour_volume_by_side_mm3`` (to mesh the other breast too);
 * ``regtrack simulate``: its exit code and the result JSON's ``summary`` fields
   ``complete``, ``D``, ``upper_force_N``, ``force_imbalance_rel``, ``iterations``,
@@ -29,7 +31,8 @@ What is read from the children (nothing else: the solver's internals may change)
 
 Wall seconds are measured here; CPU seconds and peak memory come from ``os.wait4`` on the
 child (user + system time of the child and its descendants; ``ru_maxrss``: the resident set
-of the largest process of its tree).  Each child gets ``OMP_NUM_THREADS`` /
+of the largest process of its tree, which counts the forking benchmark's own few tens of MB
+until the child's ``exec``).  Each child gets ``OMP_NUM_THREADS`` /
 ``MKL_NUM_THREADS`` = ``--threads`` (default: cores // jobs), so ``--jobs`` children do not
 oversubscribe the cores.
 """
@@ -166,7 +169,9 @@ def mesh_model(m: Model, *, target_nodes: int | None, timeout_s: float, threads:
         "tumour_ml": " ".join(f"{t.get('voxel_volume_mm3', math.nan) / 1000:.2f}" for t in tum),
         "tumour_volume_errors": " ".join(f"{e:+.3f}" for e in errs),
         "worst_tumour_volume_error": max(errs, key=abs) if errs else None,
-        "attempts": len(meta.get("attempts", [])) or None,
+        "attempt_used": _get((meta.get("attempts") or [{}])[-1], "attempt"),
+        "meshings": len(meta.get("attempts", [])) or None,
+        "tumour_refinements": _get((meta.get("attempts") or [{}])[-1], "tumour_refinement"),
         "wall_s": r.wall_s, "cpu_s": r.cpu_s, "peak_rss_mb": r.peak_rss_mb, "error": r.error,
         "_tumour_by_side": prep.get("tumour_volume_by_side_mm3") or {},
     }
@@ -202,7 +207,8 @@ def simulate_model(m: Model, view: str, D: float | None, *, timeout_s: float, th
 # ---------------------------------------------------------------- tables
 
 MESH_COLS = ["exam", "side", "completed", "nodes", "tets", "min_dihedral_deg", "gamma_p5", "volume_error",
-             "tumours", "tumour_ml", "tumour_volume_errors", "worst_tumour_volume_error", "attempts",
+             "tumours", "tumour_ml", "tumour_volume_errors", "worst_tumour_volume_error", "attempt_used",
+             "meshings", "tumour_refinements",
              "wall_s", "cpu_s", "peak_rss_mb", "exit_code", "error"]
 SIM_COLS = ["exam", "side", "view", "D_setting", "nodes", "completed", "force_balance_rel", "D", "plate_force_N",
             "iterations", "max_penetration_mm", "wall_s", "cpu_s", "peak_rss_mb", "error"]
