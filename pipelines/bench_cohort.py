@@ -167,7 +167,7 @@ def mesh_model(m: Model, *, target_nodes: int | None, timeout_s: float, threads:
         "min_dihedral_deg": q.get("min_dihedral_deg"), "gamma_p5": q.get("gamma_p5"),
         "volume_error": q.get("volume_error"), "tumours": len(tum),
         "tumour_ml": " ".join(f"{t.get('voxel_volume_mm3', math.nan) / 1000:.2f}" for t in tum),
-        "tumour_volume_errors": " ".join(f"{e:+.3f}" for e in errs),
+        "tumour_volume_errors": " ".join(f"{e:+.4f}" for e in errs),
         "worst_tumour_volume_error": max(errs, key=abs) if errs else None,
         "attempt_used": _get((meta.get("attempts") or [{}])[-1], "attempt"),
         "meshings": len(meta.get("attempts", [])) or None,
