@@ -24,6 +24,12 @@ Details that the element size forces:
   inside its level set by up to ``L^2 / (8 R)`` (``R`` the radius of curvature, a few mm
   at the rim of a cut face); ``a`` = 0.2, then 0.35 in the later tries.  The trimmed rim
   is rounded over about 1 mm (:func:`smooth_min`).
+* **Rounded rim** (a retry, :func:`outer_field`): where the skin meets a cut plane at a few
+  degrees, the thin wedge's remeshed triangles fold onto the cut face; the later attempts
+  cut with a smooth minimum over half an element, which rounds the rim and shaves the wedge.
+* **Tumour volume**: each tumour's iso-value is shifted so that its marching-cubes surface
+  encloses the tumour's voxel volume (:func:`~regtrack.model.surfaces.match_enclosed_volume`;
+  the count-preserving iso-value leaves a tumour a few voxels across up to 10 % short).
 * **Volume**: each remeshed surface is offset along its normals (skin vertices only for
   the outer one, so cut faces stay on their planes) back to the volume of its
   marching-cubes surface (:func:`~regtrack.model.remesh.restore_volume`).

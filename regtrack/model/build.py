@@ -4,8 +4,10 @@ Pipeline: :func:`~regtrack.model.prepare.prepare_breast` (side, chest wall, crop
 -> :func:`~regtrack.model.boundary.make_surfaces` (smoothed marching-cubes surfaces,
 isotropically remeshed with pymeshlab and checked for intersections; retried) ->
 gmsh (:mod:`regtrack.model.mesher`, in a child process with a timeout) -> checks
-(:mod:`regtrack.model.checks`), retried with other settings when a check fails ->
-anatomical frame, nipple node, chest-wall nodes, skin triangles.
+(:mod:`regtrack.model.checks`), retried with other settings when a check fails
+(:func:`attempt_plan`; a tumour whose meshed volume misses its voxel volume is first refined
+locally, :func:`refine_tumour_factors`) -> anatomical frame, nipple node, chest-wall nodes,
+skin triangles.
 """
 
 from __future__ import annotations
