@@ -24,6 +24,12 @@ Details that the element size forces:
   inside its level set by up to ``L^2 / (8 R)`` (``R`` the radius of curvature, a few mm
   at the rim of a cut face); ``a`` = 0.2, then 0.35 in the later tries.  The trimmed rim
   is rounded over about 1 mm (:func:`smooth_min`).
+* **Rounded rim** (a retry, :func:`outer_field`): where the skin meets a cut plane at a few
+  degrees, the thin wedge's remeshed triangles fold onto the cut face; the later attempts
+  cut with a smooth minimum over half an element, which rounds the rim and shaves the wedge.
+* **Tumour volume**: each tumour's iso-value is shifted so that its marching-cubes surface
+  encloses the tumour's voxel volume (:func:`~regtrack.model.surfaces.match_enclosed_volume`;
+  the count-preserving iso-value leaves a tumour a few voxels across up to 10 % short).
 * **Volume**: each remeshed surface is offset along its normals (skin vertices only for
   the outer one, so cut faces stay on their planes) back to the volume of its
   marching-cubes surface (:func:`~regtrack.model.remesh.restore_volume`).
@@ -39,7 +45,8 @@ from scipy import ndimage
 
 from regtrack.model.prepare import PreparedBreast
 from regtrack.model.remesh import REMESH_TRIES, SurfaceCheck, check_surfaces, remesh, restore_volume
-from regtrack.model.surfaces import Surface, extract_surface, plane_field, slope_per_mm, smooth_levelset
+from regtrack.model.surfaces import (Surface, extract_surface, match_enclosed_volume, plane_field, slope_per_mm,
+                                    smooth_levelset)
 
 log = logging.getLogger(__name__)
 
@@ -87,14 +94,24 @@ def open_close(mask: np.ndarray, radius_mm: float, spacing: np.ndarray) -> np.nd
     return dilate(erode(closed))
 
 
-def outer_field(prep: PreparedBreast, *, smoothing_mm: float, feature_mm: float) -> np.ndarray:
-    """Level set of the outer surface: smoothed breast cut by every plane (positive inside)."""
+def outer_field(prep: PreparedBreast, *, smoothing_mm: float, feature_mm: float,
+                rim_mm: float = 0.0) -> np.ndarray:
+    """Level set of the outer surface: smoothed breast cut by every plane (positive inside).
+
+    ``rim_mm`` > 0: each cut is a smooth minimum (:func:`smooth_min`, width ``rim_mm``)
+    instead of the exact one, so the rim where the skin meets a cut face is rounded and a
+    wedge of tissue thinner than about ``rim_mm`` between the skin and a cut plane (the
+    lateral edge of a breast whose skin meets the tilted chest-wall plane at a few degrees,
+    Pelicano exam 41 left) is shaved off; its remeshed triangles otherwise fold onto the
+    cut face.  Cut faces stay exactly planar farther than ``rim_mm`` from the skin.
+    """
     vol = prep.volume
     s = slope_per_mm(smoothing_mm)
     mask = open_close(prep.smooth_mask, feature_mm, vol.spacing)
     g = smooth_levelset(mask, smoothing_mm, vol.spacing, region=prep.inside, target_count=int(prep.breast.sum()))
     for p in prep.planes:
-        g = np.minimum(g, plane_field(vol.shape, vol.affine, p, s))
+        pf = plane_field(vol.shape, vol.affine, p, s)
+        g = smooth_min(g, pf, s * rim_mm) if rim_mm > 0 else np.minimum(g, pf)
     return g
 
 
@@ -117,37 +134,50 @@ def inner_distance(g: np.ndarray, spacing: np.ndarray) -> np.ndarray:
     return ndimage.distance_transform_edt(np.pad(g > 0, 1), sampling=sp)[1:-1, 1:-1, 1:-1] - 0.5 * float(np.mean(sp))
 
 
-def tumour_fields(prep: PreparedBreast, d_out: np.ndarray, *, smoothing_mm: float,
+def tumour_fields(prep: PreparedBreast, d_out: np.ndarray, *, smoothing_mm: float | list[float],
                   clearance_mm: float, feature_mm: list[float] | None = None) -> list[tuple[np.ndarray, np.ndarray]]:
     """(level set, affine of its sub-array) of every kept tumour, kept ``clearance_mm``
     inside the outer region (``d_out``: :func:`inner_distance` of the outer level set);
-    ``feature_mm``: closing/opening radius (mm) of each tumour mask."""
+    ``smoothing_mm``: Gaussian sigma (mm), one for all or one per tumour; ``feature_mm``:
+    closing/opening radius (mm) of each tumour mask."""
     vol = prep.volume
     sp = vol.spacing
-    st = slope_per_mm(smoothing_mm)
-    pad = np.ceil(3 * smoothing_mm / sp).astype(int) + 2
+    sigmas = _per_tumour(smoothing_mm, len(prep.tumours.kept))
     out = []
     for i, t in enumerate(prep.tumours.kept):
+        sigma = sigmas[i]
+        st = slope_per_mm(sigma)
+        pad = np.ceil(3 * sigma / sp).astype(int) + 2
         r = feature_mm[i] if feature_mm else 0.0
         pd = pad + np.ceil(r / sp).astype(int)
         sl = tuple(slice(max(a.start - p, 0), min(a.stop + p, n)) for a, p, n in zip(t.slices, pd, vol.shape))
         m = prep.tumours.labelled[sl] == t.component
-        ft = smooth_levelset(open_close(m, r, sp), smoothing_mm, sp, target_count=int(m.sum()))
+        ft = smooth_levelset(open_close(m, r, sp), sigma, sp, target_count=int(m.sum()))
+        aff = vol.affine.copy()
+        aff[:3, 3] = vol.index_to_world([a.start for a in sl])
+        ft = match_enclosed_volume(ft, aff, float(m.sum()) * vol.voxel_volume)
         gt = smooth_min(ft, st * (d_out[sl] - clearance_mm), st * ROUND_MM)
         if gt.max() <= 0:  # a thin tumour right under the skin: halve the deepest gap
             c = 0.5 * float(d_out[sl][ft > 0].max(initial=0.0))
             log.warning("tumour %d lies within %.1f mm of the outer surface; clearance reduced to %.2f mm",
                         t.id, clearance_mm, c)
             gt = smooth_min(ft, st * (d_out[sl] - c), st * ROUND_MM)
-        aff = vol.affine.copy()
-        aff[:3, 3] = vol.index_to_world([a.start for a in sl])
         out.append((gt, aff))
     return out
 
 
+def _per_tumour(value: float | list[float], n: int) -> list[float]:
+    """A scalar setting repeated for ``n`` tumours, or the per-tumour list itself."""
+    if isinstance(value, (int, float)):
+        return [float(value)] * n
+    if len(value) != n:
+        raise ValueError(f"tumour_smoothing_mm: {len(value)} values for {n} tumours")
+    return [float(v) for v in value]
+
+
 def make_surfaces(prep: PreparedBreast, *, edge_mm: float, tumour_edges_mm: list[float],
-                  smoothing_mm: float, tumour_smoothing_mm: float, clearance_mm: float,
-                  feature_fraction: float, small_angle_deg: float, step_vox: int = 0,
+                  smoothing_mm: float, tumour_smoothing_mm: float | list[float], clearance_mm: float,
+                  feature_fraction: float, small_angle_deg: float, step_vox: int = 0, rim_mm: float = 0.0,
                   tries: int = len(REMESH_TRIES), nipple_mm: np.ndarray | None = None) -> BreastSurfaces:
     """Checked, remeshed outer and tumour surfaces of ``prep`` (see the module docstring).
 
@@ -155,8 +185,8 @@ def make_surfaces(prep: PreparedBreast, *, edge_mm: float, tumour_edges_mm: list
     ----------
     edge_mm, tumour_edges_mm : float, list of float
         Target triangle edge lengths (mm) of the outer surface and of each tumour.
-    smoothing_mm, tumour_smoothing_mm : float
-        Gaussian sigmas (mm) of the level sets.
+    smoothing_mm, tumour_smoothing_mm : float, float or list of float
+        Gaussian sigmas (mm) of the level sets (tumours: one for all, or one per tumour).
     clearance_mm : float
         Smallest gap (mm) between a tumour and the outer surface's level set (plus the
         chord allowance of :data:`REMESH_TRIES`).
@@ -166,6 +196,9 @@ def make_surfaces(prep: PreparedBreast, *, edge_mm: float, tumour_edges_mm: list
         Triangles with a smaller angle fail the check.
     step_vox : int
         Marching-cubes step (0: automatic, :func:`surface_step`).
+    rim_mm : float
+        Width (mm) of the rounded rim between the skin and the cut faces (:func:`outer_field`;
+        0: a sharp rim).
     tries : int
         Remeshing settings tried (first ones of ``REMESH_TRIES``) before giving up.
     nipple_mm : (3,) array, optional
@@ -175,7 +208,7 @@ def make_surfaces(prep: PreparedBreast, *, edge_mm: float, tumour_edges_mm: list
     """
     vol = prep.volume
     sp = vol.spacing
-    g = outer_field(prep, smoothing_mm=smoothing_mm, feature_mm=feature_fraction * edge_mm)
+    g = outer_field(prep, smoothing_mm=smoothing_mm, feature_mm=feature_fraction * edge_mm, rim_mm=rim_mm)
     step = surface_step(edge_mm, sp, step_vox)
     snap = 0.5 * step * float(np.mean(sp))
     raw_outer = extract_surface(g, vol.affine, step=step, planes=tuple(prep.planes), snap_mm=0.0, relax_iterations=0)

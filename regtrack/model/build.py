@@ -4,8 +4,10 @@ Pipeline: :func:`~regtrack.model.prepare.prepare_breast` (side, chest wall, crop
 -> :func:`~regtrack.model.boundary.make_surfaces` (smoothed marching-cubes surfaces,
 isotropically remeshed with pymeshlab and checked for intersections; retried) ->
 gmsh (:mod:`regtrack.model.mesher`, in a child process with a timeout) -> checks
-(:mod:`regtrack.model.checks`), retried with other settings when a check fails ->
-anatomical frame, nipple node, chest-wall nodes, skin triangles.
+(:mod:`regtrack.model.checks`), retried with other settings when a check fails
+(:func:`attempt_plan`; a tumour whose meshed volume misses its voxel volume is first refined
+locally, :func:`refine_tumour_factors`) -> anatomical frame, nipple node, chest-wall nodes,
+skin triangles.
 """
 
 from __future__ import annotations
@@ -35,13 +37,24 @@ CUT_TOL_VOX = 0.5
 
 
 def attempt_plan(config: MeshConfig) -> list[dict]:
-    """Settings of the successive meshing attempts (first = the configured ones)."""
+    """Settings of the successive meshing attempts (first = the configured ones).
+
+    Each later attempt changes the formulation, never for one exam: the other 3-D
+    algorithm (a gmsh failure); then the rim between skin and cut faces rounded over
+    ``retry_rim_fraction`` of the element size (``rim_fraction``; a thin wedge of tissue
+    between the skin and a cut plane folds when remeshed: Pelicano exam 41 left failed
+    every other setting); then more surface smoothing and a larger feature angle; then
+    the Delaunay algorithm on smaller elements; further attempts shrink the elements.
+    """
     other = "hxt" if config.algorithm != "hxt" else "delaunay"
+    s0, f0, rim = config.smoothing_mm, config.feature_angle_deg, config.retry_rim_fraction
+    s1 = s0 * 1.5 + 0.5
     plan = [
-        {"algorithm": config.algorithm, "smoothing_mm": config.smoothing_mm, "size_factor": 1.0, "feature_angle_deg": config.feature_angle_deg},
-        {"algorithm": other, "smoothing_mm": config.smoothing_mm, "size_factor": 1.0, "feature_angle_deg": config.feature_angle_deg},
-        {"algorithm": config.algorithm, "smoothing_mm": config.smoothing_mm * 1.5 + 0.5, "size_factor": 1.0, "feature_angle_deg": config.feature_angle_deg + 15},
-        {"algorithm": "delaunay", "smoothing_mm": config.smoothing_mm * 1.5 + 0.5, "size_factor": 0.8, "feature_angle_deg": config.feature_angle_deg + 15},
+        {"algorithm": config.algorithm, "smoothing_mm": s0, "size_factor": 1.0, "feature_angle_deg": f0, "rim_fraction": 0.0},
+        {"algorithm": other, "smoothing_mm": s0, "size_factor": 1.0, "feature_angle_deg": f0, "rim_fraction": 0.0},
+        {"algorithm": config.algorithm, "smoothing_mm": s0, "size_factor": 1.0, "feature_angle_deg": f0, "rim_fraction": rim},
+        {"algorithm": config.algorithm, "smoothing_mm": s1, "size_factor": 1.0, "feature_angle_deg": f0 + 15, "rim_fraction": rim},
+        {"algorithm": "delaunay", "smoothing_mm": s1, "size_factor": 0.8, "feature_angle_deg": f0 + 15, "rim_fraction": rim},
     ]
     while len(plan) < config.max_attempts:
         p = dict(plan[-1])
@@ -97,12 +110,45 @@ def evaluate(res: MeshResult, prep: PreparedBreast, sdf_outer: checks.SignedDist
         fail.append(f"gamma 5th percentile {fig['gamma_p5']:.3f} < {config.min_gamma_p5}")
     if abs(fig["volume_error"]) > config.max_volume_error:
         fail.append(f"volume error {100 * fig['volume_error']:.2f}% > {100 * config.max_volume_error:g}%")
-    for t in tum:
-        if t["voxel_volume_mm3"] >= 1000.0 * config.check_tumour_min_ml and abs(t["volume_error"]) > config.max_tumour_volume_error:
-            fail.append(f"tumour {t['id']} volume error {100 * t['volume_error']:.1f}% > {100 * config.max_tumour_volume_error:g}%")
+    for k in tumour_misses(tum, config):
+        fail.append(f"tumour {tum[k]['id']} volume error {100 * tum[k]['volume_error']:.1f}% > {100 * config.max_tumour_volume_error:g}%")
     if fig["surface_distance_mean_mm"] > config.max_mean_surface_distance_vox * sp:
         fail.append(f"mean surface distance {fig['surface_distance_mean_mm']:.2f} mm > {config.max_mean_surface_distance_vox} voxel")
     return fig, fail
+
+
+def tumour_misses(tumours: list[dict], config: MeshConfig) -> list[int]:
+    """0-based indices of the checked tumours (voxel volume >= ``check_tumour_min_ml``)
+    whose meshed volume misses their voxel volume by more than ``max_tumour_volume_error``."""
+    return [k for k, t in enumerate(tumours)
+            if t["voxel_volume_mm3"] >= 1000.0 * config.check_tumour_min_ml
+            and abs(t["volume_error"]) > config.max_tumour_volume_error]
+
+
+def refine_tumour_factors(tumours: list[dict], factors: list[float], config: MeshConfig) -> list[float] | None:
+    """Per-tumour refinement factors after a mesh whose tumour volumes were measured.
+
+    A tumour's surface is a smoothed level set of its voxels, remeshed to its element size
+    ``h_t`` and meshed with that size (:func:`~regtrack.model.geometry.tumour_sizes`).  On a
+    tumour a few voxels across, the smoothing (sigma about one voxel), the marching-cubes
+    step and the chords of edges ``h_t`` take a share of its volume that falls as
+    ``h_t`` and sigma fall; so each missing tumour (:func:`tumour_misses`) gets both
+    multiplied by ``tumour_refine_factor`` (a local size field: the rest of the mesh keeps
+    its size).  No factor goes below ``tumour_refine_factor ** tumour_refinements``.
+
+    Returns
+    -------
+    list of float or None
+        The new factors, or None when no missing tumour can be refined further.
+    """
+    floor = config.tumour_refine_factor ** config.tumour_refinements * (1.0 + 1e-9)
+    out = list(factors)
+    changed = False
+    for k in tumour_misses(tumours, config):
+        if k < len(out) and out[k] > floor:
+            out[k] *= config.tumour_refine_factor
+            changed = True
+    return out if changed else None
 
 
 def _orient(res: MeshResult) -> MeshResult:
@@ -163,21 +209,28 @@ def build_model(labels: LabelVolume, *, scheme: LabelScheme, config: MeshConfig,
     size_scale = 1.0
     surf_cache: dict = {}
     plan = attempt_plan(config)
+    # per-tumour factor on the element size and smoothing, lowered by refine_tumour_factors
+    # for a tumour whose meshed volume misses its voxel volume; kept for later attempts
+    tfac = [1.0] * len(prep.tumours.kept)
+    rounds = 0  # refinement rounds of the current attempt
     i = 0
     while i < len(plan):
         a = plan[i]
         h = target_size(prep.info["breast_voxel_volume_mm3"], config) * a["size_factor"] * size_scale
-        hts = tumour_sizes([t.volume_mm3 for t in prep.tumours.kept], h, config)
-        key = (a["smoothing_mm"], round(h, 6))
-        rec = {"attempt": i + 1, **a, "size_mm": h, "tumour_sizes_mm": hts}
+        hts = [s * f for s, f in zip(tumour_sizes([t.volume_mm3 for t in prep.tumours.kept], h, config), tfac)]
+        tsm = [config.tumour_smoothing_mm * f for f in tfac]
+        rim_mm = a["rim_fraction"] * h
+        key = (a["smoothing_mm"], round(h, 6), rim_mm, tuple(round(x, 6) for x in hts), tuple(round(x, 6) for x in tsm))
+        rec = {"attempt": i + 1, **a, "size_mm": h, "tumour_sizes_mm": hts, "tumour_smoothing_mm": tsm,
+               "tumour_refinement": rounds}
         if key not in surf_cache:
-            _progress(progress, f"surfaces (smoothing {a['smoothing_mm']:.2f} mm, edge {h:.2f} mm)")
+            _progress(progress, f"surfaces (smoothing {a['smoothing_mm']:.2f} mm, edge {h:.2f} mm, rim {rim_mm:.2f} mm)")
             ts = time.perf_counter()
             surf_cache[key] = make_surfaces(
                 prep, edge_mm=h, tumour_edges_mm=hts, smoothing_mm=a["smoothing_mm"],
-                tumour_smoothing_mm=config.tumour_smoothing_mm, clearance_mm=config.tumour_clearance_mm,
+                tumour_smoothing_mm=tsm, clearance_mm=config.tumour_clearance_mm,
                 feature_fraction=config.feature_fraction, small_angle_deg=config.min_triangle_angle_deg,
-                step_vox=config.surface_step_vox,
+                step_vox=config.surface_step_vox, rim_mm=rim_mm,
                 nipple_mm=nipple_target)
             surf_cache[key].info["seconds"] = time.perf_counter() - ts
             stages["surfaces"] += surf_cache[key].info["seconds"]
@@ -188,7 +241,7 @@ def build_model(labels: LabelVolume, *, scheme: LabelScheme, config: MeshConfig,
             rec["error"] = "surface checks failed: " + "; ".join(surfs.problems)
             log.warning("meshing attempt %d: %s", i + 1, rec["error"])
             attempts.append(rec)
-            i += 1
+            i, rounds = i + 1, 0
             continue
         req = MeshRequest(surfs.outer.verts, surfs.outer.faces, [s.verts for s in surfs.tumours],
                           [s.faces for s in surfs.tumours], size_mm=h, tumour_sizes_mm=hts,
@@ -204,7 +257,7 @@ def build_model(labels: LabelVolume, *, scheme: LabelScheme, config: MeshConfig,
             rec["error"] = str(exc)
             log.warning("meshing attempt %d failed: %s", i + 1, exc)
             attempts.append(rec)
-            i += 1
+            i, rounds = i + 1, 0
             continue
         tc = time.perf_counter()
         fig, fail = evaluate(res, prep, sdf_outer, sdf_t, config)
@@ -220,8 +273,22 @@ def build_model(labels: LabelVolume, *, scheme: LabelScheme, config: MeshConfig,
         if not fail:
             best = (res, fig)
             break
+        refined = refine_tumour_factors(fig["tumours"], tfac, config)
+        if refined is not None:
+            tfac = refined
+            if rounds < config.tumour_refinements and all(f.startswith("tumour ") for f in fail):
+                rounds += 1
+                log.info("meshing attempt %d: %s; refining those tumours (round %d of %d)", i + 1,
+                         "; ".join(fail), rounds, config.tumour_refinements)
+                continue  # same attempt settings, finer tumours
         log.warning("meshing attempt %d failed its checks: %s", i + 1, "; ".join(fail))
-        i += 1
+        if best is not None:
+            # only the re-sizing for the node count keeps a passed mesh in hand: it met
+            # every check, so it is used rather than trading checks for the node count
+            log.warning("keeping the mesh before re-sizing: %d nodes (target %d), every check passed",
+                        best[1]["n_nodes"], config.target_nodes)
+            break
+        i, rounds = i + 1, 0
     if best is None:
         last = attempts[-1] if attempts else {}
         raise MeshQualityError(
@@ -314,4 +381,4 @@ def _assemble(res: MeshResult, prep: PreparedBreast, target: np.ndarray, nip_src
                        fixed=fixed, nipple=nipple, frame=frame, tissue_label=tl, meta=meta)
 
 
-__all__ = ["build_model", "attempt_plan", "evaluate"]
+__all__ = ["build_model", "attempt_plan", "evaluate", "tumour_misses", "refine_tumour_factors"]
