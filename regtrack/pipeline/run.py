@@ -204,7 +204,10 @@ def _run_case(case_dir, found: Identifiers, ids: Identifiers, *, overrides, view
                             "patient": found.by_keyword} if keep_identifiers else
                            {"identifiers": "removed", "attributes_checked": len(IDENTIFYING_KEYWORDS)})
         rows = ctx.clean(rows)
-        _io.write_json(out / "metrics.json", {"case_id": case.id, "views": rows})
+        _io.write_json(out / "metrics.json", {"case_id": case.id, "mode": prov["mode"],
+                                              "views": rows})
+        if any(r.extra.get("lesions") for r in results):
+            _io.write_json(out / "lesions.json", ctx.clean(lesions_doc(case.id, results)))
         _io.write_text(out / "metrics.csv", _csv(rows))
         _io.write_json(out / "provenance.json", prov)
         if report:
@@ -238,6 +241,32 @@ def _csv(rows: list[dict]) -> str:
     return "\n".join([",".join(keys)] + [",".join(cell(r.get(k)) for k in keys) for r in rows]) + "\n"
 
 
+def run_mode(results) -> str | None:
+    """``"paper"`` (every view has a tumour outline), ``"tracking"`` (none has), ``"mixed"``,
+    or None without real mammograms (simulation and virtual mammograms only)."""
+    modes = {r.extra.get("mode") for r in results} - {None}
+    if not modes:
+        return None
+    return modes.pop() if len(modes) == 1 else "mixed"
+
+
+def lesions_doc(case_id: str, results) -> dict:
+    """``lesions.json``: every MRI lesion predicted on every real mammogram."""
+    return {
+        "case_id": case_id, "mode": run_mode(results),
+        "frames": {"mm": "real mammogram, canonical frame (chest wall left, x towards the "
+                         "nipple, y down), mm", "px_rc": "(row, col) of the DICOM's own grid"},
+        "method": "registration on the breast outline and nipple only (theta_p = theta_p,b); "
+                  "sigma_mm: 1-sigma radius from the local registration residual, the angular "
+                  "uncertainty times the distance from the nipple, and the model's sensitivity "
+                  "to D, c1 and nu (regtrack.tracking.lesions); error_mm: distance to the "
+                  "area centroid of the annotated outline (paper mode)",
+        "views": {r.view: {"mode": r.extra.get("mode"),
+                           "lesions": [p.to_dict() for p in r.extra.get("lesions") or []]}
+                  for r in results if r.extra.get("mode")},
+    }
+
+
 def provenance(ctx: RunContext, mesh_out, results) -> dict:
     """Configuration, versions, inputs and timings of a run (written into every output)."""
     import importlib.metadata as md
@@ -251,6 +280,9 @@ def provenance(ctx: RunContext, mesh_out, results) -> dict:
             pass
     return {
         "case_id": ctx.case.id,
+        "mode": run_mode(results),
+        "view_modes": {r.view: {"mode": r.extra.get("mode"), "why": r.extra.get("mode_reason")}
+                       for r in results if r.extra.get("mode")},
         "config": {k: to_table(v) for k, v in ctx.configs.items()},
         "protocol_overrides": ctx.protocol_tables,
         "stage_keys": {"mesh": mesh_out.key, **{f"simulate_{r.view}": r.sim_key for r in results}},

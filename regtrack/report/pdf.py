@@ -67,6 +67,9 @@ class CaseReport:
     provenance: dict = field(default_factory=dict)
     #: callables drawing extra A4 pages (e.g. the lesion-tracking section) on a Figure
     extra_pages: list = field(default_factory=list)
+    #: lines under the metrics table: the mode that ran, the lesion predictions, and where
+    #: each geometry value (plate gap, force, angle, projection) came from
+    notes: list[str] = field(default_factory=list)
 
 
 def _fmt(value, fmt: str) -> str:
@@ -146,10 +149,14 @@ def write_pdf(report: CaseReport, path: str | Path) -> Path:
         head, cells = metrics_table([v.metrics for v in report.views])
         _table(ax, head, cells)
         fig.text(0.06, 0.58, "\n".join(textwrap.wrap(EXPLANATION, 110)), fontsize=8, va="top")
+        wrapped = [w for line in report.notes for w in textwrap.wrap(line, 120) or [""]][:24]
+        if wrapped:
+            fig.text(0.06, 0.50, "\n".join(wrapped), fontsize=6.5, va="top", family="monospace")
         ms = report.model_summary
         if ms:
             lines = [f"{k}: {v}" for k, v in ms.items()]
-            fig.text(0.06, 0.45, "Model\n" + "\n".join(lines[:20]), fontsize=8, va="top",
+            top = 0.48 - 0.0115 * len(wrapped) if wrapped else 0.45
+            fig.text(0.06, top, "Model\n" + "\n".join(lines[:20]), fontsize=8, va="top",
                      family="monospace")
         pdf.savefig(fig)
         plt.close(fig)
