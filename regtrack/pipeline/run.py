@@ -48,6 +48,8 @@ class RunContext:
     progress: Progress | None = None
     #: identifiers to keep out of outputs (empty with --keep-identifiers)
     ids: Identifiers = field(default_factory=Identifiers)
+    #: each real view's acquisition geometry and its sources (regtrack.pipeline.geometry)
+    geometry: dict = field(default_factory=dict)
 
     def say(self, msg: str) -> None:
         msg = self.ids.scrub(msg)
@@ -72,11 +74,10 @@ def effective_configs(case: Any, overrides: dict | None) -> tuple[dict[str, Any]
     configs: dict[str, Any] = {}
     problems: list[str] = []
     for section in ("model", "mechanics", "contact", "registration", "virtual"):
-        cls = config_class(section) if section != "virtual" else _virtual_config_class()
+        cls = config_class(section)
         if cls is None:
             continue
-        table = {**case.override_table(section), **overrides.get(section, {})} if section != "virtual" \
-            else dict(overrides.get(section, {}))
+        table = {**case.override_table(section), **overrides.get(section, {})}
         obj, p, _w = parse_section(cls, table, where=f"{case.toml_path} [{section}]")
         problems += p
         configs[section] = obj
@@ -88,12 +89,6 @@ def effective_configs(case: Any, overrides: dict | None) -> tuple[dict[str, Any]
     if problems:
         raise CaseError(problems)
     return configs, protocol_tables
-
-
-def _virtual_config_class():
-    from regtrack.virtual.config import VirtualConfig
-
-    return VirtualConfig
 
 
 def run_case(case_dir: str | Path, *, overrides: dict | None = None,
@@ -183,6 +178,10 @@ def _run_case(case_dir, found: Identifiers, ids: Identifiers, *, overrides, view
     # computed or cached
     reals = {view: stages.real_stage(ctx, view) for view in views if view in case.views}
     mesh_out = stages.mesh_stage(ctx)
+    if case.views:  # the DICOM's plate gap, MLO angle and projection (before simulating)
+        from regtrack.pipeline.geometry import resolve_geometry
+
+        ctx.geometry = resolve_geometry(ctx, mesh_out.model)
     failed = stages.simulate_concurrently(ctx, mesh_out, views) if concurrent else {}
     results = []
     for view in views:
@@ -284,6 +283,7 @@ def provenance(ctx: RunContext, mesh_out, results) -> dict:
         "view_modes": {r.view: {"mode": r.extra.get("mode"), "why": r.extra.get("mode_reason")}
                        for r in results if r.extra.get("mode")},
         "config": {k: to_table(v) for k, v in ctx.configs.items()},
+        "geometry": {v: g.to_dict() for v, g in ctx.geometry.items()},
         "protocol_overrides": ctx.protocol_tables,
         "stage_keys": {"mesh": mesh_out.key, **{f"simulate_{r.view}": r.sim_key for r in results}},
         "cache": {"hits": ctx.cache.hits, "misses": ctx.cache.misses},

@@ -244,7 +244,9 @@ def virtual_stage(ctx, mesh: MeshOutput, sim: SimOutput, view: str):
     t0 = time.perf_counter()
     ctx.say(f"virtual {view}: projecting the compressed model")
     frame = default_frame(sim.positions, view, mesh.model.frame.side, angle_deg=sim.angle_deg)
-    vm = project_model(mesh.model, sim.positions, view=view, config=ctx.configs.get("virtual"),
+    geo = (getattr(ctx, "geometry", None) or {}).get(view)
+    cfg = geo.virtual if geo is not None and geo.virtual is not None else ctx.configs.get("virtual")
+    vm = project_model(mesh.model, sim.positions, view=view, config=cfg,
                        frame=frame, source_name=f"virtual:{ctx.case.id}:{view}")
     _timed(ctx, f"virtual_{view}", t0)
     return vm

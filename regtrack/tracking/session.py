@@ -144,6 +144,12 @@ def open_case(case_dir: str | Path, *, views: tuple[str, ...] | list[str] | None
     configs, protocol_tables = effective_configs(case, overrides)
     cache = StageCache(Path(cache_dir) if cache_dir else Path(".regtrack-cache"))
     ctx = RunContext(case, configs, protocol_tables, cache, progress=progress)
+    from regtrack.pipeline.cache import MARKER
+    from regtrack.pipeline.geometry import resolve_geometry
+
+    if (cache.folder("mesh", stages.mesh_key(ctx)) / MARKER).is_file():
+        # the DICOM's plate gap and angle enter the simulations' keys (as in `regtrack run`)
+        ctx.geometry = resolve_geometry(ctx, stages.mesh_stage(ctx).model)
     todo = missing_stages(ctx, names)
     if todo and not simulate:
         raise TrackingError(f"case {case.id} not simulated yet ({', '.join(todo)} not in the cache "
@@ -153,6 +159,8 @@ def open_case(case_dir: str | Path, *, views: tuple[str, ...] | list[str] | None
         ctx.say(f"track: {', '.join(todo)} not in the cache {cache.root}; running them now "
                 "(this takes minutes; later calls re-use them)")
     mesh = stages.mesh_stage(ctx)
+    if not ctx.geometry:
+        ctx.geometry = resolve_geometry(ctx, mesh.model)
     cfg = config or TrackingConfig()
     session = TrackingSession(case, mesh.model, {}, config=cfg, stage_keys={"mesh": mesh.key},
                               simulated_now=todo)
