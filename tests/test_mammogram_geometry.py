@@ -230,3 +230,37 @@ def test_unreadable_file_is_a_warning(tmp_path):
     p.write_bytes(b"not a dicom")
     g = read_geometry_file(p, view="CC")
     assert g.thickness_mm is None  # pydicom's force=True may parse it as an empty dataset
+
+
+# -- end to end on the phantom -----------------------------------------------------------
+@pytest.mark.slow
+def test_phantom_with_geometry_tags_end_to_end(tmp_path):
+    """phantom01's CC with BodyPartThickness 60 mm, a force of 9 (daN), SID 650 / SSD 630 mm:
+    the simulated plate gap is 60 mm (within 0.1 mm), D = 1 - 60 / T0 is reported, the
+    virtual mammogram is a cone-beam projection, and every source is in the provenance."""
+    import json
+    import os
+    import shutil
+
+    from regtrack.pipeline.run import run_case
+    from tests.conftest import REPO, SAMPLE_CASES
+
+    case = tmp_path / "phantom01"
+    shutil.copytree(SAMPLE_CASES / "phantom01", case, ignore=shutil.ignore_patterns("truth"))
+    ds = pydicom.dcmread(case / "mammo" / "cc.dcm")
+    ds.BodyPartThickness, ds.CompressionForce = 60, 9
+    ds.DistanceSourceToDetector, ds.DistanceSourceToPatient = 650, 630
+    ds.save_as(case / "mammo" / "cc.dcm")
+    cache = os.environ.get("REGTRACK_CACHE", str(REPO / ".regtrack-cache"))
+    (row,) = run_case(case, views=["CC"], cache_dir=cache, out_dir=tmp_path / "out")
+    assert row["plate_gap_mm"] == pytest.approx(60.0, abs=0.1)
+    assert row["gap_source"] == "dicom" and row["dicom_thickness_mm"] == 60.0
+    assert row["dicom_force_N"] == pytest.approx(90.0) and row["force_N"] > 0
+    assert row["projection"].startswith("cone beam, SID 650 mm")
+    sim = json.loads((tmp_path / "out" / "cc" / "simulation.json").read_text())["summary"]
+    assert row["D"] == pytest.approx(1.0 - 60.0 / sim["T0_mm"], abs=1e-6)
+    geo = json.loads((tmp_path / "out" / "provenance.json").read_text())["geometry"]["CC"]
+    assert geo["final_plate_gap"]["source"] == "DICOM BodyPartThickness (0018,11A0)"
+    assert geo["compression_force"]["source"].startswith("DICOM CompressionForce (0018,11A2), unit daN")
+    assert geo["projection"]["source"].startswith("DICOM DistanceSourceToDetector")
+    assert geo["plate_angle"]["source"] == "default (protocol)"

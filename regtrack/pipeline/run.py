@@ -209,8 +209,8 @@ def _run_case(case_dir, found: Identifiers, ids: Identifiers, *, overrides, view
             _io.write_json(out / "lesions.json", ctx.clean(lesions_doc(case.id, results)))
         _io.write_text(out / "metrics.csv", _csv(rows))
         _io.write_json(out / "provenance.json", prov)
-        if report:
-            stages.report_stage(ctx, mesh_out, results, out, prov)
+        pdf = stages.report_stage(ctx, mesh_out, results, out, prov) if report else None
+        stages.dicom_stage(ctx, results, out, pdf, keep_identifiers=keep_identifiers)
     log.info("case %s done in %.1f s (cache: %d hits, %d misses)", case.id,
              ctx.timings["total"], cache.hits, cache.misses)
     return rows

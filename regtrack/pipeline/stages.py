@@ -437,6 +437,29 @@ def report_stage(ctx, mesh: MeshOutput, results: list[ViewOutcome], out: Path, p
     return path
 
 
+def dicom_stage(ctx, results: list[ViewOutcome], out: Path, pdf: Path | None, *,
+                keep_identifiers: bool) -> list[Path]:
+    """The DICOM SR (TID 1500) of the lesion predictions and metrics, and the PDF report as
+    Encapsulated PDF, per study (:mod:`regtrack.report.dicom_sr`); under ``out/dicom``."""
+    import importlib.util
+
+    from regtrack.report.dicom_sr import write_dicom_results
+
+    if not any(r.real is not None for r in results):
+        return []
+    if importlib.util.find_spec("highdicom") is None:
+        log.warning("DICOM SR and encapsulated PDF not written: highdicom, a dependency of "
+                    "regtrack, is not installed (pip install highdicom)")
+        return []
+    t0 = time.perf_counter()
+    ctx.say("report: DICOM SR and encapsulated PDF")
+    mammos = {v: vi.mammogram for v, vi in ctx.case.views.items()}
+    paths = write_dicom_results(out, results, mammos, case_id=ctx.case.id, pdf_path=pdf,
+                                keep_identifiers=keep_identifiers)
+    _timed(ctx, "dicom", t0)
+    return paths
+
+
 def report_notes(results: list[ViewOutcome], prov: dict) -> list[str]:
     """The lines under the report's metrics table: the mode, each lesion prediction (mm of
     the real canonical frame, DICOM pixels), and the source of each geometry value."""
