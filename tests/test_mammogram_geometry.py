@@ -66,7 +66,7 @@ def test_cone_beam_projection_of_a_point_at_a_known_height(tmp_path, support_cal
     from the central ray, lands at 60 * 650 / (630 - 25) = 64.46 mm on the detector (the
     issue's 'about 4 mm' of magnification); on an image calibrated at the support
     (ImagerPixelSpacing / EstimatedRadiographicMagnificationFactor), at 60 * 630 / 605."""
-    tags = dict(DistanceSourceToDetector=650, DistanceSourceToPatient=630)
+    tags: dict = {"DistanceSourceToDetector": 650, "DistanceSourceToPatient": 630}
     if support_calibrated:
         tags.update(PixelSpacing=None, EstimatedRadiographicMagnificationFactor=650 / 630)
     geo = resolve_geometry(_ctx(tmp_path, {"CC": _ds(**tags)}))["CC"]
@@ -256,11 +256,16 @@ def test_phantom_with_geometry_tags_end_to_end(tmp_path):
     assert row["plate_gap_mm"] == pytest.approx(60.0, abs=0.1)
     assert row["gap_source"] == "dicom" and row["dicom_thickness_mm"] == 60.0
     assert row["dicom_force_N"] == pytest.approx(90.0) and row["force_N"] > 0
-    assert row["projection"].startswith("cone beam, SID 650 mm")
+    assert row["projection"] == "cone"
     sim = json.loads((tmp_path / "out" / "cc" / "simulation.json").read_text())["summary"]
     assert row["D"] == pytest.approx(1.0 - 60.0 / sim["T0_mm"], abs=1e-6)
     geo = json.loads((tmp_path / "out" / "provenance.json").read_text())["geometry"]["CC"]
     assert geo["final_plate_gap"]["source"] == "DICOM BodyPartThickness (0018,11A0)"
     assert geo["compression_force"]["source"].startswith("DICOM CompressionForce (0018,11A2), unit daN")
     assert geo["projection"]["source"].startswith("DICOM DistanceSourceToDetector")
+    assert geo["projection"]["value"].startswith("cone beam, SID 650 mm, source 630 mm")
+    import csv
+
+    head, cells = list(csv.reader((tmp_path / "out" / "metrics.csv").open()))
+    assert len(head) == len(cells) and cells[head.index("projection")] == "cone"
     assert geo["plate_angle"]["source"] == "default (protocol)"

@@ -84,7 +84,8 @@ class ViewGeometry:
         """Columns of the metrics row."""
         return {"dicom_thickness_mm": self.dicom.thickness_mm,
                 "gap_source": self.gap_source, "dicom_force_N": self.dicom.force_N,
-                "plate_angle_deg": self.angle.value, "projection": self.projection.value}
+                "plate_angle_deg": self.angle.value,
+                "projection": "orthogonal" if self.projection.value == "orthogonal" else "cone"}
 
     def to_dict(self) -> dict:
         return {"final_plate_gap": self.gap.to_dict(), "plate_angle": self.angle.to_dict(),
@@ -143,7 +144,7 @@ def _angle(view: str, table: dict, g: DicomGeometry) -> Choice:
     return Choice(45.0 if view == "MLO" else 0.0, "default (protocol)", "deg")
 
 
-def _projection(view: str, cfg, g: DicomGeometry, case_virtual: dict) -> tuple[Choice, Any]:
+def _projection(view: str, cfg, g: DicomGeometry) -> tuple[Choice, Any]:
     """The view's VirtualConfig and how its projection was chosen."""
     mode = getattr(cfg, "projection", "auto")
     if mode == "orthogonal":
@@ -200,7 +201,7 @@ def resolve_geometry(ctx, model=None) -> dict[str, ViewGeometry]:
         table = dict(ctx.protocol_tables.get(view) or {})
         angle = _angle(view, table, g)
         gap = _gap(ctx, view, table, g, model, angle.value if view == "MLO" else None, warn)
-        proj, vcfg = _projection(view, base_virtual, g, {})
+        proj, vcfg = _projection(view, base_virtual, g)
         force = Choice(g.force_N, "DICOM CompressionForce (0018,11A2), unit " + g.force_unit
                        + "; reported only, not used as a load", "N") if g.force_N is not None \
             else Choice(None, "absent or implausible in the DICOM")

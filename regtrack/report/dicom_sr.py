@@ -162,7 +162,7 @@ def build_sr(headers: dict, results: list, *, case_id: str, series_number: int =
 
 def build_encapsulated_pdf(pdf: bytes, header, *, case_id: str, series_number: int = 902):
     """The PDF report as an Encapsulated PDF instance in the study of ``header``."""
-    from pydicom.dataset import FileMetaDataset, Dataset
+    from pydicom.dataset import Dataset, FileMetaDataset
     from pydicom.uid import ExplicitVRLittleEndian, generate_uid
 
     ds = Dataset()

@@ -149,8 +149,9 @@ def lesion_sigma(*, residual_mm: float, r_mm: float, theta_sigma_deg: float,
 
 
 def _area_centroid(contours) -> np.ndarray | None:
-    from regtrack.registration.geometry import polygon
     from shapely.ops import unary_union
+
+    from regtrack.registration.geometry import polygon
 
     if not contours:
         return None

@@ -197,8 +197,8 @@ def read_geometry(ds, *, name: str = "mammogram", view: str | None = None) -> Di
         if ssd is not None:
             g.ssd_from = "DistanceSourceToPatient (0018,1111)"
         elif mag is not None:
-            ssd, g.ssd_from = sid / mag, "DistanceSourceToDetector / EstimatedRadiographic" \
-                                         "MagnificationFactor"
+            ssd = sid / mag
+            g.ssd_from = "DistanceSourceToDetector / EstimatedRadiographicMagnificationFactor"
     g.sid_mm, g.ssd_mm = sid, ssd
     g.spacing_magnification = _spacing_magnification(ds, sid, ssd)
     g.warnings = w
@@ -214,6 +214,6 @@ def read_geometry_file(path, *, name: str | None = None, view: str | None = None
     try:
         ds = pydicom.dcmread(str(path), stop_before_pixels=True, force=True)
     except Exception as exc:  # noqa: BLE001
-        return DicomGeometry(warnings=[f"{label}: header unreadable ({type(exc).__name__}); "
-                                       "no DICOM geometry used"])
+        msg = f"{label}: header unreadable ({type(exc).__name__}); no DICOM geometry used"
+        return DicomGeometry(warnings=[msg])
     return read_geometry(ds, name=label, view=view)
