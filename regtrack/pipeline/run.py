@@ -113,7 +113,8 @@ def run_case(case_dir: str | Path, *, overrides: dict | None = None,
     progress : callable, optional
         Called with one line per stage.
     report : bool
-        Write figures and the PDF (``out_dir`` required).
+        Write figures, the PDF and the DICOM results (a TID 1500 SR and the PDF as
+        Encapsulated PDF, :mod:`regtrack.report.dicom_sr`; ``out_dir`` required).
     keep_identifiers : bool
         Copy the DICOM patient identifiers into ``provenance.json`` and scrub nothing.
         By default (False) no identifier of the inputs (:mod:`regtrack.privacy`) reaches
@@ -209,8 +210,9 @@ def _run_case(case_dir, found: Identifiers, ids: Identifiers, *, overrides, view
             _io.write_json(out / "lesions.json", ctx.clean(lesions_doc(case.id, results)))
         _io.write_text(out / "metrics.csv", _csv(rows))
         _io.write_json(out / "provenance.json", prov)
-        pdf = stages.report_stage(ctx, mesh_out, results, out, prov) if report else None
-        stages.dicom_stage(ctx, results, out, pdf, keep_identifiers=keep_identifiers)
+        if report:  # figures, the PDF, and the DICOM SR + encapsulated PDF for the PACS
+            pdf = stages.report_stage(ctx, mesh_out, results, out, prov)
+            stages.dicom_stage(ctx, results, out, pdf, keep_identifiers=keep_identifiers)
     log.info("case %s done in %.1f s (cache: %d hits, %d misses)", case.id,
              ctx.timings["total"], cache.hits, cache.misses)
     return rows
