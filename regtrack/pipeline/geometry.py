@@ -102,10 +102,16 @@ def _model_thickness(model, view: str, side: str, angle: float | None) -> float:
     return float(h.max() - h.min())
 
 
-def _default_target(ctx, view: str) -> Choice:
+def _base_protocol(ctx, view: str, table: dict):
+    """The view's protocol as case.toml gives it, without a target override."""
     from regtrack.mechanics.protocol import protocol_for_view
 
-    proto = protocol_for_view(view, None, where=str(ctx.case.toml_path), base_dir=ctx.case.root)
+    rest = {k: v for k, v in table.items() if k not in TARGETS}
+    return protocol_for_view(view, rest or None, where=str(ctx.case.toml_path),
+                             base_dir=ctx.case.root)
+
+
+def _default_target(proto) -> Choice:
     last = [s for s in proto.steps if s.action == "move_plate" and s.plate == "upper"][-1:]
     if last and last[0].target_D is not None:
         return Choice(None, f"default (protocol {proto.name}: D = {last[0].target_D:g})")
@@ -118,18 +124,23 @@ def _gap(ctx, view: str, table: dict, g: DicomGeometry, model, angle, warn) -> C
         k = given[0]
         return Choice(table[k], f"case.toml [protocol.{view}] {k}",
                       {"target_D": "", "target_gap_mm": "mm", "target_force_N": "N"}[k])
-    if g.thickness_mm is not None:
-        if model is not None:
-            T = _model_thickness(model, view, model.frame.side, angle)
-            D = 1.0 - g.thickness_mm / T
-            if not MIN_DEGREE <= D <= MAX_DEGREE:
-                warn(f"[views.{view}] BodyPartThickness (0018,11A0) = {g.thickness_mm:g} mm would "
-                     f"compress the {T:.0f} mm thick model by D = {D:.2f} (accepted "
-                     f"{MIN_DEGREE:g}-{MAX_DEGREE:g}); ignored, the protocol's target is used")
-                return _default_target(ctx, view)
-        table["target_gap_mm"] = float(g.thickness_mm)
-        return Choice(float(g.thickness_mm), "DICOM BodyPartThickness (0018,11A0)", "mm")
-    return _default_target(ctx, view)
+    proto = _base_protocol(ctx, view, table)
+    if g.thickness_mm is None:
+        return _default_target(proto)
+    if not any(s.action == "move_plate" and s.plate == "upper" for s in proto.steps):
+        warn(f"[views.{view}] BodyPartThickness (0018,11A0) = {g.thickness_mm:g} mm not used: "
+             f"protocol {proto.name} moves no upper plate")
+        return _default_target(proto)
+    if model is not None:
+        T = _model_thickness(model, view, model.frame.side, angle)
+        D = 1.0 - g.thickness_mm / T
+        if not MIN_DEGREE <= D <= MAX_DEGREE:
+            warn(f"[views.{view}] BodyPartThickness (0018,11A0) = {g.thickness_mm:g} mm would "
+                 f"compress the {T:.0f} mm thick model by D = {D:.2f} (accepted "
+                 f"{MIN_DEGREE:g}-{MAX_DEGREE:g}); ignored, the protocol's target is used")
+            return _default_target(proto)
+    table["target_gap_mm"] = float(g.thickness_mm)
+    return Choice(float(g.thickness_mm), "DICOM BodyPartThickness (0018,11A0)", "mm")
 
 
 def _angle(view: str, table: dict, g: DicomGeometry) -> Choice:
