@@ -96,3 +96,32 @@ def test_sr_and_pdf_read_back(tmp_path, keep):
             out = subprocess.run(["dciodvfy", str(p)], check=False, capture_output=True, text=True)
             errors = [x for x in (out.stdout + out.stderr).splitlines() if x.startswith("Error")]
             assert errors == [], errors
+
+
+def test_headers_without_study_or_instance_uids(tmp_path, caplog):
+    """A study UID missing from both views: one new study, one SR, a warning naming the tag;
+    a view without a SOPInstanceUID cannot be referenced and is left out, named."""
+    from regtrack.report.dicom_sr import write_dicom_results
+
+    mammos = {}
+    for view in ("CC", "MLO"):
+        p = _header(tmp_path, view)
+        ds = pydicom.dcmread(p)
+        del ds.StudyInstanceUID
+        ds.save_as(p)
+        mammos[view] = p
+    outs = [_outcome("CC", None), _outcome("MLO", None)]
+    paths = write_dicom_results(tmp_path / "a", outs, mammos, case_id="anon-1", pdf_path=None,
+                                keep_identifiers=False)
+    assert [p.name for p in paths] == ["sr_1.dcm"]
+    sr = hd.sr.srread(paths[0])
+    assert sr.StudyInstanceUID != STUDY and len(sr.content.get_planar_roi_measurement_groups()) == 4
+    assert any("StudyInstanceUID" in r.message for r in caplog.records)
+    ds = pydicom.dcmread(mammos["MLO"])
+    del ds.SOPInstanceUID
+    ds.save_as(mammos["MLO"], enforce_file_format=False)
+    paths = write_dicom_results(tmp_path / "b", outs, mammos, case_id="anon-1", pdf_path=None,
+                                keep_identifiers=False)
+    groups = hd.sr.srread(paths[0]).content.get_planar_roi_measurement_groups()
+    assert {str(g.tracking_identifier).split(" on ")[1][:2] for g in groups} == {"CC"}
+    assert any("SOPInstanceUID" in r.message for r in caplog.records)

@@ -29,6 +29,7 @@ SECTIONS: dict[str, str] = {
     "protocol.MLO": "regtrack.mechanics.protocol:ProtocolOverrides",
     "registration": "regtrack.registration.config:RegistrationConfig",
     "virtual": "regtrack.virtual.config:VirtualConfig",
+    "tracking": "regtrack.tracking.config:TrackingConfig",
 }
 
 
@@ -66,7 +67,7 @@ def parse_overrides(doc: dict, *, where: str) -> tuple[dict[str, tuple[dict, Any
     problems: list[str] = []
     warnings: list[str] = []
     tables: dict[str, dict] = {}
-    for top in ("model", "mechanics", "contact", "registration", "virtual"):
+    for top in ("model", "mechanics", "contact", "registration", "virtual", "tracking"):
         if top in doc:
             tables[top] = doc[top]
     if "protocol" in doc:

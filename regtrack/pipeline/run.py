@@ -73,7 +73,7 @@ def effective_configs(case: Any, overrides: dict | None) -> tuple[dict[str, Any]
     overrides = dict(overrides or {})
     configs: dict[str, Any] = {}
     problems: list[str] = []
-    for section in ("model", "mechanics", "contact", "registration", "virtual"):
+    for section in ("model", "mechanics", "contact", "registration", "virtual", "tracking"):
         cls = config_class(section)
         if cls is None:
             continue

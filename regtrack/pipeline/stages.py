@@ -336,7 +336,8 @@ def align_stage(ctx, mesh: MeshOutput, sim: SimOutput, vm, real, view: str) -> V
     al_b = breast_alignment(al, real, vm.view)
     lesions = predict_lesions(mesh.model, view=view, positions=sim.positions, virtual=vm,
                               real=real, alignment=al_b, D=D,
-                              sigma_D=_degree_sigma(ctx, sim, view))
+                              sigma_D=_degree_sigma(ctx, sim, view),
+                              config=ctx.configs.get("tracking"))
     if lesions:
         first = lesions[0]
         row.update({"n_lesions": len(lesions), "lesion_x_mm": float(first.centroid_mm[0]),
@@ -359,7 +360,7 @@ def _degree_sigma(ctx, sim: SimOutput, view: str) -> float:
     nominal ``[tracking] degree_sigma`` (:mod:`regtrack.tracking.lesions`)."""
     from regtrack.tracking.config import TrackingConfig
 
-    cfg = TrackingConfig()
+    cfg = ctx.configs.get("tracking") or TrackingConfig()
     geo = (getattr(ctx, "geometry", None) or {}).get(view)
     T0 = sim.summary.get("T0_mm")
     if geo is not None and geo.gap_source == "dicom" and T0:

@@ -199,6 +199,7 @@ def write_dicom_results(out: Path, results: list, mammograms: dict, *, case_id: 
     prediction are left out; nothing is written when none remains.
     """
     import pydicom
+    import pydicom.uid
 
     from regtrack import _io
     from regtrack.privacy import deidentify_dataset
@@ -208,10 +209,28 @@ def write_dicom_results(out: Path, results: list, mammograms: dict, *, case_id: 
         return []
     headers = {r.view: pydicom.dcmread(str(mammograms[r.view]), stop_before_pixels=True)
                for r in real}
-    for h in headers.values():  # Type 2 attributes the SR copies from its evidence
-        for kw in TYPE2_COPIED:
+    new_study = pydicom.uid.generate_uid()
+    for view, h in list(headers.items()):
+        missing = [kw for kw in ("SOPClassUID", "SOPInstanceUID") if not h.get(kw)]
+        if missing:
+            log.warning("[views.%s] %s has no %s: the DICOM SR cannot reference it; its "
+                        "predictions are left out of the SR", view, Path(mammograms[view]).name,
+                        " or ".join(missing))
+            del headers[view]
+            continue
+        for kw in ("StudyInstanceUID", "SeriesInstanceUID"):  # Type 1, absent in some exports
+            if not h.get(kw):  # one new study for all the views that lack theirs
+                setattr(h, kw, new_study if kw == "StudyInstanceUID" else
+                        pydicom.uid.generate_uid())
+                log.warning("[views.%s] %s has no %s: the DICOM results get a new one (a "
+                            "PACS files them apart from the exam)", view,
+                            Path(mammograms[view]).name, kw)
+        for kw in TYPE2_COPIED:  # Type 2 attributes the SR copies from its evidence
             if kw not in h:
                 setattr(h, kw, "")
+    real = [r for r in real if r.view in headers]
+    if not real:
+        return []
     if not keep_identifiers:  # the SR copies the patient and study modules of its evidence
         headers = {v: deidentify_dataset(h, pseudonym=case_id) for v, h in headers.items()}
     studies: dict[str, list] = {}

@@ -9,7 +9,8 @@ from regtrack.config import param
 
 @dataclass(frozen=True)
 class TrackingConfig:
-    """Sampling of the projection ray and the uncertainty model (:mod:`.uncertainty`)."""
+    """Sampling of the projection ray and the uncertainty models (:mod:`.uncertainty`,
+    :mod:`.lesions`); ``[tracking]`` in case.toml."""
 
     ray_step_mm: float = param(0.25, "mm", "spacing of the samples along the projection ray "
                                "through the compressed source view (CC -> MLO)", gt=0.0, le=5.0)

@@ -162,7 +162,7 @@ def open_case(case_dir: str | Path, *, views: tuple[str, ...] | list[str] | None
     mesh = stages.mesh_stage(ctx)
     if not ctx.geometry:
         ctx.geometry = resolve_geometry(ctx, mesh.model)
-    cfg = config or TrackingConfig()
+    cfg = config or configs.get("tracking") or TrackingConfig()
     session = TrackingSession(case, mesh.model, {}, config=cfg, stage_keys={"mesh": mesh.key},
                               simulated_now=todo)
     failed = stages.simulate_concurrently(ctx, mesh, names) if concurrent_default() else {}
