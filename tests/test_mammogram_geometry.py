@@ -147,6 +147,12 @@ def test_case_toml_overrides_the_dicom(tmp_path):
     assert ctx.protocol_tables["MLO"] == {"target_D": 0.3, "angle_deg": 45.0}
 
 
+def test_only_the_views_that_run_are_resolved(tmp_path):
+    ctx = _ctx(tmp_path, {"CC": _ds(BodyPartThickness=20), "MLO": _ds(BodyPartThickness=400)})
+    geo = resolve_geometry(ctx, views=("CC",))
+    assert list(geo) == ["CC"] and ctx.protocol_tables["MLO"] == {}  # no MLO warning either
+
+
 def test_thickness_checked_against_the_model(tmp_path):
     """A plausible tag that would barely compress this breast (D < 0.05) falls back, named."""
     model = SimpleNamespace(points=np.array([[0, 0, 0], [0, 30.0, 0], [10, 10, 10]]),

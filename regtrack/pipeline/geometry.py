@@ -186,12 +186,13 @@ def _projection(view: str, cfg, g: DicomGeometry) -> tuple[Choice, Any]:
     return Choice("orthogonal", "default (no DICOM source distances)"), cfg
 
 
-def resolve_geometry(ctx, model=None) -> dict[str, ViewGeometry]:
+def resolve_geometry(ctx, model=None, *, views=None) -> dict[str, ViewGeometry]:
     """Decide each real view's geometry; write the DICOM's choices into
     ``ctx.protocol_tables`` (a copy per view) and return them by view.
 
     ``model`` (the reference BreastModel) is used to check a DICOM thickness against the
     breast's own thickness; without it the thickness is checked against its range only.
+    ``views``: the views to resolve (default every view of the case with a mammogram).
     Warnings are logged (one line each, naming the tag) and recorded.
     """
     out: dict[str, ViewGeometry] = {}
@@ -201,6 +202,8 @@ def resolve_geometry(ctx, model=None) -> dict[str, ViewGeometry]:
 
         base_virtual = VirtualConfig()
     for view, vi in ctx.case.views.items():
+        if views is not None and view not in views:
+            continue
         warnings: list[str] = []
 
         def warn(msg: str, _w=warnings) -> None:

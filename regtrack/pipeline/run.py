@@ -182,7 +182,7 @@ def _run_case(case_dir, found: Identifiers, ids: Identifiers, *, overrides, view
     if case.views:  # the DICOM's plate gap, MLO angle and projection (before simulating)
         from regtrack.pipeline.geometry import resolve_geometry
 
-        ctx.geometry = resolve_geometry(ctx, mesh_out.model)
+        ctx.geometry = resolve_geometry(ctx, mesh_out.model, views=views)
     failed = stages.simulate_concurrently(ctx, mesh_out, views) if concurrent else {}
     results = []
     for view in views:

@@ -150,7 +150,7 @@ def open_case(case_dir: str | Path, *, views: tuple[str, ...] | list[str] | None
 
     if (cache.folder("mesh", stages.mesh_key(ctx)) / MARKER).is_file():
         # the DICOM's plate gap and angle enter the simulations' keys (as in `regtrack run`)
-        ctx.geometry = resolve_geometry(ctx, stages.mesh_stage(ctx).model)
+        ctx.geometry = resolve_geometry(ctx, stages.mesh_stage(ctx).model, views=names)
     todo = missing_stages(ctx, names)
     if todo and not simulate:
         raise TrackingError(f"case {case.id} not simulated yet ({', '.join(todo)} not in the cache "
@@ -161,7 +161,7 @@ def open_case(case_dir: str | Path, *, views: tuple[str, ...] | list[str] | None
                 "(this takes minutes; later calls re-use them)")
     mesh = stages.mesh_stage(ctx)
     if not ctx.geometry:
-        ctx.geometry = resolve_geometry(ctx, mesh.model)
+        ctx.geometry = resolve_geometry(ctx, mesh.model, views=names)
     cfg = config or configs.get("tracking") or TrackingConfig()
     session = TrackingSession(case, mesh.model, {}, config=cfg, stage_keys={"mesh": mesh.key},
                               simulated_now=todo)
