@@ -15,6 +15,7 @@ materials (:func:`regtrack.mechanics.materials.element_materials`).
 
 from __future__ import annotations
 
+import dataclasses
 import importlib
 from dataclasses import dataclass, field
 from typing import Any
@@ -58,6 +59,18 @@ class Configs:
     protocols: dict[str, Any] = field(default_factory=dict)
     protocol_tables: dict[str, dict] = field(default_factory=dict)
     overrides: dict = field(default_factory=dict)
+
+    def with_protocol_tables(self, case: Any, tables: dict[str, dict]) -> Configs:
+        """These configs with the views' ``[protocol.<VIEW>]`` tables replaced (e.g. by the
+        plate gap and angle read from the DICOM, :mod:`regtrack.pipeline.geometry`) and
+        their protocols parsed again."""
+        from regtrack.mechanics.protocol import protocol_for_view
+
+        merged = {**self.protocol_tables, **{v: dict(t) for v, t in tables.items()}}
+        protocols = {**self.protocols,
+                     **{v: protocol_for_view(v, merged[v] or None, where=str(case.toml_path),
+                                             base_dir=case.root) for v in tables}}
+        return dataclasses.replace(self, protocols=protocols, protocol_tables=merged)
 
     def to_tables(self) -> dict[str, dict]:
         """Plain tables of every config section (written into provenance and reports)."""

@@ -189,8 +189,10 @@ def _parse_view(name: str, table: dict, root: Path, where: str, f: _Findings) ->
         f.problems.append(f"{at}: both tumour_polygon and tumour_mask are given; keep one")
         ok = False
     elif v.tumour_polygon is None and v.tumour_mask is None:
-        f.warnings.append(f"{at}: no tumour_polygon or tumour_mask; the tumour metrics "
-                          f"(TS_Av, d_T) of the {name} view will not be computed")
+        f.warnings.append(f"{at}: no tumour_polygon or tumour_mask; the {name} view runs in "
+                          "tracking mode (registration on the breast outline and nipple, the "
+                          "MRI lesion predicted on the mammogram; TS_Av, theta_p,t and d_T "
+                          "are not computed)")
     if not ok:
         return None
     return ViewInput(name=name, mammogram=paths["mammogram"],  # type: ignore[arg-type]

@@ -25,6 +25,8 @@ SECTIONS: dict[str, str] = {
     "protocol.CC": "regtrack.mechanics.protocol:ProtocolOverrides",
     "protocol.MLO": "regtrack.mechanics.protocol:ProtocolOverrides",
     "registration": "regtrack.registration.config:RegistrationConfig",
+    "virtual": "regtrack.virtual.config:VirtualConfig",
+    "tracking": "regtrack.tracking.config:TrackingConfig",
 }
 
 
@@ -45,7 +47,7 @@ def parse_overrides(doc: dict, *, where: str) -> tuple[dict[str, tuple[dict, Any
     problems: list[str] = []
     warnings: list[str] = []
     tables: dict[str, dict] = {}
-    for top in ("model", "mechanics", "contact", "registration"):
+    for top in ("model", "mechanics", "contact", "registration", "virtual", "tracking"):
         if top in doc:
             tables[top] = doc[top]
     if "protocol" in doc:

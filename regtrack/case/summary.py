@@ -90,7 +90,9 @@ def format_summary(case: Case) -> str:
         lines.append(head)
         nip_px = "auto" if view.nipple_px is None else f"{list(view.nipple_px)} (row, col)"
         n = f", {info.tumour_polygons} region(s)" if info is not None else ""
-        lines.append(f"       tumour: {ann}{n}; nipple: {nip_px}")
+        mode = ("paper mode" if (view.tumour_polygon or view.tumour_mask)
+                else "tracking mode: the MRI lesion is predicted")
+        lines.append(f"       tumour: {ann}{n}; nipple: {nip_px}; {mode}")
     lines.append("Overrides")
     lines += _override_lines(case)
     if case.warnings:

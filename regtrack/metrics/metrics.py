@@ -150,7 +150,9 @@ def compute_metrics(alignment: Alignment, real: MammogramView, virtual: Mammogra
     * :math:`d_T = \\lVert c(T_r) - c(T_v) \\rVert`, :math:`d_B = \\lVert c(B_r) - c(B_v)
       \\rVert` (mm): distances between the area centroids ``c`` of the real and aligned
       virtual tumour regions (union of the tumour polygons) and breast regions (open
-      contour closed by its chest-wall chord).
+      contour closed by its chest-wall chord).  ``d_T`` and the tumour Dice are computed
+      whenever both views have tumour contours, also when the registration did not use
+      them; :math:`TS_{Av}` only when it did (NaN otherwise).
     * Distance statistics (mm): :func:`distance_stats` of the aligned virtual contours.
     * Dice (-): :func:`dice` of the breast regions (clipped to the common anterior part,
       see ``_breast_regions``) and of the tumour regions.
@@ -171,6 +173,9 @@ def compute_metrics(alignment: Alignment, real: MammogramView, virtual: Mammogra
     if alignment.tumour_objective is not None:
         ts_av = similarity_percent(alignment.tumour_objective, alignment.theta_p)
         ts_av_t = similarity_percent(alignment.tumour_objective, alignment.theta_p_t)
+    if real.tumour_contours and alignment.tumour_contours:
+        # also on a breast-only registration (outlines given, use_tumour = false): then d_T
+        # is the error of a prediction that did not see the tumour
         tr, tv = _union(real.tumour_contours), _union(alignment.tumour_contours)
         d_T = float(math.hypot(tr.centroid.x - tv.centroid.x, tr.centroid.y - tv.centroid.y))
         dice_t = dice(tr, tv)

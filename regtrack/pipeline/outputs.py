@@ -97,14 +97,14 @@ def model_rows(model) -> list[list[str]]:
     return rows
 
 
-def header_lines(ctx, model) -> list[str]:
-    """The lines under the report's title: the mode (when the case states one), the model."""
+def header_lines(ctx, model, results: list, prov: dict) -> list[str]:
+    """The lines under the report's title: the mode that ran, the lesion predictions and the
+    source of each geometry value (:func:`report_notes`), the model."""
+    import textwrap
+
     from regtrack.report.fmt import num
 
-    lines = []
-    mode = getattr(ctx.case, "mode", None)
-    if mode:
-        lines.append(f"Mode: {mode}")
+    lines = [w for note in report_notes(results, prov) for w in textwrap.wrap(note, 140)]
     vol = np.abs(model.tet_volumes())
     tum = float(vol[np.asarray(model.region) == 2].sum())
     lines.append(f"Model: {model.n_nodes:,} nodes, {model.n_tets:,} tetrahedra, breast "
@@ -187,7 +187,8 @@ def write_report(ctx, mesh, results: list, out: Path, prov: dict) -> Path:
                      [0.05, 0.47, 0.72], [62, 36, 36]))
     appendix.append(("Provenance", ["Item", "Value"],
                      [list(r) for r in provenance_rows(prov)], [0.05, 0.27], [34, 112]))
-    rep = CaseReport(ctx.case.id, ctx.case.title, views, header=header_lines(ctx, model),
+    rep = CaseReport(ctx.case.id, ctx.case.title, views,
+                     header=header_lines(ctx, model, results, prov),
                      appendix=appendix, extra_pages=extra)
     path = write_pdf(rep, out / "report.pdf")
     ctx.timings["report"] = ctx.timings.get("report", 0.0) + time.perf_counter() - t0
@@ -225,9 +226,49 @@ def _tracking(ctx, mesh, results: list, out: Path, truth):
 
     if int(mesh.model.tumour_id.max(initial=0)) < 1:
         return None
-    vms = {r.view: viewmap_from_outcome(r) for r in results}
+    # the breast-only registration of the lesion prediction (lesions.json, the summary page)
+    vms = {r.view: viewmap_from_outcome(r, alignment=r.extra.get("breast_alignment"))
+           for r in results}
     res = TrackResult(results[0].row["case_id"], views={v: {} for v in vms},
                       mri=track_tumour(mesh.model, vms, config=ctx.configs.tracking,
                                        truth=None if truth is None else truth.tumour_xy()))
+    for r in results:  # one lesion: the page shows the prediction's full 1-sigma radius
+        lesions = r.extra.get("lesions") or []
+        if len(lesions) == 1 and r.view in res.mri.views:
+            res.mri.views[r.view].sigma_mm = lesions[0].sigma_mm
     _io.write_json(out / "tracking.json", report_section(res))
     return res, {r.view: r.real for r in results}
+
+
+def report_notes(results: list, prov: dict) -> list[str]:
+    """The lines under the report's metrics table: the mode, each lesion prediction (mm of
+    the real canonical frame, DICOM pixels), and the source of each geometry value."""
+    mode = prov.get("mode")
+    lines = []
+    if mode is not None:
+        what = {"paper": "paper (tumour outlines given: registration on breast and tumour, "
+                         "theta_p = (theta_p,b + theta_p,t)/2; lesion predicted from the breast "
+                         "registration alone, its error against the outline shown)",
+                "tracking": "tracking (no tumour outline: registration on the breast outline "
+                            "and nipple, theta_p = theta_p,b; the MRI lesion predicted)",
+                "mixed": "mixed (paper mode where a view has a tumour outline, tracking "
+                         "mode where it has none)"}[mode]
+        lines.append(f"Mode: {what}")
+    for r in results:
+        for p in r.extra.get("lesions") or []:
+            px = ("" if p.centroid_px is None
+                  else f" = px (row {p.centroid_px[0]:.0f}, col {p.centroid_px[1]:.0f})")
+            err = "" if p.error_mm is None else f"; error vs outline {p.error_mm:.1f} mm"
+            t = p.terms_mm
+            lines.append(f"{r.view} lesion {p.lesion}: ({p.centroid_mm[0]:.1f}, "
+                         f"{p.centroid_mm[1]:.1f}) mm{px} ± {p.sigma_mm:.1f} mm (1σ: residual "
+                         f"{t['registration_residual']:.1f}, rotation {t['rotation']:.1f}, model "
+                         f"{t['model']:.1f}){err}")
+    for view, geo in (prov.get("geometry") or {}).items():
+        for key, item in geo.items():
+            if isinstance(item, dict) and "source" in item:
+                val = item.get("value")
+                lines.append(f"{view} {key}: {val if val is not None else '–'}"
+                             f"{' ' + item['unit'] if item.get('unit') and val is not None else ''}"
+                             f" ({item['source']})")
+    return lines

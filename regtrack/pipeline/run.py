@@ -55,6 +55,13 @@ class RunContext:
     sim_progress: SimProgress | None = None
     #: (stage, key) of the stages produced in this run (by this process or its workers)
     produced: set = field(default_factory=set)
+    #: each real view's acquisition geometry and its sources (regtrack.pipeline.geometry)
+    geometry: dict = field(default_factory=dict)
+
+    @property
+    def protocol_tables(self) -> dict[str, dict]:
+        """Each view's ``[protocol.<VIEW>]`` table (``configs.protocol_tables``)."""
+        return self.configs.protocol_tables
 
     def say(self, msg: str) -> None:
         msg = self.ids.scrub(msg, console=True)
@@ -94,7 +101,8 @@ def run_case(case_dir: str | Path, *, overrides: dict | None = None,
         :data:`SimProgress`), from this process or, for views simulated at the same time,
         from a thread relaying the worker processes' reports.
     report : bool
-        Write figures and the PDF (``out_dir`` required).
+        Write figures, the PDF and the DICOM results (a TID 1500 SR and the PDF as
+        Encapsulated PDF, :mod:`regtrack.report.dicom_sr`; ``out_dir`` required).
     keep_identifiers : bool
         Copy the DICOM patient identifiers into ``provenance.json`` and scrub nothing.
         By default (False) no identifier of the inputs (:mod:`regtrack.privacy`) reaches
@@ -156,11 +164,15 @@ def _run_case(case_dir, found: Identifiers, ids: Identifiers, *, overrides, view
                             "patient": found.by_keyword} if keep_identifiers else
                            {"identifiers": "removed", "attributes_checked": len(IDENTIFYING_KEYWORDS)})
         rows = ctx.clean(rows)
-        _io.write_json(out / "metrics.json", {"case_id": case.id, "views": rows})
+        _io.write_json(out / "metrics.json", {"case_id": case.id, "mode": prov["mode"],
+                                              "views": rows})
+        if any(r.extra.get("lesions") for r in results):
+            _io.write_json(out / "lesions.json", ctx.clean(lesions_doc(case.id, results)))
         _io.write_text(out / "metrics.csv", _csv(rows))
         _io.write_json(out / "provenance.json", prov)
-        if report:
-            stages.report_stage(ctx, mesh_out, results, out, prov)
+        if report:  # figures, the PDF, and the DICOM SR + encapsulated PDF for the PACS
+            pdf = stages.report_stage(ctx, mesh_out, results, out, prov)
+            stages.dicom_stage(ctx, results, out, pdf, keep_identifiers=keep_identifiers)
     log.info("case %s done in %.1f s (cache: %d hits, %d misses)", case.id,
              ctx.timings["total"], ctx.cache.hits, ctx.cache.misses)
     return rows
@@ -219,6 +231,10 @@ def run_stages(ctx: RunContext, views: tuple[str, ...], *, concurrent: bool
     uncached views at the same time (:func:`stages.simulate_concurrently`)."""
     reals = {view: stages.real_stage(ctx, view) for view in views if view in ctx.case.views}
     mesh_out = stages.mesh_stage(ctx)
+    if ctx.case.views and not ctx.geometry:  # the DICOM's plate gap, MLO angle, projection
+        from regtrack.pipeline.geometry import apply_geometry
+
+        apply_geometry(ctx, mesh_out.model, views)
     failed = stages.simulate_concurrently(ctx, mesh_out, views) if concurrent else {}
     results = []
     for view in views:
@@ -257,6 +273,32 @@ def _csv(rows: list[dict]) -> str:
     return "\n".join([",".join(keys)] + [",".join(cell(r.get(k)) for k in keys) for r in rows]) + "\n"
 
 
+def run_mode(results) -> str | None:
+    """``"paper"`` (every view has a tumour outline), ``"tracking"`` (none has), ``"mixed"``,
+    or None without real mammograms (simulation and virtual mammograms only)."""
+    modes = {r.extra.get("mode") for r in results} - {None}
+    if not modes:
+        return None
+    return modes.pop() if len(modes) == 1 else "mixed"
+
+
+def lesions_doc(case_id: str, results) -> dict:
+    """``lesions.json``: every MRI lesion predicted on every real mammogram."""
+    return {
+        "case_id": case_id, "mode": run_mode(results),
+        "frames": {"mm": "real mammogram, canonical frame (chest wall left, x towards the "
+                         "nipple, y down), mm", "px_rc": "(row, col) of the DICOM's own grid"},
+        "method": "registration on the breast outline and nipple only (theta_p = theta_p,b); "
+                  "sigma_mm: 1-sigma radius from the local registration residual, the angular "
+                  "uncertainty times the distance from the nipple, and the model's sensitivity "
+                  "to D, c1 and nu (regtrack.tracking.lesions); error_mm: distance to the "
+                  "area centroid of the annotated outline (paper mode)",
+        "views": {r.view: {"mode": r.extra.get("mode"),
+                           "lesions": [p.to_dict() for p in r.extra.get("lesions") or []]}
+                  for r in results if r.extra.get("mode")},
+    }
+
+
 def provenance(ctx: RunContext, mesh_out, results) -> dict:
     """Configuration, versions, inputs and timings of a run (written into every output)."""
     import importlib.metadata as md
@@ -272,7 +314,11 @@ def provenance(ctx: RunContext, mesh_out, results) -> dict:
             pass
     return {
         "case_id": ctx.case.id,
+        "mode": run_mode(results),
+        "view_modes": {r.view: {"mode": r.extra.get("mode"), "why": r.extra.get("mode_reason")}
+                       for r in results if r.extra.get("mode")},
         "config": ctx.configs.to_tables(),
+        "geometry": {v: g.to_dict() for v, g in ctx.geometry.items()},
         "protocol_overrides": ctx.configs.protocol_tables,
         "overrides": ctx.configs.overrides,
         "inputs": input_digests(ctx.case),

@@ -222,6 +222,7 @@ def simulate_concurrently(ctx, mesh: MeshOutput, views, *, worker=None) -> dict[
                 reports.put((view, None, 1.0, {}))
                 log.warning("simulate %s: the worker process failed (%s: %s); simulating "
                             "it again in this process", view, type(exc).__name__, exc)
+        pool.shutdown(wait=True)  # the workers' last reports are on the queue before the end
     except BaseException:  # Ctrl-C, SIGTERM: stop the workers now, do not wait for them
         stop_pool(pool)
         raise
@@ -229,7 +230,6 @@ def simulate_concurrently(ctx, mesh: MeshOutput, views, *, worker=None) -> dict[
         reports.put(None)
         relay.join(timeout=5)
         reports.close()
-    pool.shutdown(wait=True)
     _timed(ctx, "simulate_concurrent", t0)
     return failed
 
@@ -328,7 +328,9 @@ def virtual_stage(ctx, mesh: MeshOutput, sim: SimOutput, view: str):
     t0 = time.perf_counter()
     ctx.say(f"virtual {view}: projecting the compressed model")
     frame = default_frame(sim.positions, view, mesh.model.frame.side, angle_deg=sim.angle_deg)
-    vm = project_model(mesh.model, sim.positions, view=view, config=ctx.configs.virtual,
+    geo = (getattr(ctx, "geometry", None) or {}).get(view)
+    cfg = geo.virtual if geo is not None and geo.virtual is not None else ctx.configs.virtual
+    vm = project_model(mesh.model, sim.positions, view=view, config=cfg,
                        frame=frame, source_name=f"virtual:{ctx.case.id}:{view}")
     _timed(ctx, f"virtual_{view}", t0)
     return vm
@@ -353,24 +355,58 @@ def real_stage(ctx, view: str):
     return real
 
 
+def view_mode(real, virtual, cfg) -> tuple[str, str | None]:
+    """``("paper", None)`` when the real view has a tumour outline (and the model a tumour)
+    and ``[registration] use_tumour`` is on: the paper's method, theta_p = (theta_p,b +
+    theta_p,t) / 2.  Otherwise ``("tracking", why)``: the registration uses the breast
+    outline and nipple only (theta_p = theta_p,b)."""
+    if not cfg.use_tumour:
+        return "tracking", "[registration] use_tumour = false"
+    if not real.tumour_contours:
+        return "tracking", "no tumour outline on the mammogram"
+    if not virtual.tumour_contours:
+        return "tracking", "the model's tumour has no projected outline"
+    return "paper", None
+
+
 def align_stage(ctx, mesh: MeshOutput, sim: SimOutput, vm, real, view: str) -> ViewOutcome:
-    """Nipple superposition + golden-section rotation, then the paper's metrics."""
+    """Nipple superposition + golden-section rotation, the paper's metrics, and the MRI
+    lesion(s) predicted on the mammogram.
+
+    Paper mode (a tumour outline on the mammogram): the paper's registration and metrics,
+    and the prediction's error against the outline.  Tracking mode (no outline): the
+    registration on the breast outline and nipple only; the tumour metrics are absent
+    (None) and the prediction is the result.  The prediction always comes from the
+    breast-only registration (:mod:`regtrack.tracking.lesions`).
+    """
+    import dataclasses
+
     from regtrack.metrics import compute_metrics
     from regtrack.registration import align
+    from regtrack.tracking.lesions import breast_alignment, predict_lesions
 
     t0 = time.perf_counter()
-    ctx.say(f"register {view}: golden-section search of the in-plane rotation")
-    al = align(real, vm.view, config=ctx.configs.registration)
+    cfg = ctx.configs.registration
+    mode, why = view_mode(real, vm.view, cfg)
+    if mode == "tracking" and cfg.use_tumour:
+        cfg = dataclasses.replace(cfg, use_tumour=False)
+    ctx.say(f"register {view} ({mode} mode"
+            f"{'' if why is None else ': ' + why}): golden-section search of the in-plane "
+            "rotation")
+    al = align(real, vm.view, config=cfg)
     D = sim.summary.get("D")
     m = compute_metrics(al, real, vm.view, D=D)
     md = m.to_dict()
+
+    def num(x):
+        return None if x is None or (isinstance(x, float) and not np.isfinite(x)) else x
     row = {
-        "case_id": ctx.case.id, "view": view,
-        "BS_Av": m.bs_av, "TS_Av": m.ts_av,
-        "theta_p_b": m.theta_p_b, "theta_p_t": m.theta_p_t, "theta_p": m.theta_p,
-        "D": D, "d_T": m.d_T, "d_B": m.d_B,
+        "case_id": ctx.case.id, "view": view, "mode": mode,
+        "BS_Av": m.bs_av, "TS_Av": num(m.ts_av),
+        "theta_p_b": m.theta_p_b, "theta_p_t": num(m.theta_p_t), "theta_p": m.theta_p,
+        "D": D, "d_T": num(m.d_T), "d_B": m.d_B,
         "force_N": sim.summary.get("upper_force_N"),
-        "dice_breast": m.dice_breast, "dice_tumour": m.dice_tumour,
+        "dice_breast": m.dice_breast, "dice_tumour": num(m.dice_tumour),
         "breast_dist_mean_mm": md["breast_distance"]["mean"],
         "breast_dist_p95_mm": md["breast_distance"]["p95"],
         "breast_hausdorff_mm": md["breast_distance"]["hausdorff"],
@@ -381,11 +417,48 @@ def align_stage(ctx, mesh: MeshOutput, sim: SimOutput, vm, real, view: str) -> V
     if m.tumour_distance is not None:
         row.update({"tumour_dist_mean_mm": md["tumour_distance"]["mean"],
                     "tumour_hausdorff_mm": md["tumour_distance"]["hausdorff"]})
+    al_b = breast_alignment(al, real, vm.view)
+    lesions = predict_lesions(mesh.model, view=view, positions=sim.positions, virtual=vm,
+                              real=real, alignment=al_b, D=D,
+                              sigma_D=_degree_sigma(ctx, sim, view),
+                              config=ctx.configs.tracking)
+    if lesions:
+        first = lesions[0]
+        row.update({"n_lesions": len(lesions), "lesion_x_mm": float(first.centroid_mm[0]),
+                    "lesion_y_mm": float(first.centroid_mm[1]),
+                    "lesion_row_px": None if first.centroid_px is None else float(first.centroid_px[0]),
+                    "lesion_col_px": None if first.centroid_px is None else float(first.centroid_px[1]),
+                    "lesion_sigma_mm": first.sigma_mm, "lesion_error_mm": first.error_mm})
+    row.update(_geometry_columns(ctx, sim, view))
     from regtrack.pipeline.guards import check_metrics_row
 
     check_metrics_row(f"register {view}", row)
     _timed(ctx, f"register_{view}", t0)
-    return ViewOutcome(view, sim.key, row, real, vm, al, m, sim)
+    return ViewOutcome(view, sim.key, row, real, vm, al, m, sim,
+                       extra={"mode": mode, "mode_reason": why, "lesions": lesions,
+                              "breast_alignment": al_b})
+
+
+def _degree_sigma(ctx, sim: SimOutput, view: str) -> float:
+    """1-sigma uncertainty of D: from the DICOM thickness when it set the gap, else the
+    nominal ``[tracking] degree_sigma`` (:mod:`regtrack.tracking.lesions`)."""
+    from regtrack.tracking.config import TrackingConfig
+
+    cfg = ctx.configs.tracking or TrackingConfig()
+    geo = (getattr(ctx, "geometry", None) or {}).get(view)
+    T0 = sim.summary.get("T0_mm")
+    if geo is not None and geo.gap_source == "dicom" and T0:
+        return cfg.thickness_sigma_mm / float(T0)
+    return cfg.degree_sigma
+
+
+def _geometry_columns(ctx, sim: SimOutput, view: str) -> dict:
+    """Plate gap and force of the simulation beside the DICOM's thickness and force."""
+    geo = (getattr(ctx, "geometry", None) or {}).get(view)
+    out = {"plate_gap_mm": sim.summary.get("plate_gap_mm")}
+    if geo is not None:
+        out.update(geo.row())
+    return out
 
 
 def virtual_only(ctx, sim: SimOutput, vm, view: str) -> ViewOutcome:
@@ -405,3 +478,27 @@ def report_stage(ctx, mesh: MeshOutput, results: list[ViewOutcome], out: Path, p
     from regtrack.pipeline.outputs import write_report
 
     return write_report(ctx, mesh, results, out, prov)
+
+
+def dicom_stage(ctx, results: list[ViewOutcome], out: Path, pdf: Path | None, *,
+                keep_identifiers: bool) -> list[Path]:
+    """The DICOM SR (TID 1500) of the lesion predictions and metrics, and the PDF report as
+    Encapsulated PDF, per study (:mod:`regtrack.report.dicom_sr`); under ``out/dicom``."""
+    import importlib.util
+
+    from regtrack.report.dicom_sr import write_dicom_results
+
+    if not any(r.real is not None for r in results):
+        return []
+    if importlib.util.find_spec("highdicom") is None:
+        log.warning("DICOM SR and encapsulated PDF not written: highdicom, a dependency of "
+                    "regtrack, is not installed (pip install highdicom)")
+        return []
+    t0 = time.perf_counter()
+    ctx.say("report: DICOM SR and encapsulated PDF")
+    mammos = {v: vi.mammogram for v, vi in ctx.case.views.items()}
+    paths = write_dicom_results(out, results, mammos, case_id=ctx.case.id, pdf_path=pdf,
+                                keep_identifiers=keep_identifiers)
+    _timed(ctx, "dicom", t0)
+    return paths
+

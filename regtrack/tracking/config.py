@@ -9,7 +9,8 @@ from regtrack.config import param
 
 @dataclass(frozen=True)
 class TrackingConfig:
-    """Sampling of the projection ray and the uncertainty model (:mod:`.uncertainty`)."""
+    """Sampling of the projection ray and the uncertainty models (:mod:`.uncertainty`,
+    :mod:`.lesions`); ``[tracking]`` in case.toml."""
 
     ray_step_mm: float = param(0.25, "mm", "spacing of the samples along the projection ray "
                                "through the compressed source view (CC -> MLO)", gt=0.0, le=5.0)
@@ -22,3 +23,16 @@ class TrackingConfig:
     max_outside_mm: float = param(2.0, "mm", "an MRI point up to this far outside the meshed "
                                   "breast is snapped onto the mesh (recorded); farther is an "
                                   "error", ge=0.0, le=50.0)
+    correlation_mm: float = param(10.0, "mm", "correlation length L_c of the contour residuals: "
+                                  "the angular uncertainty of the breast registration counts one "
+                                  "independent residual per L_c of contour "
+                                  "(regtrack.tracking.lesions.angular_sigma)", gt=0.0, le=500.0)
+    material_rel: float = param(0.1, "-", "relative sensitivity alpha of the lesion's in-plane "
+                                "shift to the tissue's c1 and nu (a stated estimate; "
+                                "regtrack.tracking.lesions)", ge=0.0, le=2.0)
+    degree_sigma: float = param(0.05, "-", "1-sigma uncertainty of the compression degree D "
+                                "when it is the protocol's nominal value (no DICOM thickness)",
+                                ge=0.0, le=0.5)
+    thickness_sigma_mm: float = param(3.0, "mm", "1-sigma uncertainty of the DICOM's "
+                                      "BodyPartThickness (the displayed paddle height)", ge=0.0,
+                                      le=50.0)

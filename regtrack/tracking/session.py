@@ -107,6 +107,12 @@ def open_case(case_dir: str | Path, *, views: tuple[str, ...] | list[str] | None
                             "a mammogram to case.toml to track into it")
     configs = resolve_configs(case, overrides)
     ctx = open_run(case, configs, cache_dir=cache_dir, progress=progress)
+    from regtrack.pipeline import stages
+    from regtrack.pipeline.geometry import apply_geometry
+
+    if ctx.cache.has("mesh", stages.mesh_key(ctx)):
+        # the DICOM's plate gap and angle enter the simulations' keys (as in `regtrack run`)
+        apply_geometry(ctx, stages.mesh_stage(ctx).model, names)
     todo = missing_stages(ctx, names)
     if todo and not simulate:
         raise TrackingError(f"case {case.id} not simulated yet ({', '.join(todo)} not in the cache "

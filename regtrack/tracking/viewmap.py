@@ -191,14 +191,15 @@ class ViewMap:
         return float(h.min()), float(h.max())
 
 
-def viewmap_from_outcome(outcome) -> ViewMap:
+def viewmap_from_outcome(outcome, *, alignment=None) -> ViewMap:
     """The :class:`ViewMap` of a pipeline :class:`~regtrack.pipeline.stages.ViewOutcome`
     (simulated positions, virtual plate frame and source, alignment, real view).
 
     For the case report: ``track_tumour(model, {o.view: viewmap_from_outcome(o) for o in
-    results})`` gives the tumour's predicted position in every real view.
+    results})`` gives the tumour's predicted position in every real view.  ``alignment``
+    replaces the outcome's (e.g. its breast-only registration, ``extra["breast_alignment"]``).
     """
-    al = outcome.alignment
+    al = alignment if alignment is not None else outcome.alignment
     return ViewMap(outcome.view, outcome.sim.positions, outcome.virtual.frame,
                    InPlane.from_alignment(al), PixelFrame.from_view(outcome.real),
                    outcome.virtual.source, Residual.from_alignment(al), outcome.real)

@@ -25,6 +25,12 @@ class VirtualConfig:
                                     ge=0.0, le=10.0)
     mu_tumour_per_mm: float = param(0.0844, "1/mm", "linear attenuation of the tumour region",
                                     ge=0.0, le=10.0)
+    projection: str = param(
+        "auto", "-", "'auto': a cone beam from the mammogram's DICOM source distances "
+        "(DistanceSourceToDetector, DistanceSourceToPatient) when present and plausible, else "
+        "orthogonal; 'orthogonal': the paper's projection on the lower plate; 'cone': a cone "
+        "beam, from source_to_image_mm or the DICOM (regtrack.pipeline.geometry)",
+        choices=("auto", "orthogonal", "cone"))
     source_to_image_mm: float = param(
         0.0, "mm", "point-source-to-detector distance for magnified projection; 0 = "
         "orthogonal projection on the lower plate (as in Lapuebla-Ferri et al.)", ge=0.0)

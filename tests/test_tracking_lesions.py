@@ -1,0 +1,63 @@
+"""The lesion prediction's uncertainty model (regtrack.tracking.lesions), known answers."""
+
+from __future__ import annotations
+
+import math
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from regtrack.tracking.config import TrackingConfig
+from regtrack.tracking.lesions import angular_sigma, lesion_sigma
+
+
+class Parabola:
+    """F(theta) = a (theta - theta0)^2 + c over K samples: a least-squares objective."""
+
+    def __init__(self, a, theta0, c, k):
+        self.a, self.theta0, self.c = a, theta0, c
+        self.virtual = np.zeros((k, 2))
+
+    def __call__(self, theta):
+        return self.a * (theta - self.theta0) ** 2 + self.c
+
+
+def test_angular_sigma_of_a_quadratic_objective():
+    """F'' = 2a exactly (central differences are exact on a parabola), s^2 = c / (K - 1):
+    sigma^2 = 2 s^2 / F'' * L_c / h = c / ((K - 1) a) * L_c / h."""
+    a, c, k = 40.0, 300.0, 401
+    got = angular_sigma(Parabola(a, 2.0, c, k), 2.0, correlation_mm=10.0, spacing_mm=0.5)
+    assert got == pytest.approx(math.sqrt(c / ((k - 1) * a) * 20.0), rel=1e-9)
+    # samples closer than the correlation length are not independent: never deflated
+    got1 = angular_sigma(Parabola(a, 2.0, c, k), 2.0, correlation_mm=0.1, spacing_mm=0.5)
+    assert got1 == pytest.approx(math.sqrt(c / ((k - 1) * a)), rel=1e-9)
+
+
+def test_flat_objective_gives_the_cap():
+    assert angular_sigma(Parabola(0.0, 0.0, 5.0, 10), 0.0, correlation_mm=10, spacing_mm=0.5,
+                         cap_deg=7.0) == 7.0
+
+
+def test_lesion_sigma_terms_add_in_quadrature():
+    cfg = TrackingConfig(min_residual_mm=0.5, material_rel=0.1)
+    s, t = lesion_sigma(residual_mm=0.2, r_mm=60.0, theta_sigma_deg=1.0, shift_mm=8.0,
+                        D=0.4, sigma_D=0.04, config=cfg)
+    rot = 60.0 * math.radians(1.0)               # 1.047 mm
+    model = 8.0 * math.hypot(0.04 / 0.4, 0.1)    # 1.131 mm
+    assert t == pytest.approx({"registration_residual": 0.2, "rotation": rot, "model": model})
+    assert s == pytest.approx(math.sqrt(0.5 ** 2 + rot ** 2 + model ** 2))  # residual floored
+
+
+def test_view_mode():
+    from regtrack.pipeline.stages import view_mode
+    from regtrack.registration.config import RegistrationConfig
+
+    with_t = SimpleNamespace(tumour_contours=[np.zeros((4, 2))])
+    without = SimpleNamespace(tumour_contours=[])
+    cfg = RegistrationConfig()
+    assert view_mode(with_t, with_t, cfg) == ("paper", None)
+    assert view_mode(without, with_t, cfg)[0] == "tracking"
+    assert view_mode(with_t, without, cfg)[0] == "tracking"
+    mode, why = view_mode(with_t, with_t, RegistrationConfig(use_tumour=False))
+    assert mode == "tracking" and "use_tumour" in why

@@ -1,0 +1,170 @@
+"""Tracking mode and paper mode of ``regtrack run`` on ``sample_cases/phantom01`` (issue 52).
+
+A copy of the phantom without its tumour outlines runs end to end in tracking mode: the
+registration uses the breast outline and nipple only and the MRI tumour is predicted on
+each mammogram; the prediction is compared with the phantom's hidden truth
+(``truth/mammo_truth.json``: the projected mass centroid of the true tumour, canonical mm).
+The original case runs in paper mode and also reports the prediction's error against its
+outline.  With ``[registration] use_tumour = false`` and outlines given, d_T is the error
+of the breast-only registration (the crash of issue 52, "TS_Av = nan is not finite", is
+gone).
+
+Figures pinned (coarse 1,841-node phantom model, shipped protocols, orthogonal projection:
+the phantom's DICOMs carry no geometry tags): tracking-mode centroid errors 1.3 mm (CC)
+and 0.2 mm (MLO) at 1-sigma radii of 0.9 and 2.5 mm.  Asserted: within issue 9's 3 mm,
+and within 3 sigma.  The mesh and simulations come from the stage cache
+(``$REGTRACK_CACHE`` or the repository's ``.regtrack-cache``): every run here after the
+first re-uses them, since annotations do not enter the simulations' keys.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+
+import numpy as np
+import pytest
+
+from tests.conftest import REPO, SAMPLE_CASES
+
+pytestmark = pytest.mark.slow
+
+CASE = SAMPLE_CASES / "phantom01"
+TRUTH = CASE / "truth" / "mammo_truth.json"
+CACHE = os.environ.get("REGTRACK_CACHE", str(REPO / ".regtrack-cache"))
+TOL_MM = 3.0  # issue 9's acceptance for the MRI tumour centroid in each view
+
+
+def _truth_mm(view: str) -> np.ndarray:
+    doc = json.loads(TRUTH.read_text())
+    return np.asarray(doc["views"][view]["tumour"]["volume_centroid_projected_canonical_mm"], float)
+
+
+def without_outlines(dst):
+    """A copy of phantom01 whose mammograms carry no tumour annotation."""
+    case = dst / "phantom01"
+    shutil.copytree(CASE, case, ignore=shutil.ignore_patterns("*_tumour.json", "truth"))
+    toml = case / "case.toml"
+    toml.write_text("\n".join(line for line in toml.read_text().splitlines()
+                              if not line.startswith("tumour_polygon")) + "\n")
+    return case
+
+
+@pytest.fixture(scope="module")
+def tracking(tmp_path_factory):
+    from regtrack.pipeline.run import run_case
+
+    if not TRUTH.is_file():
+        pytest.skip(f"{TRUTH} not generated (pipelines/make_sample_cases.py)")
+    tmp = tmp_path_factory.mktemp("tracking")
+    out = tmp / "out"
+    rows = run_case(without_outlines(tmp), cache_dir=CACHE, out_dir=out)
+    return rows, out
+
+
+def test_a_case_without_outlines_runs_in_tracking_mode(tracking):
+    rows, out = tracking
+    assert [r["view"] for r in rows] == ["CC", "MLO"]
+    for r in rows:
+        assert r["mode"] == "tracking"
+        assert r["TS_Av"] is None and r["theta_p_t"] is None and r["d_T"] is None
+        assert r["theta_p"] == r["theta_p_b"]
+        assert r["n_lesions"] == 1 and r["lesion_error_mm"] is None
+    doc = json.loads((out / "metrics.json").read_text())
+    assert doc["mode"] == "tracking"
+    prov = json.loads((out / "provenance.json").read_text())
+    assert prov["mode"] == "tracking"
+    assert prov["view_modes"]["CC"]["why"] == "no tumour outline on the mammogram"
+    assert (out / "report.pdf").read_bytes()[:5] == b"%PDF-"
+
+
+def test_dicom_sr_of_the_predictions(tracking):
+    """The SR written by the run holds each view's predicted centroid in DICOM pixels."""
+    hd = pytest.importorskip("highdicom")
+    rows, out = tracking
+    sr = hd.sr.srread(out / "dicom" / "sr_1.dcm")
+    groups = {str(g.tracking_identifier): g for g in sr.content.get_planar_roi_measurement_groups()}
+    for r in rows:
+        c = groups[f"MRI lesion 1 on {r['view']}: centroid"].roi.value
+        np.testing.assert_allclose(np.asarray(c, float).reshape(-1),
+                                   [r["lesion_col_px"], r["lesion_row_px"]], atol=1e-3)
+    assert (out / "dicom" / "report_1.dcm").is_file()
+
+
+@pytest.mark.parametrize("view", ["CC", "MLO"])
+def test_predicted_lesion_against_the_truth(tracking, view):
+    rows, out = tracking
+    les = json.loads((out / "lesions.json").read_text())["views"][view]["lesions"][0]
+    xy = np.asarray(les["centroid_mm"])
+    err = float(np.linalg.norm(xy - _truth_mm(view)))
+    print(f"issue 52 figure: tracking mode {view}: {err:.2f} mm, sigma {les['sigma_mm']:.2f} mm")
+    assert err < TOL_MM
+    assert err < 3.0 * les["sigma_mm"]
+    # sigma is the quadrature sum of its stated terms (the residual with its floor)
+    t = les["uncertainty_terms_mm"]
+    assert les["sigma_mm"] == pytest.approx(np.sqrt(max(t["registration_residual"], 0.5) ** 2
+                                                    + t["rotation"] ** 2 + t["model"] ** 2))
+    # the outline is a polygon around the centroid, in mm and in DICOM pixels
+    outline = np.asarray(les["outline_mm"])
+    from shapely.geometry import Point, Polygon
+
+    assert len(outline) >= 8 and Polygon(outline).contains(Point(*xy))
+    assert len(les["outline_px_rc"]) == len(outline)
+    row = next(r for r in rows if r["view"] == view)
+    assert row["lesion_row_px"] == pytest.approx(les["centroid_px_rc"][0])
+
+
+@pytest.fixture(scope="module")
+def paper(tmp_path_factory):
+    from regtrack.pipeline.run import run_case
+
+    out = tmp_path_factory.mktemp("paper") / "out"
+    return run_case(CASE, cache_dir=CACHE, out_dir=out), out
+
+
+def test_outlines_given_run_in_paper_mode_with_the_prediction_error(paper, tracking):
+    rows, out = paper
+    trk = {r["view"]: r for r in tracking[0]}
+    doc = json.loads((out / "lesions.json").read_text())
+    assert doc["mode"] == "paper"
+    for r in rows:
+        assert r["mode"] == "paper"
+        assert np.isfinite(r["TS_Av"]) and np.isfinite(r["theta_p_t"]) and r["d_T"] < TOL_MM
+        # the prediction comes from the breast-only registration: the same as tracking mode
+        assert r["lesion_x_mm"] == pytest.approx(trk[r["view"]]["lesion_x_mm"], abs=1e-9)
+        les = doc["views"][r["view"]]["lesions"][0]
+        d = np.linalg.norm(np.subtract(les["centroid_mm"], les["annotated_centroid_mm"]))
+        assert r["lesion_error_mm"] == pytest.approx(d) and r["lesion_error_mm"] < TOL_MM
+        print(f"issue 52 figure: paper mode {r['view']}: d_T {r['d_T']:.2f} mm, prediction "
+              f"error {r['lesion_error_mm']:.2f} mm")
+
+
+def test_use_tumour_false_with_outlines(tmp_path, paper):
+    """Regression (issue 52): this gave 'TS_Av = nan is not finite' (exit 3)."""
+    from regtrack.pipeline.run import run_case
+
+    rows = run_case(CASE, cache_dir=CACHE, out_dir=None,
+                    overrides={"registration": {"use_tumour": False}})
+    by_view = {r["view"]: r for r in paper[0]}
+    for r in rows:
+        assert r["mode"] == "tracking" and r["TS_Av"] is None
+        # d_T of the breast-only registration: the prediction's outline against the outline
+        assert r["d_T"] is not None and r["d_T"] < TOL_MM
+        assert r["lesion_error_mm"] == pytest.approx(by_view[r["view"]]["lesion_error_mm"])
+
+
+def test_cli_run_and_validate_agree(tmp_path, tracking):
+    import subprocess
+    import sys
+
+    case = without_outlines(tmp_path)
+    v = subprocess.run([sys.executable, "-m", "regtrack.cli", "validate", str(case)],
+                       check=False, capture_output=True, text=True, cwd=REPO)
+    assert v.returncode == 0, v.stderr
+    assert "tracking mode" in v.stdout + v.stderr
+    r = subprocess.run([sys.executable, "-m", "regtrack.cli", "run", str(case), "--out",
+                        str(tmp_path / "out"), "--cache", CACHE, "--serial-views"],
+                       check=False, capture_output=True, text=True, cwd=REPO)
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert json.loads((tmp_path / "out" / "metrics.json").read_text())["mode"] == "tracking"
