@@ -75,18 +75,15 @@ def test_shipped_protocol_on_real_breast(model, view, target):
             # the free nodes), computed from the solver's residual instead of the reports
             fb = rec.solver["force_balance"]
             assert fb["imbalance_N"] == pytest.approx(np.linalg.norm(_balance(model, rec)),
-                                                      rel=1e-6, abs=1e-9), rec.name
+                                                      rel=1e-6, abs=1e-5 * max(up, 1.0)), rec.name
             assert fb["ok"] and not any("do not balance" in w for w in rec.warnings)
 
 
 @pytest.mark.slow
 @pytest.mark.parametrize("view", ["cc", "mlo"])
 def test_half_compression_on_real_breast(model, view):
-    """Issue 5's large compression: D = 50 % in both views, no manual intervention.  The
-    CC on this mesh needs the automatic retry of the plate move with a lower contact
-    penalty growth cap (measured: without it the step stops at t = 0.64; see
-    ``ProtocolRunner._run_step_with_retry``); the test does not ask which attempt
-    succeeded, only that the result meets the same checks as the default protocols."""
+    """The large compression: D = 50 % in both views at the defaults, no manual
+    intervention, with the same checks as the default protocols."""
     from regtrack.mechanics.protocol import ProtocolOverrides, apply_overrides
 
     proto = apply_overrides(shipped_protocol(view), ProtocolOverrides(target_D=0.5))
@@ -104,18 +101,12 @@ def test_half_compression_on_real_breast(model, view):
 
 
 @pytest.mark.slow
-def test_chest_wall_contact_keeps_the_tissue_in_front_of_the_chest_wall(model):
-    """``[contact] chest_wall_contact`` with the plate edge moved clear of the wall
-    (posterior_edge_mm = 15 = edge radius + 5): CC completes at D = 38 %, no node ends more
-    than the 0.1 mm penetration bound behind the chest-wall plane (without the wall, tissue
-    is squeezed past the plane: measured 7.1 mm on this mesh), the wall carries a force,
-    and the force balance closes with it."""
-    from regtrack.mechanics.contact import ContactConfig
-    from regtrack.mechanics.protocol import ProtocolOverrides, apply_overrides
-
-    proto = apply_overrides(shipped_protocol("cc"), ProtocolOverrides(posterior_edge_mm=15.0))
-    res, timing = run_protocol_on_model(model, proto, mechanics=MechanicsConfig(),
-                                        contact=ContactConfig(chest_wall_contact=True))
+def test_chest_wall_keeps_the_tissue_in_front_of_the_chest_wall(model):
+    """``[contact] chest_wall_contact`` (the default), at the shipped plate geometry: CC
+    completes at D = 38 %, no node ends more than the 0.1 mm penetration bound behind the
+    chest-wall plane (without the wall, tissue is squeezed past the plane: measured 7.1 mm
+    on this mesh), the wall carries a force, and the force balance closes with it."""
+    res, timing = run_protocol_on_model(model, shipped_protocol("cc"), mechanics=MechanicsConfig())
     assert res.complete
     sm = summarise(res, timing)
     assert sm["D"] == pytest.approx(0.38, abs=1e-9)
@@ -123,6 +114,5 @@ def test_chest_wall_contact_keeps_the_tissue_in_front_of_the_chest_wall(model):
     assert (model.points + res.u)[:, 0].min() > x_wall - 0.1
     last = res.steps[-1]
     assert last.contact["chest-wall"]["normal_force_N"] > 0
-    tol = (1e-4 if last.solver.get("stalled_accepts", 0) == 0
-           else MechanicsConfig().solver.stall_force_tol)
-    assert np.abs(_balance(model, last)).max() < tol * max(sm["upper_force_N"], 1.0)
+    assert sm["behind_chest_wall_mm"] < 0.1 and not sm["warnings"]
+    assert np.abs(_balance(model, last)).max() < 1e-4 * max(sm["upper_force_N"], 1.0)

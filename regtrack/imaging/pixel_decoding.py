@@ -61,7 +61,12 @@ def check_pixel_header(ds: Any, name: str) -> str | None:
                 + f" ({n:.2g} pixels, {n * bits / 8 / 2**30:.1f} GiB) is larger than any "
                 "mammogram; the header is corrupt: fix Rows/Columns or export the image again")
     ts = getattr(getattr(ds, "file_meta", None), "TransferSyntaxUID", None)
-    compressed = bool(getattr(ts, "is_compressed", False))
+    try:
+        compressed = bool(getattr(ts, "is_compressed", False))
+    except ValueError:  # a UID that is no transfer syntax
+        return (f"{name}: cannot decode the pixel data: TransferSyntaxUID {ts} (0002,0010) is "
+                "not a transfer syntax; the file meta information is corrupt: export the "
+                "image again")
     if not compressed and "PixelData" in ds:
         try:
             have = len(ds.PixelData)

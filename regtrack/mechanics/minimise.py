@@ -28,8 +28,11 @@ Newton's method with a guaranteed descent (Nocedal & Wright, *Numerical Optimiza
 * the step length is chosen by backtracking on the potential itself (Armijo: ``Pi(u + a
   du) <= Pi(u) + c a R . du``); an inverted element makes ``Pi`` infinite;
 * an increment has converged when the residual ``R = dPi/du`` on the free dofs meets
-  ``||R||_2 <= force_tol F_ref`` *and* its resultant ``|sum R|`` is below
-  ``balance_tol`` of the largest load.
+  ``||R||_2 <= force_tol F_ref``, its resultant ``|sum R|`` is below ``balance_tol`` of
+  the largest load, *and* the Newton correction from there moves no node by more than
+  ``disp_abs_tol_mm`` (0.01 mm): a small residual alone leaves a soft mode (a node sliding
+  on the frictionless chest wall, a wrinkle) undetermined by millimetres, and with it the
+  result dependent on rounding.
 
 Every iteration lowers ``Pi``, which is bounded below (elastic energy grows without bound,
 gravity is linear, contact is non-negative), so the iterates converge to a stationary
@@ -246,10 +249,11 @@ class Minimiser:
         if s is None:
             raise SolverDidNotConvergeError("an element is inverted at the start of the increment")
         for _ in range(self.max_iterations):
-            if self.converged(s):
+            forces_ok = self.converged(s)
+            du = self.direction(s)
+            if forces_ok and np.abs(du[self.free]).max(initial=0.0) <= self.o.disp_abs_tol_mm:
                 return s
             self.stats.iterations += 1
-            du = self.direction(s)
             nxt = self.line_search(s, du, fext, plates)
             if nxt is None:
                 raise SolverDidNotConvergeError("line search found no decrease of the potential")
@@ -260,8 +264,6 @@ class Minimiser:
             s = self.state(nxt.u, fext, plates, hessian=True)
             if s is None:  # cannot happen: the line search evaluated this state
                 raise SolverDidNotConvergeError("inverted element at an accepted state")
-        if self.converged(s):
-            return s
         raise SolverDidNotConvergeError(
             f"no equilibrium in {self.max_iterations} Newton iterations (|R| = "
             f"{np.linalg.norm(s.R[self.free]):.3g} N, reference {s.f_ref:.3g} N; {self.where(s, plates)})")

@@ -75,8 +75,10 @@ def run_protocol_on_model(model: BreastModel, protocol: Protocol, *, mechanics: 
         from regtrack.mechanics.minimise import minimiser_from_problem
 
         step_solver = minimiser_from_problem(problem, progress=progress)
-        # every increment's minimisation converges by construction: no retried plate moves
-        contact = replace(contact, retry_penalty_growth_max=0.0, retry_plate_increment_mm=0.0)
+        # every increment's minimisation converges by construction: no retried plate moves;
+        # the contacts report the friction of the potential (slip bound of the last update)
+        contact = replace(contact, retry_penalty_growth_max=0.0, retry_plate_increment_mm=0.0,
+                          friction_bound="multiplier")
     else:
         step_solver = solver_from_problem(problem, progress=progress)
     runner = ProtocolRunner(body_from_model(model, mechanics, problem.tissue_c1.mean_kpa), protocol,

@@ -134,7 +134,8 @@ def simulate_view(model: BreastModel, view: str, p: MammoTruthParams, *, progres
     protocol = protocol_for_view(view, {"target_D": p.target_D(view)}, where="phantom truth")
     runner = ProtocolRunner(body_from_model(model, cfg), protocol,
                             solver_from_problem(problem, progress=progress),
-                            config=ContactConfig(friction=p.friction))
+                            # the bundled truth was made with the paper's model (no wall)
+                            config=ContactConfig(friction=p.friction, chest_wall_contact=False))
     result = runner.run()
     t1 = time.perf_counter()
     summary = summarise(result, {"total_s": t1 - t0})
