@@ -314,7 +314,7 @@ Progress = Callable[[str, float], None]
 
 def minimise_step(problem: Problem, u0: np.ndarray, *, gravity: Callable[[float], np.ndarray],
                   contacts: Sequence, n_increments: int, options=None, config=None,
-                  dirichlet: Callable[[float], tuple] | None = None,
+                  dirichlet: Callable[[float], tuple] | None = None, T0_mm: float | None = None,
                   progress: Progress | None = None, step_name: str = ""
                   ) -> tuple[np.ndarray, MinimiseStats, np.ndarray]:
     """Run one load step from ``u0`` (N, 3) mm over ``n_increments`` equal increments of
@@ -325,7 +325,9 @@ def minimise_step(problem: Problem, u0: np.ndarray, *, gravity: Callable[[float]
     step's statistics and the residual ``dPi/du`` (N, 3) N there (at the fixed nodes: the
     support force on the body).  ``dirichlet(t) -> (dofs, values)``: displacements (mm)
     prescribed besides the model's fixed nodes (which keep their ``u0``), set at the start
-    of each increment.  Raises :class:`SolverDidNotConvergeError` with
+    of each increment.  ``progress(step_name, t, force_N=..., D=...)`` after each increment:
+    the upper plate's force (N) and, given the uncompressed thickness ``T0_mm``, the
+    compression degree ``1 - gap / T0``.  Raises :class:`SolverDidNotConvergeError` with
     ``load_fraction`` and ``last_converged`` when an increment fails at the smallest
     increment."""
     o = options or problem.config.solver
@@ -369,12 +371,24 @@ def minimise_step(problem: Problem, u0: np.ndarray, *, gravity: Callable[[float]
             for pl in plates:
                 pl.commit(u)
             if progress is not None:
-                force = {f"{pl.name}_force_N": -float(pl.c.plate.normal @ e.grad.reshape(-1, 3).sum(axis=0))
-                         for pl, e in zip(plates, s.plates) if pl.name == "upper"}
-                progress(step_name, t, **{("force_N" if k == "upper_force_N" else k): v
-                                          for k, v in force.items()})
+                progress(step_name, t, **_progress_info(plates, s, T0_mm))
     m.stats.t_total = time.perf_counter() - t_start
     return u, m.stats, R.reshape(-1, 3)
+
+
+def _progress_info(plates, s: _State, T0_mm: float | None) -> dict:
+    """The upper plate's normal force (N) at state ``s`` and, with ``T0_mm``, the
+    compression degree ``D = 1 - gap / T0`` of the plates' current gap."""
+    by = {pl.name: (pl, e) for pl, e in zip(plates, s.plates)}
+    info: dict = {}
+    if "upper" in by:
+        pl, e = by["upper"]
+        info["force_N"] = -float(pl.c.plate.normal @ e.grad.reshape(-1, 3).sum(axis=0))
+    if T0_mm and "upper" in by and "lower" in by:
+        lo = by["lower"][0].c.plate
+        gap = float((by["upper"][0].c.plate.origin - lo.origin) @ lo.normal)
+        info["D"] = 1.0 - gap / T0_mm
+    return info
 
 
 def _increment(m: Minimiser, u: np.ndarray, t: float, gravity, contacts, plates, cfg, *, last: bool):
@@ -419,7 +433,8 @@ def minimiser_from_problem(problem: Problem, *, options=None, progress: Progress
 
     o = options or problem.config.solver
 
-    def solve(u0, g0, g1, contribs, name, initial_increment=None, max_increment=None, **_guards):
+    def solve(u0, g0, g1, contribs, name, initial_increment=None, max_increment=None,
+              T0_mm=None, **_guards):
         g0 = np.asarray(g0, float)
         g1 = np.asarray(g1, float)
         if initial_increment is not None and initial_increment >= 1.0:
@@ -431,7 +446,7 @@ def minimiser_from_problem(problem: Problem, *, options=None, progress: Progress
         cfg = contribs[0].config if contribs else None
         u, st, r = minimise_step(problem, u0, gravity=lambda t: g0 + t * (g1 - g0), contacts=contribs,
                                  n_increments=n, options=o, config=cfg, progress=progress,
-                                 step_name=name)
+                                 step_name=name, T0_mm=T0_mm)
         out = st.to_dict()
         fixed = problem.model.fixed
         if fixed.any():

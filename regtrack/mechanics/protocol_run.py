@@ -290,7 +290,7 @@ class ProtocolRunner:
 
     # -- one solve ------------------------------------------------------------------
     def _solve(self, g_end: np.ndarray, name: str, *, single: bool = False,
-               max_increment: float | None = None) -> dict:
+               max_increment: float | None = None, T0_mm: float | None = None) -> dict:
         contribs = list(self.contacts.values())
         for c in contribs:
             c.begin_step(name)
@@ -304,6 +304,8 @@ class ProtocolRunner:
                 kw["crawl_guard"] = True
             if self._stall_guard:
                 kw["stall_guard"] = True
+            if T0_mm is not None:  # the solver's progress reports D = 1 - gap / T0
+                kw["T0_mm"] = T0_mm
         u, stats = self.solve(self.u, self.g, g_end, contribs, name, **kw)
         self.u = np.asarray(u, float).reshape(-1, 3)
         self.g = np.asarray(g_end, float)
@@ -317,7 +319,8 @@ class ProtocolRunner:
         reps = {k: c.report(self.u) for k, c in self.contacts.items()}
         return max(r["max_penetration_mm"] for r in reps.values()), reps
 
-    def _move(self, pc: PlateContact, distance: float, name: str) -> dict:
+    def _move(self, pc: PlateContact, distance: float, name: str, T0_mm: float | None = None
+              ) -> dict:
         """Move a plate along its normal by ``distance`` (mm).
 
         A move longer than ``first_plate_increment_mm`` is solved in two parts: that first
@@ -335,7 +338,8 @@ class ProtocolRunner:
             start = pc.plate.origin.copy()
             pc.set_motion(start, start + d * pc.plate.normal)
             stats = _merge_stats(stats, self._solve(self.g, name, single=len(parts) > 1 and k == 0,
-                                                    max_increment=cap / abs(d) if cap > 0 else None))
+                                                    max_increment=cap / abs(d) if cap > 0 else None,
+                                                    T0_mm=T0_mm))
         return stats
 
     def _snapshot(self):
@@ -414,7 +418,7 @@ class ProtocolRunner:
                         if not 0 < gap < T0:
                             raise ConfigError(f"step '{step.name}': target gap {gap:.2f} mm must "
                                               f"be below the uncompressed thickness {T0:.2f} mm")
-                        stats = self._move(pc, T0 - gap, step.name)
+                        stats = self._move(pc, T0 - gap, step.name, T0_mm=T0)
         pen, reps = self._penetration()
         if pen > self.config.max_penetration_mm:
             raise ResultCheckError(
@@ -642,7 +646,7 @@ def solver_from_problem(problem: Any, *, options: Any = None, progress: Any = No
     from dataclasses import replace
 
     def solve(u0, g0, g1, contribs, name, initial_increment=None, max_increment=None,
-              crawl_guard=False, stall_guard=False):
+              crawl_guard=False, stall_guard=False, T0_mm=None):
         g0 = np.asarray(g0, float)
         g1 = np.asarray(g1, float)
         opts = options
