@@ -109,6 +109,12 @@ def dice(a, b) -> float:
     return float(2.0 * a.intersection(b).area / s) if s > 0 else float("nan")
 
 
+def _is_area(contour) -> bool:
+    """A contour that encloses a region: at least three distinct points."""
+    c = np.asarray(contour, float).reshape(-1, 2)
+    return len(np.unique(c, axis=0)) >= 3
+
+
 def _union(contours: list[np.ndarray]):
     from shapely.ops import unary_union
 
@@ -173,14 +179,16 @@ def compute_metrics(alignment: Alignment, real: MammogramView, virtual: Mammogra
     if alignment.tumour_objective is not None:
         ts_av = similarity_percent(alignment.tumour_objective, alignment.theta_p)
         ts_av_t = similarity_percent(alignment.tumour_objective, alignment.theta_p_t)
-    if real.tumour_contours and alignment.tumour_contours:
+    real_t = [c for c in real.tumour_contours if _is_area(c)]
+    virt_t = [c for c in (alignment.tumour_contours or []) if _is_area(c)]
+    if real_t and virt_t:
         # also on a breast-only registration (outlines given, use_tumour = false): then d_T
         # is the error of a prediction that did not see the tumour
-        tr, tv = _union(real.tumour_contours), _union(alignment.tumour_contours)
+        tr, tv = _union(real_t), _union(virt_t)
         d_T = float(math.hypot(tr.centroid.x - tv.centroid.x, tr.centroid.y - tv.centroid.y))
         dice_t = dice(tr, tv)
-        if len(real.tumour_contours) == 1 and len(alignment.tumour_contours) == 1:
-            tstats = distance_stats(alignment.tumour_contours[0], real.tumour_contours[0],
+        if len(real_t) == 1 and len(virt_t) == 1:
+            tstats = distance_stats(virt_t[0], real_t[0],
                                     closed=True, spacing=spacing)
     return Metrics(
         view=alignment.view,
