@@ -113,17 +113,12 @@ def test_contact_and_friction_hessians_are_positive_semidefinite():
 
 
 def _block(mu):
-    model = box_model((10.0, 10.0, 5.0), (4, 4, 2))
-    prob = build_problem(model, MechanicsConfig(tissue_c1_kpa=1.0, nu=0.3, formulation="p1",
-                                                skin_enabled=False))
-    X = model.points
-    bottom = model.skin[np.all(np.isclose(X[model.skin][:, :, 2], 0.0), axis=1)]
-    nodes = np.unique(bottom)
-    plate = RigidPlate(name="lower", origin=(0, 0, 0), normal=(0, 0, 1), e1=(1, 0, 0))
-    c = PlateContact(plate, X, nodes, tributary_areas(X, bottom)[nodes],
-                     config=ContactConfig(friction=mu, penetration_tol_mm=1e-3), penalty=0.01)
-    top = np.flatnonzero(np.isclose(X[:, 2], 5.0))
-    return prob, X, c, (3 * top[:, None] + np.arange(3)).ravel(), len(top)
+    """The friction block of tests/test_contact_block.py: (problem, points, bottom contact,
+    top dofs, top node count)."""
+    from tests.test_contact_block import _block_on_plate
+
+    prob, X, c, top, dofs = _block_on_plate(mu)
+    return prob, X, c, dofs, len(top)
 
 
 def _friction_forces(c, u):
@@ -162,15 +157,9 @@ def test_block_sticks_below_and_slides_at_mu_n():
 
 @pytest.mark.realdata
 def test_cube_against_closed_form():
-    from tests.test_peers import _load, _off_planes, _plate_contact, _problem, _rollers
+    from tests.test_peers import cube_case
 
-    model = _load("cube10.msh")
-    X = model.points
-    prob = _problem(model, "p1")
-    plate = RigidPlate(name="upper", origin=(0, 0, 10), normal=(0, 0, -1), e1=(1, 0, 0))
-    c = _plate_contact(model, _off_planes(X, model.skin, (0, 1, 2)), plate, tol=1e-4, eps=1.0)
-    c.set_motion((0, 0, 10), (0, 0, 7))
-    roll = _rollers(X, (0, 1, 2))
+    X, prob, c, roll = cube_case()
     u, _, _ = minimise_step(prob, np.zeros_like(X), gravity=lambda t: np.zeros(3), contacts=[c],
                             n_increments=4, options=SolverOptions(method="energy"),
                             dirichlet=lambda t: (roll, 0.0))

@@ -84,14 +84,20 @@ def rel_rms(u, ref):
     return float(np.sqrt(((u - ref) ** 2).sum(1).mean()) / np.abs(ref).max())
 
 
-def test_cube_against_closed_form_and_codes():
+def cube_case():
+    """The peers' cube: (points, problem, upper plate contact moving 10 -> 7 mm, roller dofs
+    on the three symmetry planes)."""
     model = _load("cube10.msh")
     X = model.points
     prob = _problem(model, "p1")
     plate = RigidPlate(name="upper", origin=(0, 0, 10), normal=(0, 0, -1), e1=(1, 0, 0))
     c = _plate_contact(model, _off_planes(X, model.skin, (0, 1, 2)), plate, tol=1e-4, eps=1.0)
     c.set_motion((0, 0, 10), (0, 0, 7))
-    roll = _rollers(X, (0, 1, 2))
+    return X, prob, c, _rollers(X, (0, 1, 2))
+
+
+def test_cube_against_closed_form_and_codes():
+    X, prob, c, roll = cube_case()
     u, _ = solve_step(prob, np.zeros_like(X), dirichlet=lambda t: (roll, 0.0), contributions=[c])
     force_mn = c.report(u)["normal_force_N"] * 1e3
     assert force_mn == pytest.approx(266.71, rel=3e-3)
