@@ -68,8 +68,25 @@ def stop_pool(pool: Any, *, timeout_s: float = 10.0) -> int:
     pool.shutdown(wait=False, cancel_futures=True)
     for p in alive:
         p.join(timeout_s)
-        if p.is_alive():
+        if _running(p.pid):  # the pool's own thread may have reaped it meanwhile
             log.warning("worker process %d did not stop on SIGTERM; killing it", p.pid)
             p.kill()
             p.join(timeout_s)
     return len(alive)
+
+
+def _running(pid: int) -> bool:
+    """Whether process ``pid`` still runs (not gone, not a zombie waiting to be reaped)."""
+    import os
+
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    try:
+        with open(f"/proc/{pid}/stat") as fh:
+            return fh.read().rsplit(")", 1)[-1].split()[0] != "Z"
+    except OSError:  # no /proc: trust kill(0)
+        return True

@@ -207,7 +207,8 @@ def simulate_concurrently(ctx, mesh: MeshOutput, views, *, worker=None) -> dict[
     pool = cf.ProcessPoolExecutor(max_workers=len(todo), mp_context=mp, initializer=_init_worker,
                                   initargs=(reports, ctx.sim_progress is not None))
     try:
-        futures = {pool.submit(worker or _simulate_worker, lite, mesh, v): v for v in todo}
+        futures = {pool.submit(_in_worker, worker or _simulate_worker, lite, mesh, v): v
+                   for v in todo}
         for fut in cf.as_completed(futures):
             view = futures[fut]
             try:
@@ -238,6 +239,19 @@ def simulate_concurrently(ctx, mesh: MeshOutput, views, *, worker=None) -> dict[
 #: whether the parent shows the increments
 _REPORTS: Any = None
 _SHOW_INCREMENTS = False
+
+
+def _in_worker(fn, *args):
+    """``fn(*args)`` in a pool worker; a SIGTERM (``SystemExit``, see
+    :func:`regtrack._signals.init_worker`) ends the process once ``fn``'s ``finally`` blocks
+    have removed its temporaries, instead of returning to the pool's loop (which catches
+    every exception and would wait for more work)."""
+    import os
+
+    try:
+        return fn(*args)
+    except SystemExit as exc:
+        os._exit(exc.code if isinstance(exc.code, int) else 1)
 
 
 def _init_worker(reports, show_increments: bool) -> None:
