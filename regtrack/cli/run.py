@@ -50,6 +50,7 @@ def run(args: argparse.Namespace) -> int:
     # stage messages go to the console; keep library INFO logs for --debug
     if not logging.getLogger().isEnabledFor(logging.DEBUG):
         logging.getLogger("regtrack").setLevel(logging.WARNING)
+        logging.getLogger("highdicom").setLevel(logging.WARNING)  # its INFO lines per attribute
     with SimulationProgress(console) as shown:  # from here on, each warning once
         found = identifiers_of_case_folder(args.case)
         with scrub_logs(Identifiers() if args.keep_identifiers else found):

@@ -104,7 +104,7 @@ def header_lines(ctx, model, results: list, prov: dict) -> list[str]:
 
     from regtrack.report.fmt import num
 
-    lines = [w for note in report_notes(results, prov) for w in textwrap.wrap(note, 140)]
+    lines = [w for note in report_notes(results, prov) for w in textwrap.wrap(note, 125)]
     vol = np.abs(model.tet_volumes())
     tum = float(vol[np.asarray(model.region) == 2].sum())
     lines.append(f"Model: {model.n_nodes:,} nodes, {model.n_tets:,} tetrahedra, breast "
@@ -241,34 +241,41 @@ def _tracking(ctx, mesh, results: list, out: Path, truth):
 
 
 def report_notes(results: list, prov: dict) -> list[str]:
-    """The lines under the report's metrics table: the mode, each lesion prediction (mm of
-    the real canonical frame, DICOM pixels), and the source of each geometry value."""
+    """The lines under the report's title: the mode, each lesion prediction (mm of the real
+    canonical frame, DICOM pixels, 1-sigma radius) and, per view, where each geometry value
+    (plate gap, MLO angle, projection, compression force) came from."""
     mode = prov.get("mode")
     lines = []
     if mode is not None:
-        what = {"paper": "paper (tumour outlines given: registration on breast and tumour, "
-                         "theta_p = (theta_p,b + theta_p,t)/2; lesion predicted from the breast "
-                         "registration alone, its error against the outline shown)",
+        what = {"paper": "paper (tumour outlines given: registration on breast and tumour; the "
+                         "lesion is also predicted from the breast alone and checked against "
+                         "the outline)",
                 "tracking": "tracking (no tumour outline: registration on the breast outline "
-                            "and nipple, theta_p = theta_p,b; the MRI lesion predicted)",
-                "mixed": "mixed (paper mode where a view has a tumour outline, tracking "
-                         "mode where it has none)"}[mode]
+                            "and nipple; the MRI lesion predicted)",
+                "mixed": "mixed (paper mode where a view has a tumour outline, tracking where "
+                         "it has none)"}[mode]
         lines.append(f"Mode: {what}")
     for r in results:
         for p in r.extra.get("lesions") or []:
             px = ("" if p.centroid_px is None
-                  else f" = px (row {p.centroid_px[0]:.0f}, col {p.centroid_px[1]:.0f})")
-            err = "" if p.error_mm is None else f"; error vs outline {p.error_mm:.1f} mm"
-            t = p.terms_mm
+                  else f", pixel (row {p.centroid_px[0]:.0f}, column {p.centroid_px[1]:.0f})")
+            err = "" if p.error_mm is None else f"; {p.error_mm:.1f} mm from the outline's centroid"
             lines.append(f"{r.view} lesion {p.lesion}: ({p.centroid_mm[0]:.1f}, "
-                         f"{p.centroid_mm[1]:.1f}) mm{px} ± {p.sigma_mm:.1f} mm (1σ: residual "
-                         f"{t['registration_residual']:.1f}, rotation {t['rotation']:.1f}, model "
-                         f"{t['model']:.1f}){err}")
+                         f"{p.centroid_mm[1]:.1f}) mm{px} ± {p.sigma_mm:.1f} mm (1σ){err}")
+    labels = {"final_plate_gap": "plate gap", "plate_angle": "plate angle",
+              "projection": "projection", "compression_force": "compression force"}
     for view, geo in (prov.get("geometry") or {}).items():
-        for key, item in geo.items():
-            if isinstance(item, dict) and "source" in item:
-                val = item.get("value")
-                lines.append(f"{view} {key}: {val if val is not None else '–'}"
-                             f"{' ' + item['unit'] if item.get('unit') and val is not None else ''}"
-                             f" ({item['source']})")
+        parts = []
+        for key, label in labels.items():
+            item = geo.get(key)
+            if not isinstance(item, dict) or "source" not in item:
+                continue
+            if key == "plate_angle" and view != "MLO":
+                continue
+            val = item.get("value")
+            shown = "" if val is None else f" {val:g}" if isinstance(val, float) else f" {val}"
+            unit = f" {item['unit']}" if item.get("unit") and val is not None else ""
+            parts.append(f"{label}{shown}{unit} ({item['source']})")
+        if parts:
+            lines.append(f"{view} geometry: " + "; ".join(parts))
     return lines

@@ -130,13 +130,14 @@ def summary_page(fig, report, checks, verdict: str, metrics_head, metrics_rows, 
     h = 0.022 * (len(mr) + 1)
     table(fig.add_axes([0.05, top - 0.018 - h, 0.9, h]), mh, mr, fontsize=8)
     top -= 0.018 + h + 0.008
-    fig.text(0.05, top, "\n".join(textwrap.wrap(explanation, 150)), fontsize=6.5, va="top",
-             color="0.2")
+    expl = textwrap.wrap(explanation, 150)
+    fig.text(0.05, top, "\n".join(expl), fontsize=6.5, va="top", color="0.2")
+    top -= 0.0105 * len(expl) + 0.01  # the overlays start below the explanation
     aligned = [v for v in report.views if v.real is not None and v.alignment is not None]
     if aligned:
         n = len(aligned)
         w = 0.86 / n
-        height = min(top - 0.13, 0.42)
+        height = min(top - 0.09 - 0.03, 0.42)  # room for the axes' titles above them
         ax = None
         for k, v in enumerate(aligned):
             ax = fig.add_axes([0.08 + k * (w + 0.02), 0.09, w - 0.06, height])
