@@ -145,3 +145,14 @@ def test_run_is_quiet_under_q(monkeypatch, capsys, tmp_path, quiet):
     err = capsys.readouterr().err
     assert (got["progress"] is None and got["sim_progress"] is None) == quiet
     assert ("report written" in err) != quiet and ("found in the cache" in err) != quiet
+
+
+def test_the_simulate_command_progress_takes_what_the_solver_reports():
+    """``regtrack simulate``'s progress callback takes the solver's keywords (D, force);
+    a callback without them stopped every case-level simulation (found by
+    pipelines/bench_cohort.py)."""
+    from regtrack.cli.simulate import _progress
+
+    with _progress() as update:
+        update("compression", 0.5)
+        update("compression", 1.0, D=0.38, force_N=42.3)

@@ -105,10 +105,13 @@ class _progress:
         self._p.__enter__()
         self._tasks: dict[str, int] = {}
 
-        def update(step: str, t: float) -> None:
+        def update(step: str, t: float, **info) -> None:
             if step not in self._tasks:
                 self._tasks[step] = self._p.add_task(step or "step", total=1.0)
-            self._p.update(self._tasks[step], completed=t)
+            extra = "".join(f" · {k} {info[k]:{fmt}}" for k, fmt in (("D", ".3f"), ("force_N", ".1f"))
+                            if isinstance(info.get(k), (int, float)))
+            self._p.update(self._tasks[step], completed=t,
+                           description=(step or "step") + extra.replace("force_N", "F (N)"))
 
         return update
 
