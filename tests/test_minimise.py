@@ -269,3 +269,24 @@ def test_a_stopped_view_keeps_its_balanced_steps_and_names_them(tmp_path, monkey
     doc = json.loads((tmp_path / "hemi_cc_partial.json").read_text())
     assert [s["name"] for s in doc["steps"]] == ["gravity-unloading", "lower-plate-contact"]
     assert not (tmp_path / "hemi_cc.vtu").exists()
+
+
+def test_multipliers_failing_at_the_end_of_a_step_stop_it_without_cut_backs(monkeypatch):
+    """The last increment's multiplier loop ends at t = 1 whatever the increment: when it
+    does not converge, the step stops at once (a cut-back would only repeat it)."""
+    import regtrack.mechanics.minimise as minimise
+    from regtrack.errors import ContactDidNotConvergeError, SolverDidNotConvergeError
+
+    prob, contacts = _box_between_plates(mu=0.0)
+    calls = []
+
+    def failing(m, u, t, *a, last, **k):
+        calls.append(t)
+        raise ContactDidNotConvergeError("contact multipliers not converged in 20 updates")
+
+    monkeypatch.setattr(minimise, "_increment", failing)
+    with pytest.raises(SolverDidNotConvergeError) as err:
+        minimise_step(prob, np.zeros_like(prob.X), gravity=lambda t: np.zeros(3),
+                      contacts=contacts, n_increments=1, options=SolverOptions(method="energy"))
+    assert calls == [1.0] and err.value.load_fraction == 0.0
+    assert "multipliers not converged" in str(err.value)

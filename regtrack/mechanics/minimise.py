@@ -58,7 +58,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.sparse as sp
 
-from regtrack.errors import SolverDidNotConvergeError
+from regtrack.errors import ContactDidNotConvergeError, SolverDidNotConvergeError
 from regtrack.mechanics.linsolve import LinearSolveError, LinearSolver, serial_openblas
 from regtrack.mechanics.potential import PlateEval, PlatePotential
 from regtrack.mechanics.problem import Problem, body_force, dof_nodes, evaluate, scatter_add, system_matrix
@@ -356,7 +356,9 @@ def minimise_step(problem: Problem, u0: np.ndarray, *, gravity: Callable[[float]
             except SolverDidNotConvergeError as exc:
                 for pl in plates:
                     pl.begin(u)
-                if dt / 2 < min_dt:
+                # the multipliers of the last increment failing at t = 1: a shorter
+                # increment ends at the same state, so it cannot help
+                if dt / 2 < min_dt or isinstance(exc, ContactDidNotConvergeError):
                     raise SolverDidNotConvergeError(
                         f"step '{step_name}': no equilibrium at t = {t_new:.4g} from t = {t:.4g} "
                         f"(increments down to {dt:.3g}): {exc}", load_fraction=t,
@@ -418,8 +420,8 @@ def _increment(m: Minimiser, u: np.ndarray, t: float, gravity, contacts, plates,
         m.stats.augmentations += 1
         if not last:
             return s
-    raise SolverDidNotConvergeError(f"contact multipliers not converged in {n_aug} updates "
-                                    f"(penetration {pen:.3g} mm, friction error {ferr:.3g})")
+    raise ContactDidNotConvergeError(f"contact multipliers not converged in {n_aug} updates "
+                                     f"(penetration {pen:.3g} mm, friction error {ferr:.3g})")
 
 
 def minimiser_from_problem(problem: Problem, *, options=None, progress: Progress | None = None):
