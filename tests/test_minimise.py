@@ -169,20 +169,10 @@ def test_cube_against_closed_form():
 @pytest.mark.slow
 @pytest.mark.realdata
 def test_mammo_with_friction_matches_calculix():
-    from tests.test_peers import _load, _off_planes, _plate_contact, _problem, _ref, rel_rms
+    from tests.test_peers import _ref, mammo_case, rel_rms
 
-    model = _load("mammo_tumor_lc5.msh")
-    X = model.points
-    prob = _problem(model, "p1")
-    dofs = np.concatenate([3 * np.flatnonzero(np.abs(X[:, 0]) < 1e-9),
-                           3 * np.flatnonzero(np.abs(X[:, 1]) < 1e-9) + 1])
-    tris = _off_planes(X, model.skin, (0,))
-    up = _plate_contact(model, tris, RigidPlate(name="upper", origin=(0, 0, 50), normal=(0, 0, -1),
-                                                e1=(1, 0, 0)), mu=0.1, tol=0.01, eps=0.1)
-    lo = _plate_contact(model, tris, RigidPlate(name="lower", origin=(0, 0, -49.5), normal=(0, 0, 1),
-                                                e1=(1, 0, 0)), mu=0.1, tol=0.01, eps=0.1)
+    X, prob, up, lo, bc = mammo_case(0.1)
     opts = SolverOptions(method="energy")
-    bc = lambda t: (dofs, 0.0)  # noqa: E731
     u, _, _ = minimise_step(prob, np.zeros_like(X), gravity=lambda t: np.array([0, 0, -9.81 * t]),
                             contacts=[up, lo], n_increments=4, options=opts, dirichlet=bc)
     up.set_motion((0, 0, 50), (0, 0, 20))

@@ -162,9 +162,10 @@ def test_hertz_locking_free_matches_closed_form():
     assert a_fit == pytest.approx(np.sqrt(50.0 * 1.0), rel=0.05)
 
 
-def _mammo(mu: float, increments: float | None):
-    """peers 'mammo': roller u_x = 0 on the chest wall x = 0, u_y = 0 on y = 0, lower plate
-    fixed at z = -49.5 (0.5 mm overlap), gravity -z (ramped), then the upper plate 50 -> 20."""
+def mammo_case(mu: float):
+    """peers 'mammo': (points, problem, upper and lower plate contacts, the roller
+    constraint ``t -> (dofs, 0)``): u_x = 0 on the chest wall x = 0, u_y = 0 on y = 0, the
+    lower plate fixed at z = -49.5 (0.5 mm overlap), the upper plate at z = 50."""
     model = _load("mammo_tumor_lc5.msh")
     X = model.points
     prob = _problem(model, "p1")
@@ -175,7 +176,12 @@ def _mammo(mu: float, increments: float | None):
                                                 e1=(1, 0, 0)), mu=mu, tol=0.01, eps=0.1)
     lo = _plate_contact(model, tris, RigidPlate(name="lower", origin=(0, 0, -49.5), normal=(0, 0, 1),
                                                 e1=(1, 0, 0)), mu=mu, tol=0.01, eps=0.1)
-    bc = lambda t: (dofs, 0.0)  # noqa: E731
+    return X, prob, up, lo, (lambda t: (dofs, 0.0))
+
+
+def _mammo(mu: float, increments: float | None):
+    """peers 'mammo' (:func:`mammo_case`): gravity -z (ramped), then the upper plate 50 -> 20."""
+    X, prob, up, lo, bc = mammo_case(mu)
     u, _ = solve_step(prob, np.zeros_like(X), gravity=lambda t: np.array([0, 0, -9.81 * t]),
                       dirichlet=bc, contributions=[up, lo])
     up.set_motion((0, 0, 50), (0, 0, 20))
