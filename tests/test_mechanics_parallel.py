@@ -93,7 +93,7 @@ def test_inverted_elements_are_counted_once_and_small_meshes_stay_serial():
     for prob in (serial, pr):
         ne = len(prob.tets)
         f, dv, ee = np.zeros((prob.n_nodes, 3)), np.zeros((ne, 4, 3)), np.full(ne, np.nan)
-        args = (x, prob.tets, prob.G, prob.V, prob.mats.c1, np.zeros(ne), np.zeros(ne), False, f,
+        args = (x, prob.tets, prob.G, prob.V, prob.mats.c1, np.zeros(ne), np.zeros(ne), False, False, f,
                 np.zeros(1), prob.tet_base, prob.pattern.rowstride, dv, ee)
         counts.append(sum(parallel.run_parts(tissue.tet_kernel, args, prob.parts)))
         energies.append(ee)

@@ -16,13 +16,15 @@ Lagrangian contact and lagged friction potentials (:mod:`.potential`).
 Newton's method with a guaranteed descent (Nocedal & Wright, *Numerical Optimization*,
 2nd ed., sections 3.4 and 6.3; as IPC, Li et al. 2020):
 
-* the Hessian is the consistent tangent with the contact blocks projected onto the
+* the Hessian is first the consistent tangent with the contact blocks projected onto the
   positive semi-definite cone (:mod:`.potential`); it is made positive definite by
   *inertia correction*: the LDL^T factorisation reports its inertia, which for the ANP
   saddle-point system ``[[K, B^T], [B, -D]]`` must show exactly one negative eigenvalue
   per pressure group (Haynsworth: the condensed ``K + B^T D^-1 B`` is then positive
-  definite); otherwise ``tau I`` (scaled by the mean diagonal) is added to the
-  displacement block, ``tau`` growing tenfold until it does;
+  definite); otherwise each tetrahedron's 12x12 tangent is projected onto the positive
+  semi-definite cone (its negative eigenvalues clamped to zero; Teran et al. 2005, as in
+  IPC), which gives that inertia by construction and corrects only the elements that
+  are indefinite (a shift ``tau I`` remains for a singular projected Hessian);
 * a correction computed on an earlier (positive definite) factorisation is accepted only
   if it is a descent direction, ``R . du < 0``;
 * the step length is chosen by backtracking on the potential itself (Armijo: ``Pi(u + a
@@ -39,7 +41,9 @@ gravity is linear, contact is non-negative), so the iterates converge to a stati
 point: no merit-function switching, no acceptance of a stalled iterate.
 
 Increments: a plate move is split into increments of at most ``max_plate_increment_mm`` of
-travel (friction is path dependent), a gravity change into ``1 / initial_increment``.  The
+travel (friction is path dependent), a gravity change into ``1 / initial_increment``.  Each
+increment starts from the last state or the path extrapolated linearly from the last two,
+whichever has the lower potential (a start changes the iterations, not the minimiser).  The
 augmented-Lagrangian multipliers and the friction lag are updated once after each
 increment and carried into the next; in the last increment of a step they are iterated
 until the penetration is below ``penetration_tol_mm`` and the lagged slip bound agrees
@@ -125,7 +129,6 @@ class Minimiser:
         self._diag = problem.pattern.diagonal_positions()
         self._cons = _constraint_positions(problem, self.fixed_dofs)
         self.n_groups = 0 if problem.groups is None else problem.groups.n_groups
-        self.tau = 0.0  # last inertia-correction shift (relative), re-used as the next start
         # every iteration lowers the potential, so a minimisation may take longer than a
         # Newton solve of the residual before an increment is halved
         self.max_iterations = 4 * options.max_iterations
@@ -164,39 +167,40 @@ class Minimiser:
         return norm <= self.o.force_tol * s.f_ref and resultant <= self.o.balance_tol * s.f_ref
 
     # -- Newton ---------------------------------------------------------------------------
-    def matrix(self, s: _State, shift: float) -> sp.csr_matrix:
-        """The system matrix (ANP: augmented) with the contact Hessians, ``shift`` added to
-        the free displacement diagonal, and identity rows/columns at the fixed dofs."""
-        data = s.ev.data.copy()
+    def matrix(self, s: _State, ev, shift: float) -> sp.csr_matrix:
+        """The system matrix (ANP: augmented) of the tissue evaluation ``ev`` at ``s`` with the
+        contact Hessians, ``shift`` added to the free displacement diagonal, and identity
+        rows/columns at the fixed dofs."""
+        data = ev.data.copy()
         pat = self.p.pattern
         for e in s.plates:
             if e.hess is not None and e.hess.nnz:
                 scatter_add(data, pat.dof_positions(e.hess.row, e.hess.col), e.hess.data)
         if shift > 0:
             data[self._diag] += shift
-        M = system_matrix(self.p, s.ev, data)
+        M = system_matrix(self.p, ev, data)
         zero, diag = self._cons
         M.data[zero] = 0.0
         M.data[diag] = 1.0
         return M
 
     def direction(self, s: _State) -> np.ndarray:
-        """A descent direction ``du`` (3N,): the Newton correction of the Hessian shifted by
-        ``tau`` times its mean free diagonal, with ``tau`` the smallest of the trials
-        ``tau_last / 4, max(8 tau, 1e-4), ...`` (``tau_last``: the previous iteration's; 0 while
-        the Hessian stays positive definite) whose fresh factorisation has the inertia of
-        a positive definite condensed Hessian (Nocedal & Wright, algorithm 3.3).  A correction solved on an earlier
-        factorisation (GMRES) must pass the angle test ``-R . du >= 1e-8 |R| |du|``
-        instead, or the matrix is factorised afresh."""
+        """A descent direction ``du`` (3N,): the Newton correction of the consistent Hessian
+        when its factorisation has the inertia of a positive definite condensed Hessian;
+        otherwise of the Hessian whose tetrahedra are projected onto the positive
+        semi-definite cone (:func:`.problem.evaluate`), which has it by construction, and
+        only if that one is singular, shifted by ``tau`` times its mean free diagonal
+        (``tau = 1e-6, 8e-6, ...``; Nocedal & Wright, algorithm 3.3).  A correction solved on
+        an earlier factorisation (GMRES) must pass the angle test ``-R . du >= 1e-8 |R|
+        |du|`` instead, or the matrix is factorised afresh."""
         n = self.p.n_dofs
         b = np.zeros(self.p.layout.n)
         b[:n] = -np.where(self.free, s.R, 0.0)
         dscale = float(np.mean(np.abs(s.ev.data[self._diag][self.free])))
-        tau = self.tau / 4.0 if self.tau > 1e-4 else 0.0
-        refactor = False
+        tau, refactor, ev = 0.0, False, s.ev
         for _ in range(12):
             t0 = time.perf_counter()
-            M = self.matrix(s, tau * dscale)
+            M = self.matrix(s, ev, tau * dscale)
             nf = self.ls.n_factorisations
             try:
                 x = self.ls.solve(M, b, symmetric=True, refactor=refactor, rtol=self.o.forcing_max)
@@ -206,26 +210,27 @@ class Minimiser:
             fresh = self.ls.n_factorisations > nf
             self.stats.factorisations += int(fresh)
             self.stats.krylov_solves += int(not fresh)
+            refactor = True
             if x is not None and np.all(np.isfinite(x)):
                 inertia = self.ls.inertia() if fresh else None
-                if inertia is not None and inertia[1] > self.n_groups:
-                    self.stats.inertia_corrections += 1
-                    tau = max(8.0 * tau, 1e-4)
-                    refactor = True
-                    continue
                 du = x[:n]
                 slope = -float(s.R[self.free] @ du[self.free])
-                if slope >= 1e-8 * np.linalg.norm(s.R[self.free]) * np.linalg.norm(du[self.free]):
-                    self.tau = tau
+                definite = inertia is None or inertia[1] <= self.n_groups
+                if definite and slope >= 1e-8 * np.linalg.norm(s.R[self.free]) * np.linalg.norm(du[self.free]):
                     return du
-                self.stats.rejected_directions += 1
-                if fresh:  # correct inertia, yet no descent: round-off; shift
-                    tau = max(8.0 * tau, 1e-4)
+                if not definite:
+                    self.stats.inertia_corrections += 1
+                elif not fresh:  # an old factorisation's correction that does not descend
+                    self.stats.rejected_directions += 1
+                    continue
+            if ev is s.ev:  # the consistent Hessian failed: project the tetrahedra
+                t0 = time.perf_counter()
+                ev = evaluate(self.p, s.u, want_k=True, project=True)
+                self.stats.t_assembly += time.perf_counter() - t0
             else:
-                tau = max(8.0 * tau, 1e-4) if fresh else tau
-            refactor = True
-        raise SolverDidNotConvergeError("no descent direction after 12 inertia corrections "
-                                        "(the tangent is singular or not finite)")
+                tau = max(8.0 * tau, 1e-6)
+        raise SolverDidNotConvergeError("no descent direction after 12 corrections of the Hessian "
+                                        "(it is singular or not finite)")
 
     def line_search(self, s: _State, du: np.ndarray, fext: np.ndarray,
                     plates: Sequence[PlatePotential]) -> _State | None:
@@ -258,9 +263,10 @@ class Minimiser:
             if nxt is None:
                 raise SolverDidNotConvergeError("line search found no decrease of the potential")
             if log.isEnabledFor(5):
-                log.log(5, "  iteration: Pi %.10g -> %.10g, |R| %.3g -> %.3g N, |du| %.3g mm, tau %.2g",
+                log.log(5, "  iteration: Pi %.10g -> %.10g, |R| %.3g -> %.3g N, |du| %.3g mm, corrections %d",
                         s.energy, nxt.energy, np.linalg.norm(s.R[self.free]),
-                        np.linalg.norm(nxt.R[self.free]), np.abs(nxt.u - s.u).max(), self.tau)
+                        np.linalg.norm(nxt.R[self.free]), np.abs(nxt.u - s.u).max(),
+                        self.stats.inertia_corrections)
             s = self.state(nxt.u, fext, plates, hessian=True)
             if s is None:  # cannot happen: the line search evaluated this state
                 raise SolverDidNotConvergeError("inverted element at an accepted state")
@@ -339,19 +345,23 @@ def minimise_step(problem: Problem, u0: np.ndarray, *, gravity: Callable[[float]
     u = np.asarray(u0, float).reshape(-1, 3).copy()
     plates = [PlatePotential(c, u) for c in contacts]
     R = np.zeros(u.size)
+    previous: tuple[np.ndarray, float] | None = None  # the last increment's start and length
     t, dt = 0.0, 1.0 / max(int(n_increments), 1)
     base, min_dt = dt, dt / 64.0
     with serial_openblas():
         while t < 1.0 - 1e-12:
             t_new = min(1.0, t + dt)
             try:
-                start = u
+                starts = [u]
+                if previous is not None:  # the path so far, extrapolated linearly
+                    starts.append(u + (t_new - t) / previous[1] * (u - previous[0]))
                 if dirichlet is not None:
                     dofs, vals = dirichlet(t_new)
-                    start = u.copy().reshape(-1)
-                    start[np.asarray(dofs, np.int64)] = vals
-                    start = start.reshape(-1, 3)
-                s = _increment(m, start, t_new, gravity, contacts, plates, cfg,
+                    for k, v in enumerate(starts):
+                        v = v.copy().reshape(-1)
+                        v[np.asarray(dofs, np.int64)] = vals
+                        starts[k] = v.reshape(-1, 3)
+                s = _increment(m, starts, t_new, gravity, contacts, plates, cfg,
                                last=t_new >= 1.0 - 1e-12)
             except SolverDidNotConvergeError as exc:
                 for pl in plates:
@@ -367,6 +377,7 @@ def minimise_step(problem: Problem, u0: np.ndarray, *, gravity: Callable[[float]
                 m.stats.cutbacks += 1
                 log.info("%s: increment to t = %.4g cut back (%s)", step_name, t_new, exc)
                 continue
+            previous = (u, t_new - t)
             u, t, R = s.u, t_new, s.R
             dt = min(2.0 * dt, base)
             m.stats.increments += 1
@@ -393,12 +404,20 @@ def _progress_info(plates, s: _State, T0_mm: float | None) -> dict:
     return info
 
 
-def _increment(m: Minimiser, u: np.ndarray, t: float, gravity, contacts, plates, cfg, *, last: bool):
-    """One increment to ``t``: minimise, update the multipliers and the friction lag (the
-    last increment: until the penetration and the friction bound are converged)."""
+def _increment(m: Minimiser, starts: Sequence[np.ndarray], t: float, gravity, contacts, plates,
+               cfg, *, last: bool):
+    """One increment to ``t`` from the start of lowest potential among ``starts`` (the last
+    state, and the path extrapolated from it: a starting guess changes the iterations, not
+    the minimiser): minimise, update the multipliers and the friction lag (the last
+    increment: until the penetration and the friction bound are converged)."""
     for c in contacts:
         c.set_time(t)
     fext = body_force(m.p, gravity(t))
+    u = starts[0]
+    if len(starts) > 1:
+        trials = [m.state(v, fext, plates, hessian=False) for v in starts]
+        energies = [np.inf if s is None else s.energy for s in trials]
+        u = starts[int(np.argmin(energies))] if np.isfinite(min(energies)) else starts[0]
     previous: list = [None] * len(plates)
     n_aug = m.o.max_augmentations if last else 1
     for k in range(n_aug):

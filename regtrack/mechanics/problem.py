@@ -256,8 +256,10 @@ class Evaluation:
         return np.broadcast_to(0.25 * dv[:, None, :, :], (len(dv), 4, 4, 3)).reshape(-1)
 
 
-def evaluate(problem: Problem, u: np.ndarray, *, want_k: bool = True) -> Evaluation:
-    """Tissue + skin internal force and (optionally) consistent tangent at displacement ``u``."""
+def evaluate(problem: Problem, u: np.ndarray, *, want_k: bool = True, project: bool = False) -> Evaluation:
+    """Tissue + skin internal force and (optionally) tangent at displacement ``u``: the
+    consistent tangent, or with ``project`` each tetrahedron's projected onto the positive
+    semi-definite cone (:func:`.tissue.tet_kernel`; P1 and ANP only)."""
     x = problem.X + np.asarray(u, float).reshape(-1, 3)
     m = problem.mats
     if problem.formulation == "p2":
@@ -278,7 +280,7 @@ def evaluate(problem: Problem, u: np.ndarray, *, want_k: bool = True) -> Evaluat
     data = np.zeros(problem.pattern.nnz) if want_k else np.zeros(1)
     dv = np.empty((len(problem.tets), 4, 3))
     ee = np.empty(len(problem.tets))
-    args = (x, problem.tets, problem.G, problem.V, m.c1, p, dp, want_k, f, data, problem.tet_base,
+    args = (x, problem.tets, problem.G, problem.V, m.c1, p, dp, want_k, project, f, data, problem.tet_base,
             problem.pattern.rowstride, dv, ee)
     bad = sum(parallel.run_parts(tissue.tet_kernel, args, problem.parts))
     e_dev = tissue.ordered_sum(ee)

@@ -94,7 +94,8 @@ def jacobians(x: np.ndarray, tets: np.ndarray, G: np.ndarray, parts=None) -> np.
 
 
 @njit(cache=True, nogil=True)
-def tet_kernel(x, tets, G, V, c1, p, dp, want_k, f, data, base, rowstride, dv, ee, elems, owned):
+def tet_kernel(x, tets, G, V, c1, p, dp, want_k, project, f, data, base, rowstride, dv, ee, elems,
+               owned):
     """Accumulate internal forces and optionally the tangent over one thread's part.
 
     The part (:class:`regtrack.mechanics.parallel.Part`) is ``elems`` (increasing) and
@@ -108,6 +109,9 @@ def tet_kernel(x, tets, G, V, c1, p, dp, want_k, f, data, base, rowstride, dv, e
     p, dp : (E,) pressure (MPa) and dp/dJ (MPa) per element (see module docstring).
     want_k : assemble the tangent into ``data`` (CSR values) at
         ``base[e, a, b] + i * rowstride[tets[e, a]] + k``.
+    project : assemble each element's 12x12 tangent projected onto the positive
+        semi-definite cone (its negative eigenvalues set to zero; Teran et al. 2005), so
+        that the assembled tangent is positive semi-definite whatever the deformation.
     f : (N, 3) forces (N), accumulated in place.
     dv : (E, 4, 3) output: derivative of the current element volume wrt node positions
         (mm^2), used by the ANP rank term.
@@ -121,6 +125,7 @@ def tet_kernel(x, tets, G, V, c1, p, dp, want_k, f, data, base, rowstride, dv, e
     H = np.empty((3, 3))
     fa = np.empty((4, 3))
     ha = np.empty((4, 3))
+    Ke = np.empty((12, 12))
     bad = 0
     for e in elems:
         counts = owned[tets[e, 0]]
@@ -161,6 +166,25 @@ def tet_kernel(x, tets, G, V, c1, p, dp, want_k, f, data, base, rowstride, dv, e
             continue
         cvol = (dp[e] * J + pe) * J
         cgeo = mu_e * I1 / 3.0 - pe * J
+        if project:
+            _element_tangent(G, e, fa, ha, mu_e, I1, cvol, cgeo, V[e], Ke)
+            w, Q = np.linalg.eigh(Ke)
+            Ke[:, :] = 0.0
+            for m in range(12):
+                if w[m] > 0.0:
+                    for r in range(12):
+                        for q in range(12):
+                            Ke[r, q] += w[m] * Q[r, m] * Q[q, m]
+            for a in range(4):
+                na = tets[e, a]
+                if owned[na]:
+                    rs = rowstride[na]
+                    for b in range(4):
+                        b0 = base[e, a, b]
+                        for i in range(3):
+                            for k in range(3):
+                                data[b0 + i * rs + k] += Ke[3 * a + i, 3 * b + k]
+            continue
         for a in range(4):
             na = tets[e, a]
             if not owned[na]:
@@ -180,6 +204,24 @@ def tet_kernel(x, tets, G, V, c1, p, dp, want_k, f, data, base, rowstride, dv, e
                             v += mu_e * gg
                         data[b0 + i * rs + k] += V[e] * v
     return bad
+
+
+@njit(cache=True)
+def _element_tangent(G, e, fa, ha, mu_e, I1, cvol, cgeo, Ve, Ke):
+    """The element tangent (12, 12) N/mm of :func:`tet_kernel` (module docstring) into ``Ke``."""
+    for a in range(4):
+        for b in range(4):
+            gg = 0.0
+            for L in range(3):
+                gg += G[e, a, L] * G[e, b, L]
+            for i in range(3):
+                for k in range(3):
+                    v = (mu_e * (-2.0 / 3.0 * (fa[a, i] * ha[b, k] + ha[a, i] * fa[b, k])
+                                 + 2.0 / 9.0 * I1 * ha[a, i] * ha[b, k])
+                         + cvol * ha[a, i] * ha[b, k] + cgeo * ha[a, k] * ha[b, i])
+                    if i == k:
+                        v += mu_e * gg
+                    Ke[3 * a + i, 3 * b + k] = Ve * v
 
 
 @njit(cache=True)
