@@ -146,13 +146,24 @@ class Model:
         return self.folder / "out" / "model.vtu"
 
 
-def mesh_model(m: Model, *, target_nodes: int | None, timeout_s: float, threads: int) -> dict:
-    """Mesh one breast and read the sidecar; returns the meshing row."""
+def mesh_model(m: Model, *, target_nodes: int | None, timeout_s: float, threads: int,
+               resume: bool = False) -> dict:
+    """Mesh one breast and read the sidecar; returns the meshing row (kept as ``row.json``
+    beside the model).  With ``resume``, a model already meshed is read back instead (its
+    row, or the sidecar alone when the row was not kept: no timings then)."""
     write_case(m.folder, case_id=f"exam{m.exam}", labels=m.labels, side=m.side, D=None)
-    args = ["mesh", str(m.folder), "--out", str(m.vtu), "--no-pictures"]
-    if target_nodes:
-        args += ["--target-nodes", str(target_nodes)]
-    r = run_child(args, log=m.folder / "mesh.log", timeout_s=timeout_s, threads=threads)
+    saved = m.folder / "row.json"
+    if resume and saved.is_file():
+        m.row = json.loads(saved.read_text())
+        m.side = m.side or m.row.get("side") or None
+        return m.row
+    if resume and m.vtu.is_file():
+        r = Run(0, math.nan, math.nan, math.nan, m.folder / "mesh.log")
+    else:
+        args = ["mesh", str(m.folder), "--out", str(m.vtu), "--no-pictures"]
+        if target_nodes:
+            args += ["--target-nodes", str(target_nodes)]
+        r = run_child(args, log=m.folder / "mesh.log", timeout_s=timeout_s, threads=threads)
     meta = {}
     if r.rc == 0 and m.vtu.with_suffix(".json").is_file():
         meta = _get(json.loads(m.vtu.with_suffix(".json").read_text()), "meta", default={}) or {}
@@ -175,14 +186,20 @@ def mesh_model(m: Model, *, target_nodes: int | None, timeout_s: float, threads:
         "wall_s": r.wall_s, "cpu_s": r.cpu_s, "peak_rss_mb": r.peak_rss_mb, "error": r.error,
         "_tumour_by_side": prep.get("tumour_volume_by_side_mm3") or {},
     }
+    saved.write_text(json.dumps(m.row, default=str))
     return m.row
 
 
-def simulate_model(m: Model, view: str, D: float | None, *, timeout_s: float, threads: int) -> dict:
-    """Compress one model in one view (``D`` None: the protocol default); returns its row."""
+def simulate_model(m: Model, view: str, D: float | None, *, timeout_s: float, threads: int,
+                   resume: bool = False) -> dict:
+    """Compress one model in one view (``D`` None: the protocol default); returns its row
+    (kept as ``row.json`` in the run's folder; with ``resume`` a kept row is read back)."""
     tag = "default" if D is None else f"D{round(100 * D)}"
     case = write_case(m.folder / f"case_{tag}", case_id=f"exam{m.exam}{m.side}", labels=m.labels, side=m.side, D=D)
     out = m.folder / f"sim_{tag}_{view}"
+    saved = out / "row.json"
+    if resume and saved.is_file():
+        return json.loads(saved.read_text())
     r = run_child(["simulate", str(case), "--view", view, "--model", str(m.vtu), "--out", str(out)],
                   log=out.with_suffix(".log"), timeout_s=timeout_s, threads=threads)
     doc = {}
@@ -194,7 +211,7 @@ def simulate_model(m: Model, view: str, D: float | None, *, timeout_s: float, th
             doc = {}
     s = _get(doc, "summary", default={}) or {}
     err = r.error or (str(doc["error"]) if doc.get("error") else "")
-    return {
+    row = {
         "exam": m.exam, "side": m.side, "view": view.upper(), "D_setting": tag, "nodes": m.row.get("nodes"),
         "completed": r.rc == 0 and bool(s.get("complete", False)) and not doc.get("error"),
         "force_balance_rel": s.get("force_imbalance_rel"), "D": s.get("D"),
@@ -202,6 +219,9 @@ def simulate_model(m: Model, view: str, D: float | None, *, timeout_s: float, th
         "max_penetration_mm": s.get("max_penetration_mm"),
         "wall_s": r.wall_s, "cpu_s": r.cpu_s, "peak_rss_mb": r.peak_rss_mb, "error": err,
     }
+    out.mkdir(parents=True, exist_ok=True)
+    saved.write_text(json.dumps(row, default=str))
+    return row
 
 
 # ---------------------------------------------------------------- tables
@@ -241,7 +261,8 @@ def write_table(rows: list[dict], cols: list[str], stem: Path, extra_md: list[st
 
 
 def _num(rows: list[dict], key: str) -> list[float]:
-    return [float(r[key]) for r in rows if isinstance(r.get(key), (int, float)) and not isinstance(r.get(key), bool)]
+    return [float(r[key]) for r in rows if isinstance(r.get(key), (int, float))
+            and not isinstance(r.get(key), bool) and math.isfinite(r[key])]
 
 
 def summary_lines(rows: list[dict], groups: list[str], *, worst_abs: tuple[str, ...] = ()) -> list[str]:
@@ -286,6 +307,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--mesh-timeout", type=float, default=1800.0, help="seconds before a meshing is killed")
     ap.add_argument("--mesh-only", action="store_true", help="stop after meshing")
     ap.add_argument("--out", type=Path, default=REPO / "reports" / "cohort")
+    ap.add_argument("--resume", action="store_true",
+                    help="re-use the models and runs of an earlier, interrupted benchmark in --out")
     args = ap.parse_args(argv)
     if not args.data.is_dir():
         ap.error(f"--data {args.data}: not a folder; the Pelicano exams are in ../shared/data/pelicano")
@@ -312,13 +335,15 @@ def main(argv: list[str] | None = None) -> int:
     def mesh(m: Model) -> list[Model]:
         """Mesh the default breast, then the other one too when it also holds a tumour."""
         done = [m]
-        mesh_model(m, target_nodes=args.target_nodes, timeout_s=args.mesh_timeout, threads=threads)
+        mesh_model(m, target_nodes=args.target_nodes, timeout_s=args.mesh_timeout, threads=threads,
+                   resume=args.resume)
         say(f"mesh exam {m.exam} {m.side}: {m.row['nodes']} nodes, {m.row['wall_s']:.0f} s {m.row['error']}")
         by_side = m.row.get("_tumour_by_side", {})
         if m.side and all(by_side.get(s, 0) > 0 for s in ("L", "R")):
             other = "L" if m.side == "R" else "R"
             o = Model(m.exam, other, m.labels, runs / f"exam{m.exam}{other}")
-            mesh_model(o, target_nodes=args.target_nodes, timeout_s=args.mesh_timeout, threads=threads)
+            mesh_model(o, target_nodes=args.target_nodes, timeout_s=args.mesh_timeout, threads=threads,
+                       resume=args.resume)
             say(f"mesh exam {o.exam} {o.side}: {o.row['nodes']} nodes, {o.row['wall_s']:.0f} s {o.row['error']}")
             done.append(o)
         return done
@@ -336,11 +361,18 @@ def main(argv: list[str] | None = None) -> int:
 
     tasks = [(m, v, d) for m in meshed if m.row["completed"] for d in Ds for v in args.views]
 
+    done: list[dict] = []
+
     def sim(t):
         m, v, d = t
-        r = simulate_model(m, v, d, timeout_s=args.timeout, threads=threads)
+        r = simulate_model(m, v, d, timeout_s=args.timeout, threads=threads, resume=args.resume)
         say(f"simulate exam {m.exam} {m.side} {v} {r['D_setting']}: completed {r['completed']}, "
             f"{r['wall_s']:.0f} s {r['error']}")
+        with lock:  # the table so far, so that an interrupted benchmark still has one
+            done.append(r)
+            write_table(done, SIM_COLS, args.out / "simulation",
+                        [f"Data: {CITATION}.", "", f"Partial: {len(done)} of {len(tasks)} runs.", "",
+                         *summary_lines(done, ["view", "D_setting"])])
         return r
 
     with ThreadPoolExecutor(jobs) as pool:
