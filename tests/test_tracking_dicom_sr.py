@@ -98,6 +98,41 @@ def test_sr_and_pdf_read_back(tmp_path, keep):
             assert errors == [], errors
 
 
+def test_mri_lesion_is_a_3d_point_in_the_mri_frame_of_reference(tmp_path):
+    """Where the MRI is a DICOM series, each lesion's MRI centroid is one SCOORD3D point
+    (LPS mm) in the series' frame of reference, once whatever the number of views; without
+    a series (a NIfTI label map alone) there is none."""
+    from regtrack.report.dicom_sr import write_dicom_results
+
+    series = tmp_path / "mri"
+    series.mkdir()
+    (series / "notes.txt").write_text("not DICOM")
+    mr = _ds()
+    mr.FrameOfReferenceUID = for_uid = pydicom.uid.generate_uid()
+    _write(series / "slice001.dcm", mr)
+    mammos = {"CC": _header(tmp_path, "CC"), "MLO": _header(tmp_path, "MLO")}
+    outcomes = [_outcome("CC", 1.25), _outcome("MLO", None)]
+    for o in outcomes:
+        o.extra["lesions"][0].mri_lps_mm = np.array([-40.5, 12.25, 7.0])
+    for mri, n_points in ((series, 1), (None, 0)):
+        out = tmp_path / ("with" if mri else "without")
+        sr_path = write_dicom_results(out, outcomes, mammos, case_id="anon-1234", pdf_path=None,
+                                      keep_identifiers=False, mri_series=mri)[0]
+        groups = hd.sr.srread(sr_path).content.get_planar_roi_measurement_groups()
+        points = [g for g in groups if isinstance(g.roi, hd.sr.ImageRegion3D)]
+        assert len(points) == n_points and len(groups) == 4 + n_points
+        for g in points:
+            assert str(g.tracking_identifier) == "MRI lesion 1 on the MRI"
+            assert g.roi.graphic_type == hd.sr.GraphicTypeValues3D.POINT
+            assert g.roi.frame_of_reference_uid == for_uid
+            np.testing.assert_allclose(np.asarray(g.roi.value).reshape(-1), [-40.5, 12.25, 7.0])
+        if shutil.which("dciodvfy"):
+            res = subprocess.run(["dciodvfy", str(sr_path)], check=False, capture_output=True,
+                                 text=True)
+            errors = [x for x in (res.stdout + res.stderr).splitlines() if x.startswith("Error")]
+            assert errors == [], errors
+
+
 def test_headers_without_study_or_instance_uids(tmp_path, caplog):
     """A study UID missing from both views: one new study, one SR, a warning naming the tag;
     a view without a SOPInstanceUID cannot be referenced and is left out, named."""

@@ -89,6 +89,14 @@ def test_dicom_sr_of_the_predictions(tracking):
         c = groups[f"MRI lesion 1 on {r['view']}: centroid"].roi.value
         np.testing.assert_allclose(np.asarray(c, float).reshape(-1),
                                    [r["lesion_col_px"], r["lesion_row_px"]], atol=1e-3)
+    # the phantom's MRI is a DICOM series: the lesion is also a 3-D point on it, at the
+    # label map's tumour centroid (1.5 mm: the meshed tumour against its voxels at the
+    # demo's 1,500 nodes)
+    truth = json.loads((CASE / "truth" / "phantom_truth.json").read_text())
+    point = groups["MRI lesion 1 on the MRI"].roi
+    assert point.frame_of_reference_uid
+    np.testing.assert_allclose(np.asarray(point.value, float).reshape(-1),
+                               truth["tumour_centroid_lps_mm"], atol=1.5)
     assert (out / "dicom" / "report_1.dcm").is_file()
 
 

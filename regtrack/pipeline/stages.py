@@ -512,7 +512,7 @@ def dicom_stage(ctx, results: list[ViewOutcome], out: Path, pdf: Path | None, *,
     ctx.say("report: DICOM SR and encapsulated PDF")
     mammos = {v: vi.mammogram for v, vi in ctx.case.views.items()}
     paths = write_dicom_results(out, results, mammos, case_id=ctx.case.id, pdf_path=pdf,
-                                keep_identifiers=keep_identifiers)
+                                keep_identifiers=keep_identifiers, mri_series=ctx.case.mri.series)
     _timed(ctx, "dicom", t0)
     return paths
 

@@ -2,7 +2,8 @@
 
 Per study of the input mammograms (:func:`write_dicom_results`):
 
-* ``sr_<n>.dcm``: a Comprehensive SR holding a TID 1500 *Measurement Report* (highdicom,
+* ``sr_<n>.dcm``: a Comprehensive SR (Comprehensive 3D SR when it holds the MRI points)
+  holding a TID 1500 *Measurement Report* (highdicom,
   Herrmann et al., J Digit Imaging 2022).  For each mammogram and each MRI lesion:
 
   - a TID 1410 planar ROI group whose image region is the predicted lesion outline
@@ -11,6 +12,9 @@ Per study of the input mammograms (:func:`write_dicom_results`):
     outline (paper mode) as measurements;
   - a TID 1410 group whose region is the predicted centroid (``POINT``), with the same
     measurements;
+  - where the MRI is a DICOM series, one TID 1410 group per lesion whose region is its
+    volume centroid in the MRI (``SCOORD3D`` ``POINT``, LPS mm, in the series' frame of
+    reference), so a viewer can show the lesion on the MRI too;
   - a TID 1501 group *regtrack metrics <VIEW>* with the metrics of the view (BS_Av,
     TS_Av, theta_p, D, d_T, d_B, plate force and gap, the DICOM's force) as numeric
     measurements, referencing the mammogram as its source image.
@@ -117,6 +121,25 @@ def _lesion_groups(view: str, header, lesion) -> list:
     return groups
 
 
+def _mri_lesion_groups(results: list, frame_of_reference_uid: str) -> list:
+    """One TID 1410 group per MRI lesion: its volume centroid as a 3-D point (LPS mm) in
+    the MRI series' frame of reference (each lesion once, whatever the views)."""
+    hd = _hd()
+    points: dict[int, np.ndarray] = {}
+    for r in results:
+        for lesion in r.extra.get("lesions") or []:
+            if lesion.mri_lps_mm is not None:
+                points.setdefault(int(lesion.lesion), np.asarray(lesion.mri_lps_mm, float))
+    return [hd.sr.PlanarROIMeasurementsAndQualitativeEvaluations(
+        tracking_identifier=hd.sr.TrackingIdentifier(uid=hd.UID(),
+                                                     identifier=f"MRI lesion {k} on the MRI"),
+        referenced_region=hd.sr.ImageRegion3D(graphic_type=hd.sr.GraphicTypeValues3D.POINT,
+                                              graphic_data=p[None],
+                                              frame_of_reference_uid=frame_of_reference_uid),
+        finding_type=hd.sr.CodedConcept("52988006", "SCT", "Lesion"))
+        for k, p in sorted(points.items())]
+
+
 def _metrics_group(view: str, header, row: dict):
     hd = _hd()
     meas = []
@@ -132,9 +155,11 @@ def _metrics_group(view: str, header, row: dict):
         measurements=meas or None, source_images=[src])
 
 
-def build_sr(headers: dict, results: list, *, case_id: str, series_number: int = 901):
+def build_sr(headers: dict, results: list, *, case_id: str, series_number: int = 901,
+             mri_frame_uid: str | None = None):
     """The Comprehensive SR of one study: ``headers`` {view: mammogram header dataset},
-    ``results`` the pipeline's ViewOutcomes of those views."""
+    ``results`` the pipeline's ViewOutcomes of those views, ``mri_frame_uid`` the MRI
+    series' FrameOfReferenceUID (None: no MRI points)."""
     hd = _hd()
     groups = []
     for r in results:
@@ -142,6 +167,8 @@ def build_sr(headers: dict, results: list, *, case_id: str, series_number: int =
         for lesion in r.extra.get("lesions") or []:
             groups += _lesion_groups(r.view, h, lesion)
         groups.append(_metrics_group(r.view, h, r.row))
+    if mri_frame_uid:
+        groups += _mri_lesion_groups(results, mri_frame_uid)
     observer = hd.sr.ObserverContext(
         observer_type=hd.sr.CodedConcept("121007", "DCM", "Device"),
         observer_identifying_attributes=hd.sr.DeviceObserverIdentifyingAttributes(
@@ -153,7 +180,12 @@ def build_sr(headers: dict, results: list, *, case_id: str, series_number: int =
     evidence = [headers[r.view] for r in results]
     with warnings.catch_warnings():  # a one-component PatientName (a pseudonym) is intended
         warnings.filterwarnings("ignore", message=".*person name.*", category=UserWarning)
-        sr = hd.sr.ComprehensiveSR(
+        # SCOORD3D content (the MRI points) needs the Comprehensive 3D SR SOP class
+        sop = hd.sr.Comprehensive3DSR if mri_frame_uid and any(
+            isinstance(g.roi, hd.sr.ImageRegion3D) for g in groups
+            if isinstance(g, hd.sr.PlanarROIMeasurementsAndQualitativeEvaluations)) \
+            else hd.sr.ComprehensiveSR
+        sr = sop(
             evidence=evidence, content=report[0], series_instance_uid=hd.UID(),
             series_number=series_number, sop_instance_uid=hd.UID(), instance_number=1,
             manufacturer="regtrack", series_description=f"regtrack lesion tracking {case_id}")
@@ -191,12 +223,33 @@ def build_encapsulated_pdf(pdf: bytes, header, *, case_id: str, series_number: i
     return ds
 
 
+def mri_frame_of_reference(series: Path | None) -> str | None:
+    """The FrameOfReferenceUID of the DICOM MR series folder ``series`` (its first file
+    that has one), or None (no series, or none found: a warning)."""
+    import pydicom
+
+    if series is None or not Path(series).is_dir():
+        return None
+    for path in sorted(p for p in Path(series).rglob("*") if p.is_file()):
+        try:
+            uid = pydicom.dcmread(str(path), stop_before_pixels=True).get("FrameOfReferenceUID")
+        except Exception:  # not a DICOM file: the folder may hold others
+            continue
+        if uid:
+            return str(uid)
+    log.warning("[mri] series %s: no file has a FrameOfReferenceUID; the DICOM SR leaves the "
+                "lesions' MRI points out", series)
+    return None
+
+
 def write_dicom_results(out: Path, results: list, mammograms: dict, *, case_id: str,
-                        pdf_path: Path | None, keep_identifiers: bool) -> list[Path]:
+                        pdf_path: Path | None, keep_identifiers: bool,
+                        mri_series: Path | None = None) -> list[Path]:
     """Write one SR (and one Encapsulated PDF when ``pdf_path``) per study; return the paths.
 
-    ``mammograms`` maps each view to its DICOM file.  Views without a real mammogram or a
-    prediction are left out; nothing is written when none remains.
+    ``mammograms`` maps each view to its DICOM file; ``mri_series`` the case's DICOM MR
+    series folder, if any (the lesions' MRI points are then in the SR).  Views without a
+    real mammogram or a prediction are left out; nothing is written when none remains.
     """
     import pydicom
     import pydicom.uid
@@ -239,7 +292,8 @@ def write_dicom_results(out: Path, results: list, mammograms: dict, *, case_id: 
     paths = []
     pdf = Path(pdf_path).read_bytes() if pdf_path is not None else None
     for n, (_uid, rs) in enumerate(studies.items(), 1):
-        docs = [("sr", build_sr(headers, rs, case_id=case_id))]
+        docs = [("sr", build_sr(headers, rs, case_id=case_id,
+                                mri_frame_uid=mri_frame_of_reference(mri_series)))]
         if pdf is not None:
             docs.append(("report", build_encapsulated_pdf(pdf, headers[rs[0].view],
                                                           case_id=case_id)))

@@ -62,7 +62,8 @@ class LesionPrediction:
     ``centroid_px`` is the (row, col) of the DICOM's own grid; ``terms_mm`` the three
     uncertainty terms of :func:`lesion_sigma`; ``error_mm`` the distance from the predicted
     centroid to the area centroid of the annotated outline (paper mode; None in tracking
-    mode), ``annotated_mm`` that centroid.
+    mode), ``annotated_mm`` that centroid; ``mri_lps_mm`` the lesion's volume centroid in
+    the MRI (DICOM patient frame, LPS mm).
     """
 
     view: str
@@ -80,6 +81,7 @@ class LesionPrediction:
     annotated_mm: np.ndarray | None = None
     outline_px: np.ndarray | None = None
     notes: list[str] = field(default_factory=list)
+    mri_lps_mm: np.ndarray | None = None
 
     def to_dict(self) -> dict:
         def arr(a):
@@ -92,7 +94,7 @@ class LesionPrediction:
                 "inplane_shift_mm": self.inplane_shift_mm, "error_mm": self.error_mm,
                 "annotated_centroid_mm": arr(self.annotated_mm),
                 "outline_mm": arr(self.outline_mm), "outline_px_rc": arr(self.outline_px),
-                "notes": self.notes}
+                "mri_lps_mm": arr(self.mri_lps_mm), "notes": self.notes}
 
 
 def breast_alignment(alignment, real, virtual):
@@ -226,6 +228,7 @@ def predict_lesions(model, *, view: str, positions, virtual, real, alignment, D:
         px = None if vm.pixels is None else vm.pixels.mm_to_px(xy)
         opx = None if (vm.pixels is None or outline is None) else vm.pixels.mm_to_px(outline)
         err = None if annotated is None else float(np.linalg.norm(xy - annotated))
+        lps = model.frame.to_patient((w @ model.points[tets].mean(axis=1))[None])[0]
         out.append(LesionPrediction(view, int(k), xy, px, outline, sigma, terms, th, sig_th, r,
-                                    shift, err, annotated, opx))
+                                    shift, err, annotated, opx, mri_lps_mm=lps))
     return out
