@@ -314,6 +314,16 @@ def internal_force(problem: Problem, u: np.ndarray) -> np.ndarray:
     return evaluate(problem, u, want_k=False).f.reshape(-1, 3)
 
 
+def reaction_forces(problem: Problem, u: np.ndarray, *, gravity_ms2=None) -> np.ndarray:
+    """Residual ``f_int - f_ext`` (N, 3) in N at ``u`` (N, 3) mm, ``f_ext`` the weight under
+    ``gravity_ms2`` (m/s^2; None: none): at constrained nodes the force the supports exert
+    on the body; at free nodes about zero after convergence (without contact)."""
+    R = evaluate(problem, u, want_k=False).f
+    if gravity_ms2 is not None:
+        R = R - body_force(problem, gravity_ms2)
+    return R.reshape(-1, 3)
+
+
 def tangent(problem: Problem, u: np.ndarray):
     """Consistent tangent (3N, 3N) CSR (N/mm) of the internal force at ``u``."""
     ev = evaluate(problem, u, want_k=True)
