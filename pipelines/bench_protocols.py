@@ -79,8 +79,8 @@ def reference_iteration(model, repeats: int = 5) -> float:
 
     A = system()
     b = np.ones(A.shape[0])
-    ls.solve(A, b, symmetric=True)  # analysis, JIT and MKL warm-up
-    be = ls._backends[True]
+    ls.solve(A, b)  # analysis, JIT and MKL warm-up
+    be = ls.backend
     times = []
     for _ in range(repeats):
         t = time.perf_counter()
@@ -88,7 +88,7 @@ def reference_iteration(model, repeats: int = 5) -> float:
         A = system()
         t_asm = time.perf_counter() - t
         t = time.perf_counter()
-        ls.solve(A, b, symmetric=True)
+        ls.solve(A, b)
         t_fac = time.perf_counter() - t
         t = time.perf_counter()
         for _ in range(8):

@@ -59,7 +59,7 @@ def test_solution_matches_an_independent_direct_solve(precision):
     A, b = anp_system(0.05)
     ref = spla.spsolve(A.tocsc(), b)
     ls = LinearSolver(precision=precision)
-    x = ls.solve(A, b, symmetric=True)
+    x = ls.solve(A, b)
     assert relres(A, x, b) <= 1e-10
     assert np.linalg.norm(x - ref) <= 1e-7 * np.linalg.norm(ref)
     assert ls.n_factorisations == 1 and ls.n_analyses == 1
@@ -73,20 +73,20 @@ def test_factorisation_is_reused_until_stale():
     A0, b = anp_system(0.002, seed=3)
     A1, _ = anp_system(0.0021, seed=3)
     ls = LinearSolver()
-    ls.solve(A0, b, symmetric=True)
-    x = ls.solve(A1, b, symmetric=True, rtol=1e-8)
+    ls.solve(A0, b)
+    x = ls.solve(A1, b, rtol=1e-8)
     assert relres(A1, x, b) <= 1e-8
     assert ls.n_factorisations == 1 and ls.n_krylov_solves == 1 and ls.n_analyses == 1
     assert ls.n_reuse_failures == 0 == ls.krylov_wasted_iterations
     # without re-use every matrix is factorised
     ls2 = LinearSolver(reuse_factorisation=False)
-    ls2.solve(A0, b, symmetric=True)
-    ls2.solve(A1, b, symmetric=True, rtol=1e-8)
+    ls2.solve(A0, b)
+    ls2.solve(A1, b, rtol=1e-8)
     assert ls2.n_factorisations == 2 and ls2.n_krylov_solves == 0
     # a GMRES budget of one iteration cannot reach 1e-12 on the old factors: refactorise
     ls3 = LinearSolver(krylov_max=1, precision="double")
-    ls3.solve(A0, b, symmetric=True)
-    x = ls3.solve(A1, b, symmetric=True, rtol=1e-12)
+    ls3.solve(A0, b)
+    x = ls3.solve(A1, b, rtol=1e-12)
     assert relres(A1, x, b) <= 1e-12 and ls3.n_factorisations == 2
     assert ls3.n_reuse_failures == 1 and ls3.krylov_wasted_iterations == 1  # the one iteration
 
@@ -102,9 +102,9 @@ def test_reuse_budget_sets_the_gmres_iterations_before_refactorising():
     runs, reuse_its = {}, {}
     for budget in (0.5, 1.0):
         ls = LinearSolver(reuse_budget=budget)
-        ls.solve(A0, b, symmetric=True)
+        ls.solve(A0, b)
         k0 = ls.krylov_iterations  # the fresh factorisation's own solve
-        x = ls.solve(A1, b, symmetric=True, rtol=1e-8)
+        x = ls.solve(A1, b, rtol=1e-8)
         assert relres(A1, x, b) <= 1e-8 and ls.cost_ratio == 16.0
         runs[budget], reuse_its[budget] = ls, ls.krylov_iterations - k0
     half, one = runs[0.5], runs[1.0]
@@ -122,132 +122,14 @@ def test_mixed_precision_falls_back_to_double_when_too_inaccurate():
     float32 factors miss even 1e-8.)"""
     A, b = anp_system(0.05)
     ls = LinearSolver(krylov_max=1, krylov_rtol=1e-10)
-    x = ls.solve(A, b, symmetric=True)
+    x = ls.solve(A, b)
     assert ls.precision == "double" and relres(A, x, b) <= 1e-10
-
-
-def _unsymmetric(A, scale: float, nodes: np.ndarray):
-    """A + an unsymmetric 3x3 block on the diagonal block of each given node, like the
-    sliding-friction tangent (``scale`` times the node's largest diagonal stiffness)."""
-    rng = np.random.default_rng(5)
-    d = A.diagonal()
-    rows, cols, vals = [], [], []
-    for n in nodes:
-        blk = rng.uniform(-1.0, 1.0, (3, 3)) * scale * d[3 * n: 3 * n + 3].max()
-        r, c = np.meshgrid(3 * n + np.arange(3), 3 * n + np.arange(3), indexing="ij")
-        rows.append(r.ravel()), cols.append(c.ravel()), vals.append(blk.ravel())
-    U = sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=A.shape)
-    out = (A + U).tocsr()
-    out.sort_indices()
-    return out
-
-
-def test_unsymmetric_matrix_preconditioned_by_its_symmetric_part():
-    """Friction-like asymmetry (10 % of the stiffness on a layer of nodes): GMRES on the
-    LDL^T factors of the symmetric part; strong asymmetry (50x): that fails within the
-    iteration cap and the solver switches to LU."""
-    A, b = anp_system(0.05)
-    nodes = np.arange(10, 40)
-    mild = _unsymmetric(A, 0.1, nodes)
-    ls = LinearSolver()
-    x = ls.solve(mild, b, symmetric=False)
-    assert relres(mild, x, b) <= 1e-10 and not ls._lu_needed and ls.n_factorisations == 1
-    strong = _unsymmetric(A, 50.0, nodes)
-    ls = LinearSolver(krylov_max=8)
-    x = ls.solve(strong, b, symmetric=False)
-    assert relres(strong, x, b) <= 1e-10 and ls._lu_needed
-
-
-def _add_node_blocks(A, nodes, block):
-    """A copy of ``A`` with ``block(i)`` (3x3) added to the diagonal block of each node ``i``
-    (inside A's pattern: the layout's arrays are shared, as in the solver)."""
-    M = A.copy()
-    for i in nodes:
-        for a in range(3):
-            r = 3 * i + a
-            lo = M.indptr[r]
-            k = lo + np.searchsorted(M.indices[lo:M.indptr[r + 1]], 3 * i + np.arange(3))
-            M.data[k] += block(i)[a]
-    return M
-
-
-def test_fixed_bound_preconditioner_needs_fewer_iterations_than_the_symmetric_part():
-    """Sliding-friction-like tangent: on 20 nodes a normal penalty ``k n n^T`` (k = 100x the
-    node's largest diagonal stiffness) and the friction-bound term ``-mu k g n^T`` (``g``
-    orthogonal to ``n``, mu = 0.1).  Preconditioned with the factors of the matrix without
-    the friction term (``preconditioner=``, the solver's default "fixed-bound"), GMRES
-    reaches 1e-10 in 9 iterations; with the factors of the symmetric part (the behaviour
-    before) it needs 31 (measured, float64 factors).  Asserted: the same solution, and at
-    most half the iterations."""
-    A, b = anp_system(0.05)
-    d = A.diagonal()
-    nodes = np.arange(60, 80)
-    n = np.array([0.0, 0.0, 1.0])
-    ang = np.random.default_rng(1).uniform(0.0, 2 * np.pi, 80)
-    g = np.stack([np.cos(ang), np.sin(ang), np.zeros(80)], axis=1)
-
-    def k(i):
-        return 100.0 * d[3 * i: 3 * i + 3].max()
-
-    P = _add_node_blocks(A, nodes, lambda i: k(i) * np.outer(n, n))
-    T = _add_node_blocks(A, nodes, lambda i: k(i) * (np.outer(n, n) - 0.1 * np.outer(g[i], n)))
-    its, xs = [], []
-    for pre in (P, None):
-        ls = LinearSolver(precision="double")
-        xs.append(ls.solve(T, b, symmetric=False, rtol=1e-10, preconditioner=pre))
-        assert relres(T, xs[-1], b) <= 1e-10 and not ls._lu_needed and ls.n_factorisations == 1
-        its.append(ls.krylov_iterations)
-    np.testing.assert_allclose(xs[0], xs[1], rtol=0, atol=1e-8 * np.abs(xs[1]).max())
-    assert its[0] <= 0.5 * its[1], its
-    # a preconditioning matrix of another pattern is ignored (the symmetric part is used)
-    ls = LinearSolver(precision="double")
-    other = sp.csr_matrix(sp.eye(A.shape[0]))
-    x = ls.solve(T, b, symmetric=False, rtol=1e-10, preconditioner=other)
-    assert relres(T, x, b) <= 1e-10 and ls.krylov_iterations == its[1]
-
-
-def test_a_preconditioner_given_as_a_function_is_assembled_only_to_factorise():
-    """The Newton solver hands over its preconditioning matrix as a function, since most
-    of its solves re-use the factors (~7 ms saved per such iteration on the 9.5k-node
-    benchmark).  Asserted, on the sliding-friction-like tangent above: the
-    function is called once per factorisation and never for a solve on re-used factors;
-    its solutions equal, to the last bit, those with the matrix given directly."""
-    A, b = anp_system(0.05)
-    d = A.diagonal()
-    nodes = np.arange(60, 80)
-    n = np.array([0.0, 0.0, 1.0])
-
-    def k(i):
-        return 100.0 * d[3 * i: 3 * i + 3].max()
-
-    P = _add_node_blocks(A, nodes, lambda i: k(i) * np.outer(n, n))
-    T = _add_node_blocks(A, nodes, lambda i: k(i) * (np.outer(n, n) - 0.1 * np.outer(n[[1, 2, 0]], n)))
-    T2 = T.copy()
-    T2.data = T2.data * (1.0 + 1e-4 * np.cos(np.arange(T2.nnz)))  # a nearby matrix, same pattern
-    calls = []
-
-    def assemble():
-        calls.append(1)
-        return P.copy()
-
-    direct, lazy = LinearSolver(precision="double"), LinearSolver(precision="double")
-    for M in (T, T2):
-        x1 = direct.solve(M, b, symmetric=False, rtol=1e-8, preconditioner=P)
-        x2 = lazy.solve(M, b, symmetric=False, rtol=1e-8, preconditioner=assemble)
-        assert np.array_equal(x1, x2)
-    assert lazy.n_factorisations == direct.n_factorisations == 1  # T2 re-used T's factors
-    assert lazy.n_krylov_solves == 1 and len(calls) == 1
-    lazy.solve(T2, b, symmetric=False, rtol=1e-8, preconditioner=assemble, refactor=True)
-    assert len(calls) == 2 and lazy.n_factorisations == 2
-    # symmetric systems never need it
-    lazy.solve(A, b, symmetric=True, rtol=1e-8, preconditioner=assemble)
-    assert len(calls) == 2
 
 
 def test_inconsistent_singular_system_raises():
     A = sp.csr_matrix(np.array([[1.0, 1.0], [1.0, 1.0]]))
     with pytest.raises(LinearSolveError):
-        LinearSolver().solve(A, np.array([1.0, 0.0]), symmetric=True)
+        LinearSolver().solve(A, np.array([1.0, 0.0]))
 
 
 def test_inexact_newton_reaches_the_exact_newton_solution():
@@ -290,7 +172,7 @@ def test_reuse_decisions_do_not_depend_on_measured_times(monkeypatch):
 
     def run():
         ls = LinearSolver()
-        xs = [ls.solve(A, b, symmetric=True, rtol=1e-8) for A in mats]
+        xs = [ls.solve(A, b, rtol=1e-8) for A in mats]
         return xs, (ls.n_factorisations, ls.n_krylov_solves, ls.krylov_iterations)
 
     x1, c1 = run()
@@ -348,38 +230,32 @@ def test_node_ordering_keeps_each_node_together_and_cuts_the_fill():
     b = np.random.default_rng(4).standard_normal(A.shape[0])
     own = LinearSolver(ordering="pardiso")
     blocked = LinearSolver(dof_nodes=nodes, decoupled=pr.fixed_dofs)
-    x_own = own.solve(A, b, symmetric=True)
-    x_blk = blocked.solve(A, b, symmetric=True)
+    x_own = own.solve(A, b)
+    x_blk = blocked.solve(A, b)
     assert blocked.time_ordering > 0 and own.time_ordering == 0
     assert relres(A, x_own, b) <= 1e-10 and relres(A, x_blk, b) <= 1e-10
     assert np.linalg.norm(x_blk - x_own) <= 1e-7 * np.linalg.norm(x_own)
     assert blocked.factor_nnz < 0.9 * own.factor_nnz, (blocked.factor_nnz, own.factor_nnz)
 
 
-def test_decoupled_dofs_unsymmetric_and_broken_promise():
-    """Decoupled dofs in the LU path (unsymmetric matrix), and a caller that breaks the
-    promise (couplings of 'decoupled' dofs are not zero): GMRES multiplies by the full
-    matrix, so the answer is still right to the tolerance (or the solve raises)."""
+def test_decoupled_dofs_in_superlu_and_broken_promise():
+    """Decoupled dofs in the SuperLU path (the whole matrix less their couplings), and a
+    caller that breaks the promise (couplings of 'decoupled' dofs are not zero): GMRES
+    multiplies by the full matrix, so the answer is still right to the tolerance (or the
+    solve raises)."""
     A, b = anp_system(0.05)
     n = A.shape[0]
     offdiag = abs(A - sp.diags(A.diagonal()))
     fixed = np.flatnonzero(np.asarray(offdiag.sum(axis=1)).ravel() == 0)  # the identity rows
     assert 0 < len(fixed) < n
-    rng = np.random.default_rng(5)
-    U = A.copy()
-    U.data = U.data * (1 + 0.05 * rng.standard_normal(U.nnz))  # unsymmetric, same pattern
-    cons_rows = np.repeat(np.arange(n), np.diff(U.indptr))
-    zero = np.isin(cons_rows, fixed) | np.isin(U.indices, fixed)
-    U.data[zero & (cons_rows != U.indices)] = 0.0
-    ls = LinearSolver(precision="double", decoupled=fixed)
-    ls._lu_needed = True  # the general LU (mtype 11) on the pruned pattern
-    x = ls.solve(U, b)
-    assert relres(U, x, b) <= 1e-10
-    assert np.linalg.norm(x - spla.spsolve(U.tocsc(), b)) <= 1e-7 * np.linalg.norm(x)
+    ls = LinearSolver("splu", decoupled=fixed)
+    x = ls.solve(A, b)
+    assert relres(A, x, b) <= 1e-10
+    assert np.linalg.norm(x - spla.spsolve(A.tocsc(), b)) <= 1e-7 * np.linalg.norm(x)
     free = np.setdiff1d(np.arange(n), fixed)[:20]  # 'decoupled' dofs that are not
     liar = LinearSolver(decoupled=free)
     try:
-        x = liar.solve(A, b, symmetric=True)
+        x = liar.solve(A, b)
     except LinearSolveError:
         return
     assert relres(A, x, b) <= 1e-10
@@ -504,10 +380,11 @@ def test_mkl_is_located_without_searching_the_environment():
     import sys
 
     pytest.importorskip("pypardiso")
-    code = ("import os; from regtrack.mechanics.linsolve import _pardiso_function, LinearSolver; "
+    code = ("import os; from regtrack.mechanics.direct import _pardiso_function; "
+            "from regtrack.mechanics.linsolve import LinearSolver; "
             "_pardiso_function(); import numpy as np, scipy.sparse as sp; "
-            "x = LinearSolver('pardiso').solve(sp.identity(5, format='csr') * 2.0, np.ones(5), "
-            "symmetric=True); print(os.environ.get('PYPARDISO_MKL_RT', ''), float(x.sum()))")
+            "x = LinearSolver('pardiso').solve(sp.identity(5, format='csr') * 2.0, np.ones(5)); "
+            "print(os.environ.get('PYPARDISO_MKL_RT', ''), float(x.sum()))")
     env = {k: v for k, v in os.environ.items() if k != "PYPARDISO_MKL_RT"}
     out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True,
                          check=True).stdout.split()

@@ -185,7 +185,7 @@ class Minimiser:
             M = self.matrix(s, ev, tau * dscale)
             nf = self.ls.n_factorisations
             try:
-                x = self.ls.solve(M, b, symmetric=True, refactor=refactor, rtol=self.o.forcing_max)
+                x = self.ls.solve(M, b, refactor=refactor, rtol=self.o.forcing_max)
             except LinearSolveError:
                 x = None
             self.stats.t_solve += time.perf_counter() - t0

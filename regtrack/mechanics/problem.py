@@ -244,7 +244,6 @@ class Evaluation:
     energy: float
     n_inverted: int
     dv: np.ndarray | None = None
-    contrib_norm: float = 0.0  # largest resultant force of a contribution (plate force), set by the solver
 
     @property
     def bvals(self) -> np.ndarray | None:
