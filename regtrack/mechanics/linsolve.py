@@ -1,7 +1,7 @@
 """Sparse linear solver for the Newton corrections, chosen by measurement.
 
-Direct solver: MKL PARDISO (located through pypardiso, called directly with our own
-``iparm``); ``splu`` (SuperLU, scipy) is the fallback without MKL (logged).  Every solve
+Direct solver (:mod:`.direct`): MKL PARDISO (located through pypardiso, called directly
+with our own ``iparm``); ``splu`` (SuperLU, scipy) is the fallback without MKL (logged).  Every solve
 is right-preconditioned GMRES (:func:`right_gmres`) on a stored factorisation, to the
 relative residual the caller asks for.  The design choices, each with its reason (figures
 in docs/performance-mechanics.md):

@@ -451,7 +451,7 @@ def minimiser_from_problem(problem: Problem, *, options=None, progress: Progress
     o = options or problem.config.solver
 
     def solve(u0, g0, g1, contribs, name, initial_increment=None, max_increment=None,
-              T0_mm=None, **_guards):
+              T0_mm=None):
         g0 = np.asarray(g0, float)
         g1 = np.asarray(g1, float)
         if initial_increment is not None and initial_increment >= 1.0:
