@@ -308,7 +308,7 @@ def test_multipliers_failing_at_the_end_of_a_step_stop_it_without_cut_backs(monk
     prob, contacts = _box_between_plates(mu=0.0)
     calls = []
 
-    def failing(m, u, t, *a, last, **k):
+    def failing(m, u, t, *a, **k):
         calls.append(t)
         raise ContactDidNotConvergeError("contact multipliers not converged in 20 updates")
 

@@ -44,12 +44,12 @@ Increments: a plate move is split into increments of at most ``max_plate_increme
 travel (friction is path dependent), a gravity change into ``1 / initial_increment``.  Each
 increment starts from the last state or the path extrapolated linearly from the last two,
 whichever has the lower potential (a start changes the iterations, not the minimiser).  The
-augmented-Lagrangian multipliers and the friction lag are updated once after each
-increment and carried into the next; in the last increment of a step they are iterated
+augmented-Lagrangian multipliers and the friction lag of every increment are iterated
 until the penetration is below ``penetration_tol_mm`` and the lagged slip bound agrees
-with the current pressure within ``friction_tol`` (then the state obeys Coulomb's law).
-An increment that does not converge in ``4 max_iterations`` is halved (a shorter path to the
-same state: no tolerance is relaxed).
+with the current pressure within ``friction_tol``: each increment is a backward-Euler step
+of Coulomb's law at its own pressure, so the frictional path does not carry a lag from
+one increment into the next.  An increment that does not converge in ``4 max_iterations``
+is halved (a shorter path to the same state: no tolerance is relaxed).
 """
 
 from __future__ import annotations
@@ -347,14 +347,14 @@ def minimise_step(problem: Problem, u0: np.ndarray, *, gravity: Callable[[float]
                         v = v.copy().reshape(-1)
                         v[np.asarray(dofs, np.int64)] = vals
                         starts[k] = v.reshape(-1, 3)
-                s = _increment(m, starts, t_new, _external(problem, gravity, forces), contacts, plates, cfg,
-                               last=t_new >= 1.0 - 1e-12)
+                s = _increment(m, starts, t_new, _external(problem, gravity, forces), contacts, plates, cfg)
             except SolverDidNotConvergeError as exc:
                 for pl in plates:
                     pl.begin(u)
-                # the multipliers of the last increment failing at t = 1: a shorter
-                # increment ends at the same state, so it cannot help
-                if dt / 2 < min_dt or isinstance(exc, ContactDidNotConvergeError):
+                # multipliers failing at t = 1: a shorter increment ends at the same
+                # state, so it cannot help
+                at_end = t_new >= 1.0 - 1e-12 and isinstance(exc, ContactDidNotConvergeError)
+                if dt / 2 < min_dt or at_end:
                     raise SolverDidNotConvergeError(
                         f"step '{step_name}': no equilibrium at t = {t_new:.4g} from t = {t:.4g} "
                         f"(increments down to {dt:.3g}): {exc}", load_fraction=t,
@@ -401,11 +401,12 @@ def _progress_info(plates, s: _State, T0_mm: float | None) -> dict:
 
 
 def _increment(m: Minimiser, starts: Sequence[np.ndarray], t: float, external, contacts, plates,
-               cfg, *, last: bool):
+               cfg):
     """One increment to ``t`` from the start of lowest potential among ``starts`` (the last
     state, and the path extrapolated from it: a starting guess changes the iterations, not
-    the minimiser): minimise, update the multipliers and the friction lag (the last
-    increment: until the penetration and the friction bound are converged)."""
+    the minimiser): minimise, and update the multipliers and the friction lag until the
+    penetration and the friction bound are converged (each increment is then a backward-
+    Euler step of Coulomb's law at its own pressure)."""
     for c in contacts:
         c.set_time(t)
     fext = external(t)
@@ -415,7 +416,7 @@ def _increment(m: Minimiser, starts: Sequence[np.ndarray], t: float, external, c
         energies = [np.inf if s is None else s.energy for s in trials]
         u = starts[int(np.argmin(energies))] if np.isfinite(min(energies)) else starts[0]
     previous: list = [None] * len(plates)
-    n_aug = m.o.max_augmentations if last else 1
+    n_aug = m.o.max_augmentations
     for k in range(n_aug):
         s = m.solve(u, fext, plates)
         u = s.u
@@ -426,15 +427,13 @@ def _increment(m: Minimiser, starts: Sequence[np.ndarray], t: float, external, c
                   "friction error %.3g, |R| %.3g N, resultant %.3g N", m.stats.name, t, k,
                   m.stats.iterations, pen, ferr, np.linalg.norm(s.R[m.free]),
                   np.linalg.norm(m.free_resultant(s.R)))
-        if done and last:
+        if done:
             return s
         for i, (pl, e) in enumerate(zip(plates, s.plates)):
             eps_max = cfg.penalty_growth_max * float(np.max(pl.c.eps_n))
             previous[i] = pl.update(e, growth=cfg.penalty_growth, slow_ratio=cfg.slow_uzawa_ratio,
                                     eps_max=eps_max, previous=previous[i])
         m.stats.augmentations += 1
-        if not last:
-            return s
     raise ContactDidNotConvergeError(f"contact multipliers not converged in {n_aug} updates "
                                      f"(penetration {pen:.3g} mm, friction error {ferr:.3g})")
 
