@@ -69,14 +69,6 @@ class ContactDidNotConvergeError(SolverDidNotConvergeError):
     """Contact iterations (status changes / augmentations) did not settle."""
 
 
-class SolverCrawlError(SolverDidNotConvergeError):
-    """A step guarded against crawling gave up: its increments kept needing stabilisation
-    at a size that would take too many more to finish (``[mechanics.solver]
-    crawl_increments``), or its last increment failed twice in a row with the contact
-    multipliers stalled on the same node.  Raised only where the caller has a retry (the
-    protocol engine's plate moves); ``last_converged`` keeps the last equilibrium."""
-
-
 class ResultCheckError(RegtrackError):
     """A computed result failed a guard-rail check (non-finite values, inverted elements,
     penetration bound, ...). The message names the stage."""

@@ -594,9 +594,13 @@ ARGS: list[tuple[str, Callable[[Path, Path], list[str]], str]] = [
      r"--set protocol\.ML\.target_D=0\.3: unknown section 'protocol\.ML' \(did you mean "
      r"'protocol\.(MLO|CC)'\?\)"),
     ("run --set nested misspelt key",
-     lambda c, w: ["run", str(c), "--set", "mechanics.solver.crawl_incremnts=3"],
-     r"--set mechanics\.solver\.crawl_incremnts=3: unknown key 'crawl_incremnts' in "
-     r"\[mechanics\.solver\] \(did you mean 'crawl_increments'\?\)"),
+     lambda c, w: ["run", str(c), "--set", "mechanics.solver.max_iteratons=30"],
+     r"--set mechanics\.solver\.max_iteratons=30: unknown key 'max_iteratons' in "
+     r"\[mechanics\.solver\] \(did you mean 'max_iterations'\?\)"),
+    ("run --set option of the removed Newton solver",
+     lambda c, w: ["run", str(c), "--set", "mechanics.solver.stabilisation=off"],
+     r"--set mechanics\.solver\.stabilisation=off: unknown key 'stabilisation' in "
+     r"\[mechanics\.solver\]"),
     ("run --set value out of range", lambda c, w: ["run", str(c), "--set", "model.target_nodes=5"],
      r"--set model\.target_nodes=5: \[model\] target_nodes = 5 nodes: must be >= 200"),
     ("run --set wrong type", lambda c, w: ["run", str(c), "--set", "mechanics.nu=soft"],

@@ -47,7 +47,6 @@ def _case(root, *, c1_in_toml: bool):
 def _kernel_input_and_provenance(tmp_path, monkeypatch, model, case, overrides):
     """``mats.c1`` of the Problem the simulate stage builds, the provenance, the key."""
     import regtrack.mechanics.minimise as minimise
-    import regtrack.mechanics.run_view as run_view
 
     seen = {}
 
@@ -55,8 +54,7 @@ def _kernel_input_and_provenance(tmp_path, monkeypatch, model, case, overrides):
         seen["c1"] = problem.mats.c1.copy()
         raise _Stop
 
-    monkeypatch.setattr(run_view, "solver_from_problem", capture)  # method = "newton"
-    monkeypatch.setattr(minimise, "minimiser_from_problem", capture)  # method = "energy"
+    monkeypatch.setattr(minimise, "minimiser_from_problem", capture)
     ctx = open_run(case, resolve_configs(case, overrides), cache_dir=tmp_path / "cache")
     mesh = stages.MeshOutput("mesh-key", tmp_path, model)
     with pytest.raises(_Stop):

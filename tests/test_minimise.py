@@ -35,7 +35,7 @@ from regtrack.mechanics.minimise import Minimiser, minimise_step
 from regtrack.mechanics.plates import RigidPlate
 from regtrack.mechanics.potential import PlatePotential, friction_terms, normal_terms
 from regtrack.mechanics.problem import body_force
-from regtrack.mechanics.solver import build_problem
+from regtrack.mechanics.problem import build_problem
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -73,7 +73,7 @@ def _random_state(prob, contacts, seed=0):
 def test_residual_is_the_gradient_of_the_potential():
     prob, contacts = _box_between_plates()
     u, plates = _random_state(prob, contacts)
-    m = Minimiser(prob, SolverOptions(method="energy"))
+    m = Minimiser(prob, SolverOptions())
     fext = body_force(prob, np.array([0.0, -9.81, 0.0]))
     s = m.state(u, fext, plates, hessian=False)
     assert s is not None
@@ -170,7 +170,7 @@ def _friction_forces(c, u):
 def test_block_sticks_below_and_slides_at_mu_n():
     mu = 0.1
     prob, X, c, dofs, k = _block(mu)
-    opts = SolverOptions(method="energy", force_tol=1e-8, balance_tol=1e-6)
+    opts = SolverOptions(force_tol=1e-8, balance_tol=1e-6)
     g0 = lambda t: np.zeros(3)  # noqa: E731
 
     def drive(sx, dz):
@@ -199,7 +199,7 @@ def test_cube_against_closed_form():
 
     X, prob, c, roll = cube_case()
     u, _, _ = minimise_step(prob, np.zeros_like(X), gravity=lambda t: np.zeros(3), contacts=[c],
-                            n_increments=4, options=SolverOptions(method="energy"),
+                            n_increments=4, options=SolverOptions(),
                             dirichlet=lambda t: (roll, 0.0))
     assert c.report(u)["normal_force_N"] * 1e3 == pytest.approx(266.71, rel=3e-3)
 
@@ -210,7 +210,7 @@ def test_mammo_with_friction_matches_calculix():
     from tests.test_peers import _ref, mammo_case, rel_rms
 
     X, prob, up, lo, bc = mammo_case(0.1)
-    opts = SolverOptions(method="energy")
+    opts = SolverOptions()
     u, _, _ = minimise_step(prob, np.zeros_like(X), gravity=lambda t: np.array([0, 0, -9.81 * t]),
                             contacts=[up, lo], n_increments=4, options=opts, dirichlet=bc)
     up.set_motion((0, 0, 50), (0, 0, 20))
@@ -238,7 +238,7 @@ model = build_model(read_label_map(case.mri.labels), scheme=case.mri.scheme, con
 proto = shipped_protocol("mlo")
 proto = dataclasses.replace(proto, steps=[dataclasses.replace(s, target_D=0.5)
                                           if s.to == "degree" else s for s in proto.steps])
-mech = MechanicsConfig(solver=SolverOptions(method="energy", assembly_threads=int(sys.argv[2])))
+mech = MechanicsConfig(solver=SolverOptions(assembly_threads=int(sys.argv[2])))
 res, _ = run_protocol_on_model(model, proto, mechanics=mech)
 sm = summarise(res)
 np.save(sys.argv[3], model.points + res.u)
@@ -308,13 +308,13 @@ def test_multipliers_failing_at_the_end_of_a_step_stop_it_without_cut_backs(monk
     prob, contacts = _box_between_plates(mu=0.0)
     calls = []
 
-    def failing(m, u, t, *a, last, **k):
+    def failing(m, u, t, *a, **k):
         calls.append(t)
         raise ContactDidNotConvergeError("contact multipliers not converged in 20 updates")
 
     monkeypatch.setattr(minimise, "_increment", failing)
     with pytest.raises(SolverDidNotConvergeError) as err:
         minimise_step(prob, np.zeros_like(prob.X), gravity=lambda t: np.zeros(3),
-                      contacts=contacts, n_increments=1, options=SolverOptions(method="energy"))
+                      contacts=contacts, n_increments=1, options=SolverOptions())
     assert calls == [1.0] and err.value.load_fraction == 0.0
     assert "multipliers not converged" in str(err.value)

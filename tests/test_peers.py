@@ -24,11 +24,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from regtrack.mechanics.config import MechanicsConfig, SolverOptions
+from regtrack.mechanics.config import MechanicsConfig
 from regtrack.mechanics.contact import ContactConfig, PlateContact, tributary_areas
 from regtrack.mechanics.meshes import boundary_faces, orient_tets
+from regtrack.mechanics.minimise import minimise_step
 from regtrack.mechanics.plates import RigidPlate
-from regtrack.mechanics.solver import build_problem, solve_step
+from regtrack.mechanics.problem import build_problem
 from regtrack.model.types import AnatomicalFrame, BreastModel
 from tests.conftest import shared_data
 
@@ -98,7 +99,8 @@ def cube_case():
 
 def test_cube_against_closed_form_and_codes():
     X, prob, c, roll = cube_case()
-    u, _ = solve_step(prob, np.zeros_like(X), dirichlet=lambda t: (roll, 0.0), contributions=[c])
+    u, _, _ = minimise_step(prob, np.zeros_like(X), dirichlet=lambda t: (roll, 0.0), contacts=[c],
+                            n_increments=4)
     force_mn = c.report(u)["normal_force_N"] * 1e3
     assert force_mn == pytest.approx(266.71, rel=3e-3)
     corner = np.argmax(X.sum(1))
@@ -113,14 +115,15 @@ def _hertz(formulation: str, tol: float):
     prob = _problem(model, formulation)
     plate = RigidPlate(name="upper", origin=(0, 0, 50), normal=(0, 0, -1), e1=(1, 0, 0))
     c = _plate_contact(model, _off_planes(X, model.skin, (0, 1, 2)), plate, tol=tol)
-    c.set_motion((0, 0, 50), (0, 0, 49))
     roll = _rollers(X, (0, 1, 2))
-    # the force history is read at every increment, so every increment iterates its
-    # multipliers to the tolerance ("every"; the default "final" does so at t = 1 only)
-    opts = SolverOptions(initial_increment=0.1, max_increment=0.1, augmentation="every")
-    u, st = solve_step(prob, np.zeros_like(X), dirichlet=lambda t: (roll, 0.0), contributions=[c],
-                       options=opts)
-    hist = [(r["t"], 4 * r["upper"]["normal_force_N"]) for r in st.reports]  # full sphere
+    # the force history is read every 0.1 mm, so each 0.1 mm is a step of its own, whose
+    # (last) increment iterates the multipliers to the tolerance
+    u, hist = np.zeros_like(X), []
+    for k in range(10):
+        c.set_motion((0, 0, 50 - 0.1 * k), (0, 0, 50 - 0.1 * (k + 1)))
+        u, _, _ = minimise_step(prob, u, dirichlet=lambda t: (roll, 0.0), contacts=[c], n_increments=1)
+        c.motion = None
+        hist.append((0.1 * (k + 1), 4 * c.report(u)["normal_force_N"]))  # full sphere
     return model, u, c, hist
 
 
@@ -179,16 +182,15 @@ def mammo_case(mu: float):
     return X, prob, up, lo, (lambda t: (dofs, 0.0))
 
 
-def _mammo(mu: float, increments: float | None):
-    """peers 'mammo' (:func:`mammo_case`): gravity -z (ramped), then the upper plate 50 -> 20."""
+def _mammo(mu: float):
+    """peers 'mammo' (:func:`mammo_case`): gravity -z (ramped, 4 increments), then the upper
+    plate 50 -> 20 in 12 increments (2.5 mm of travel each, the protocols' default cap)."""
     X, prob, up, lo, bc = mammo_case(mu)
-    u, _ = solve_step(prob, np.zeros_like(X), gravity=lambda t: np.array([0, 0, -9.81 * t]),
-                      dirichlet=bc, contributions=[up, lo])
+    u, _, _ = minimise_step(prob, np.zeros_like(X), gravity=lambda t: np.array([0, 0, -9.81 * t]),
+                            dirichlet=bc, contacts=[up, lo], n_increments=4)
     up.set_motion((0, 0, 50), (0, 0, 20))
-    opts = None if increments is None else SolverOptions(initial_increment=increments,
-                                                         max_increment=increments)
-    u, _ = solve_step(prob, u, gravity=lambda t: np.array([0, 0, -9.81]), dirichlet=bc,
-                      contributions=[up, lo], options=opts)
+    u, _, _ = minimise_step(prob, u, gravity=lambda t: np.array([0, 0, -9.81]), dirichlet=bc,
+                            contacts=[up, lo], n_increments=12)
     tumour = int(np.argmin(np.linalg.norm(X - [25.0, 0.0, 0.0], axis=1)))
     return u, up.report(u)["normal_force_N"] * 1e3, tumour
 
@@ -197,7 +199,7 @@ def _mammo(mu: float, increments: float | None):
 def test_mammo_frictionless_matches_three_codes():
     """Measured: 2362.3 mN (ccx 2361.5, sf 2362.3, fb 2357.7); relRMS 4.8e-5 / 5.6e-5 /
     2.4e-4; tumour-centre displacement within 1e-3 mm of CalculiX."""
-    u, force, tum = _mammo(0.0, None)
+    u, force, tum = _mammo(0.0)
     for name in ("mammo_ccx_mu0", "mammo_sf", "mammo_fb_mu0"):
         ref = _ref(name)
         assert force == pytest.approx(ref["hist_force_upper"][-1], rel=3e-3), name
@@ -208,7 +210,7 @@ def test_mammo_frictionless_matches_three_codes():
 @pytest.mark.slow
 def test_mammo_friction_matches_calculix():
     """Measured (friction 0.1): 2373.2 mN vs CalculiX 2371.9 mN, relRMS 3.1e-4."""
-    u, force, tum = _mammo(0.1, None)
+    u, force, tum = _mammo(0.1)
     ref = _ref("mammo_ccx_mu01")
     assert force == pytest.approx(ref["hist_force_upper"][-1], rel=3e-3)
     assert rel_rms(u, ref["u"]) < 1.5e-3

@@ -281,9 +281,13 @@ def test_bundled_cc_view_regenerates_from_the_seed(truth, tmp_path):
     params = mammo_truth_params(truth["params"])
     made = make_case_mammograms(tmp_path, labels, phantom_truth, params=params, views=("CC",))
     new, old = made["truth"]["views"]["CC"], truth["views"]["CC"]
-    # mesh and plate set-up do not depend on the solver's path: same to round-off
-    for key in ("T0_mm", "plate_gap_mm", "D"):
-        assert new["simulation"][key] == pytest.approx(old["simulation"][key], abs=1e-6)
+    # the plate set-up: D exactly; the uncompressed thickness T0 (and the gap (1 - D) T0)
+    # is measured on the state after the gravity steps, which the solver finds to its
+    # 0.01 mm displacement tolerance: within a tenth of it (measured 1.4e-4 mm between the
+    # residual Newton solver that made the case and the energy minimiser)
+    assert new["simulation"]["D"] == pytest.approx(old["simulation"]["D"], abs=1e-9)
+    for key in ("T0_mm", "plate_gap_mm"):
+        assert new["simulation"][key] == pytest.approx(old["simulation"][key], abs=1e-3)
     # The Newton path of the frictional compression is chaotic: another build of the
     # numerical libraries (MKL, NumPy, SciPy wheels) changes the last bits of the sparse
     # factorisation and so the path.  Measured with mkl 2026.2, numpy 2.4.6, scipy

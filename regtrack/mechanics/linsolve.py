@@ -1,7 +1,7 @@
 """Sparse linear solver for the Newton corrections, chosen by measurement.
 
-Direct solver: MKL PARDISO (located through pypardiso, called directly with our own
-``iparm``); ``splu`` (SuperLU, scipy) is the fallback without MKL (logged).  Every solve
+Direct solver (:mod:`.direct`): MKL PARDISO (located through pypardiso, called directly
+with our own ``iparm``); ``splu`` (SuperLU, scipy) is the fallback without MKL (logged).  Every solve
 is right-preconditioned GMRES (:func:`right_gmres`) on a stored factorisation, to the
 relative residual the caller asks for.  The design choices, each with its reason (figures
 in docs/performance-mechanics.md):
@@ -20,20 +20,13 @@ in docs/performance-mechanics.md):
   ``perm``), with the couplings of the chest-wall (Dirichlet) dofs left out of the
   factorised matrix (``decoupled``): factorisations 27-30 % faster than PARDISO's own METIS
   on the dof graph (``ordering = "pardiso"``).
-* unsymmetric tangents (sliding friction) are solved by GMRES preconditioned with LDL^T
-  factors of a symmetric matrix of the same pattern (one analysis; the factors stay valid
-  while the stick/slip state flips): the caller's ``preconditioner`` (the tangent without
-  the sliding nodes' friction-bound term,
-  :meth:`regtrack.mechanics.contact.PlateContact.preconditioner_tangent`: the
-  preconditioned operator is the identity plus node-local rank-one terms, 1-4 GMRES
-  iterations), else the symmetric part ``(A + A^T) / 2``.  Only if a fresh factorisation
-  cannot reach the tolerance does the solver switch to LU (``mtype 11``), which costs
-  about 5x an LDL^T factorisation.
+* the matrices are symmetric (the Hessians of the incremental potential, :mod:`.minimise`):
+  PARDISO factorises their upper triangle; SuperLU the whole matrix.
 
 Because a solve costs about 1/50 of a factorisation, the factorisation is **re-used**
 (``reuse_factorisation``, default on): a new matrix is first solved on the old factors
 (``A P^{-1} y = b``, ``x = P^{-1} y``: the residual GMRES monitors is the true one) to the
-tolerance the Newton solver asks for (inexact Newton).  It is refactorised when
+tolerance the step solver asks for (inexact Newton).  It is refactorised when
 
 * GMRES does not reach ``rtol`` within ``k_max = clip(b rho, 4, krylov_max)`` iterations,
   with the budget ``b = reuse_budget`` (0.5: a failed attempt wastes at most half a
@@ -57,25 +50,23 @@ memory-bound.
 from __future__ import annotations
 
 import contextlib
-import ctypes
 import logging
-import os
 import threading
 import time
 from typing import Any
 
 import numpy as np
 import scipy.sparse as sp
-import scipy.sparse.linalg as spla
-from numba import njit
+
+from regtrack.mechanics.direct import LinearSolveError, Pardiso, SuperLU
 
 log = logging.getLogger(__name__)
 
-# MKL's conditional numerical reproducibility: without it, PARDISO's threaded factorisation
-# sums in a load-dependent order, the Newton path of a contact problem changes in the last
-# digits from run to run, and a hard increment converges in one run and not in the next
-# (measured: the same CC protocol stopped at t = 0.6817 and 0.6801).  Read when MKL loads.
-os.environ.setdefault("MKL_CBWR", "AUTO,STRICT")
+__all__ = ["LinearSolveError", "LinearSolver", "node_ordering", "right_gmres", "serial_openblas"]
+
+
+def _cpu() -> float:
+    return time.process_time()
 
 
 _SERIAL = {"lock": threading.Lock(), "depth": 0, "limiter": None}
@@ -115,146 +106,6 @@ def serial_openblas():
             if st["depth"] == 0:
                 st["limiter"].restore_original_limits()
                 st["limiter"] = None
-
-
-#: iparm (0-based) shared by both matrix types; see the module docstring.
-_IPARM_COMMON = {0: 1, 1: 2, 7: 0, 17: -1, 20: 1, 23: 0, 26: 0, 34: 1}
-_IPARM = {-2: {9: 8, 10: 0, 12: 0}, 11: {9: 13, 10: 1, 12: 1}}
-
-
-class LinearSolveError(RuntimeError):
-    """The sparse direct solver failed (singular matrix, out of memory); the Newton solver
-    treats it like a failed increment and cuts back."""
-
-
-def _cpu() -> float:
-    return time.process_time()
-
-
-_PARDISO_FN: list = []
-
-
-def _pardiso_function():
-    """MKL's ``pardiso`` entry point, located once per process by pypardiso (its search of
-    the environment's directory tree took ~0.6 s per solver object here).
-
-    pypardiso looks for ``mkl_rt`` with ``ctypes.util.find_library`` and then by a
-    recursive glob of the whole environment, once when imported and once more per solver
-    object: 0.32 s per process here, of a benchmark CC of about 58 s.  Unless
-    ``PYPARDISO_MKL_RT`` names the library already, the places where the ``mkl`` wheel
-    installs it (``<prefix>/lib``, ``<prefix>/Library/bin``) are looked at first and
-    handed over in that variable (then 3 ms); if nothing is there, pypardiso searches as
-    before."""
-    if not _PARDISO_FN:
-        if not os.environ.get("PYPARDISO_MKL_RT"):
-            import glob
-            import sys
-
-            found = [p for pattern in ("lib/libmkl_rt.so*", "lib/libmkl_rt*.dylib",
-                                       "Library/bin/mkl_rt*.dll")
-                     for p in glob.glob(os.path.join(sys.prefix, pattern))]
-            if found:
-                os.environ["PYPARDISO_MKL_RT"] = sorted(found, key=lambda p: (len(p), p))[-1]
-        import pypardiso
-
-        _PARDISO_FN.append(pypardiso.PyPardisoSolver()._mkl_pardiso)
-    return _PARDISO_FN[0]
-
-
-class _Pardiso:
-    """One MKL PARDISO instance of one matrix type; ``single`` factorises in float32."""
-
-    def __init__(self, mtype: int, *, single: bool = False):
-        self._fn = _pardiso_function()
-        self.mtype = mtype
-        self.single = single
-        self.perm = np.zeros(1, np.int32)  # a user fill-reducing ordering when iparm(5) = 1
-        self.pt = np.zeros(64, np.int64)
-        self.iparm = np.zeros(64, np.int32)
-        for k, v in {**_IPARM_COMMON, **_IPARM[mtype]}.items():
-            self.iparm[k] = v
-        self.iparm[27] = int(single)
-        self.M: sp.csr_matrix | None = None
-        self.alive = False
-
-    def _call(self, phase: int, M: sp.csr_matrix, b: np.ndarray | None = None) -> np.ndarray:
-        n = M.shape[0]
-        dt = np.float32 if self.single else np.float64
-        b = np.zeros(n, dt) if b is None else np.ascontiguousarray(b, dt)
-        x = np.zeros_like(b)
-        data = np.ascontiguousarray(M.data, dt)
-        indptr = M.indptr if M.indptr.dtype == np.int32 else M.indptr.astype(np.int32)
-        indices = M.indices if M.indices.dtype == np.int32 else M.indices.astype(np.int32)
-        err = ctypes.c_int32(0)
-        i32 = ctypes.POINTER(ctypes.c_int32)
-        vp = ctypes.c_void_p
-        self._fn(self.pt.ctypes.data_as(ctypes.POINTER(ctypes.c_int64)), ctypes.byref(ctypes.c_int32(1)),
-                 ctypes.byref(ctypes.c_int32(1)), ctypes.byref(ctypes.c_int32(self.mtype)),
-                 ctypes.byref(ctypes.c_int32(phase)), ctypes.byref(ctypes.c_int32(n)),
-                 data.ctypes.data_as(vp), indptr.ctypes.data_as(i32), indices.ctypes.data_as(i32),
-                 self.perm.ctypes.data_as(i32), ctypes.byref(ctypes.c_int32(1)),
-                 self.iparm.ctypes.data_as(i32), ctypes.byref(ctypes.c_int32(0)), b.ctypes.data_as(vp),
-                 x.ctypes.data_as(vp), ctypes.byref(err))
-        if err.value != 0:
-            raise LinearSolveError(f"PARDISO (mtype {self.mtype}) phase {phase} failed with error "
-                                   f"{err.value} (-4: zero pivot, -2: out of memory)")
-        return x.astype(np.float64, copy=False)
-
-    def analyse(self, M: sp.csr_matrix, order: np.ndarray | None = None) -> None:
-        """Symbolic analysis; ``order``: the unknowns in elimination order (``order[k]`` is
-        eliminated k-th), else PARDISO's own METIS ordering of the dof graph."""
-        self.iparm[4] = int(order is not None)
-        self.perm = np.zeros(1, np.int32) if order is None else np.ascontiguousarray(order, np.int32)
-        self._call(11, M)
-        self.alive = True
-
-    def factorise(self, M: sp.csr_matrix) -> None:
-        self.M = M if not self.single else sp.csr_matrix((M.data.astype(np.float32), M.indices, M.indptr),
-                                                         shape=M.shape, copy=False)
-        self._call(22, self.M)
-
-    def solve(self, b: np.ndarray) -> np.ndarray:
-        return self._call(33, self.M, b)
-
-    @property
-    def factor_nnz(self) -> int:
-        return int(self.iparm[17])
-
-    def free(self) -> None:
-        if self.alive:
-            self._call(-1, sp.csr_matrix((1, 1)) if self.M is None else self.M)
-        self.pt[:] = 0  # a fresh handle for the next analysis
-        self.alive = False
-        self.M = None
-
-
-class _SuperLU:
-    """scipy SuperLU with the same interface (full matrix, no separate analysis; its own
-    COLAMD ordering)."""
-
-    single = False
-
-    def __init__(self):
-        self.lu = None
-        self.M = None
-        self.factor_nnz = 0
-
-    def analyse(self, M, order=None) -> None:
-        pass
-
-    def factorise(self, M) -> None:
-        try:
-            self.lu = spla.splu(M.tocsc())
-        except RuntimeError as exc:
-            raise LinearSolveError(f"SuperLU failed: {exc}") from exc
-        self.M = M
-        self.factor_nnz = self.lu.L.nnz + self.lu.U.nnz
-
-    def solve(self, b):
-        return self.lu.solve(np.asarray(b, float))
-
-    def free(self) -> None:
-        self.lu = self.M = None
 
 
 class LinearSolver:
@@ -314,14 +165,11 @@ class LinearSolver:
         self.krylov_rtol = krylov_rtol
         self.krylov_max = krylov_max
         self.reuse_budget = reuse_budget
-        self._backends: dict[bool, object] = {}
-        self._keys: dict[bool, tuple | None] = {True: None, False: None}
-        self._factored: dict[bool, bool] = {True: False, False: False}
-        self._stale: dict[bool, bool] = {True: False, False: False}
-        self._upper: tuple | None = None
-        self._full: tuple | None = None
-        self._lu_needed = False
-        self._pre: Any = None  # this solve's preconditioning matrix, or a function making it
+        self.backend: Any = None
+        self._key_factored: tuple | None = None  # the pattern analysed
+        self._factored = False
+        self._stale = False
+        self._kept: tuple | None = None  # the pattern's entries the factorisation takes
         self.n_analyses = self.n_factorisations = self.n_krylov_solves = self.krylov_iterations = 0
         self.n_reuse_failures = self.krylov_wasted_iterations = 0
         self.time_analysis = self.time_factor_solve = self.time_krylov = 0.0
@@ -330,8 +178,7 @@ class LinearSolver:
         self.cost_ratio = 8.0  # factorisation / GMRES iteration, estimated at each factorisation
         if kind in ("auto", "pardiso"):
             try:
-                single = precision == "mixed"
-                self._backends = {False: _Pardiso(11, single=single), True: _Pardiso(-2, single=single)}
+                self.backend = Pardiso(single=precision == "mixed")
                 self.kind = "pardiso"
             except (ImportError, OSError) as exc:
                 if kind == "pardiso":
@@ -342,54 +189,37 @@ class LinearSolver:
                 log.warning("PARDISO not available (%s): falling back to SuperLU (slower)", exc)
                 self.kind = "splu"
         if self.kind == "splu":
-            self._backends = {False: _SuperLU(), True: _SuperLU()}
+            self.backend = SuperLU()
 
     # -- public -------------------------------------------------------------------------
-    def solve(self, A: sp.csr_matrix, b: np.ndarray, *, symmetric: bool = False,
-              rtol: float | None = None, refactor: bool = False,
-              preconditioner: sp.csr_matrix | None = None) -> np.ndarray:
-        """Solve ``A x = b`` to ``||A x - b|| <= rtol ||b||``; ``symmetric=True`` promises
-        ``A == A.T``.
+    def solve(self, A: sp.csr_matrix, b: np.ndarray, *, rtol: float | None = None,
+              refactor: bool = False) -> np.ndarray:
+        """Solve the symmetric system ``A x = b`` to ``||A x - b|| <= rtol ||b||``.
 
         ``rtol``: the caller's tolerance (inexact Newton), floored at ``krylov_rtol``
         (its default); ``refactor`` forces a fresh factorisation.
-        ``preconditioner``: for an unsymmetric ``A``, a matrix of the same pattern whose
-        symmetric part is factorised (LDL^T) in place of ``A``'s own symmetric part
-        (ignored when the patterns differ, or once LU is in use), or a function that
-        assembles it, called only if this solve factorises.
         Raises :class:`LinearSolveError` when the factorisation fails.
         """
         b = np.asarray(b, float)
         tol = self.krylov_rtol if rtol is None else max(rtol, self.krylov_rtol)
         key = self._key(A)
-        self._pre = None if symmetric else preconditioner
-        # handle True: LDL^T of the symmetric part (A itself when symmetric); False: LU
-        sym = self.kind == "pardiso" and (symmetric or (not self._lu_needed
-                                                        and self._upper_map(A, key)[4] is not None))
-        same = self._keys[sym] == key and self._factored[sym]
-        if self.reuse and same and not refactor and not self._stale[sym]:
+        same = self._key_factored == key and self._factored
+        if self.reuse and same and not refactor and not self._stale:
             k0 = self.krylov_iterations
-            x = self._krylov(A, b, sym, tol, fresh=False)
+            x = self._krylov(A, b, tol, fresh=False)
             if x is not None:
                 return x
             self.n_reuse_failures += 1
             self.krylov_wasted_iterations += self.krylov_iterations - k0
         t0 = time.perf_counter()
-        self._factorise(A, sym, key)
-        x = self._krylov(A, b, sym, tol, fresh=True)
-        if x is None and sym and not symmetric:
-            log.info("unsymmetric tangent too far from its symmetric part to precondition with it: "
-                     "general LU from now on")
-            self._lu_needed = True
-            sym = False
-            self._factorise(A, sym, key)
-            x = self._krylov(A, b, sym, tol, fresh=True)
-        if x is None and self._backends[sym].single:
+        self._factorise(A, key)
+        x = self._krylov(A, b, tol, fresh=True)
+        if x is None and self.backend.single:
             log.warning("float32 factorisation too inaccurate for this system (ill-conditioned): "
                         "switching the linear solver to double precision")
             self._to_double()
-            self._factorise(A, sym, key)
-            x = self._krylov(A, b, sym, tol, fresh=True)
+            self._factorise(A, key)
+            x = self._krylov(A, b, tol, fresh=True)
         self.time_factor_solve += time.perf_counter() - t0
         if x is None:
             raise LinearSolveError(f"linear solve did not reach the relative residual {tol:.1e} on a fresh "
@@ -398,23 +228,22 @@ class LinearSolver:
 
     def inertia(self) -> tuple[int, int] | None:
         """``(positive, negative)`` eigenvalue counts of the last symmetric (LDL^T)
-        factorisation (PARDISO ``iparm(22)``, ``iparm(23)``), or None (SuperLU, LU)."""
-        be = self._backends.get(True)
-        if not isinstance(be, _Pardiso) or not self._factored.get(True):
+        factorisation (PARDISO ``iparm(22)``, ``iparm(23)``), or None (SuperLU)."""
+        be = self.backend
+        if not isinstance(be, Pardiso) or not self._factored:
             return None
         return int(be.iparm[21]), int(be.iparm[22])
 
     def release(self) -> None:
         """Free the factorisation memory."""
-        for sym, be in self._backends.items():
-            be.free()
-            self._keys[sym] = None
-            self._factored[sym] = False
+        self.backend.free()
+        self._key_factored = None
+        self._factored = False
 
     @property
     def factor_nnz(self) -> int:
         """Non-zeros of the largest factor (PARDISO's iparm(18))."""
-        return max(int(getattr(be, "factor_nnz", 0)) for be in self._backends.values())
+        return int(getattr(self.backend, "factor_nnz", 0))
 
     # -- internals ----------------------------------------------------------------------
     def _key(self, A: sp.csr_matrix) -> tuple:
@@ -445,94 +274,50 @@ class LinearSolver:
         dec[self.decoupled[self.decoupled < n]] = True
         return (dec[rows] | dec[cols]) & (rows != cols)
 
-    def _pruned(self, A: sp.csr_matrix, key: tuple) -> sp.csr_matrix:
-        """``A`` without the entries of :meth:`_drop` (the matrix an LU factorises)."""
-        if self.decoupled is None:
-            return A
-        if self._full is None or self._full[0] != key:
+    def _factored_matrix(self, A: sp.csr_matrix, key: tuple) -> sp.csr_matrix:
+        """The matrix the backend factorises: ``A`` less the entries of :meth:`_drop`, and
+        for PARDISO only its upper triangle (``A`` is symmetric); the positions kept are
+        cached per pattern."""
+        if self._kept is None or self._kept[0] != key:
             n = A.shape[0]
             rows = np.repeat(np.arange(n, dtype=np.int64), np.diff(A.indptr))
-            keep = np.flatnonzero(~self._drop(rows, A.indices.astype(np.int64), n))
+            cols = A.indices.astype(np.int64)
+            keep = ~self._drop(rows, cols, n)
+            if self.kind == "pardiso":
+                keep &= cols >= rows
+            keep = np.flatnonzero(keep)
             indptr = np.zeros(n + 1, np.int32)
             np.cumsum(np.bincount(rows[keep], minlength=n), out=indptr[1:])
-            self._full = (key, keep, A.indices[keep].astype(np.int32), indptr)
-        _, keep, idx, ptr = self._full
+            self._kept = (key, keep, cols[keep].astype(np.int32), indptr)
+        _, keep, idx, ptr = self._kept
         M = sp.csr_matrix((A.data[keep], idx, ptr), shape=A.shape, copy=False)
         M.has_sorted_indices = True
         return M
 
-    def _upper_map(self, A: sp.csr_matrix, key: tuple) -> tuple:
-        """``(key, up, indices, indptr, tmap)`` of the upper triangle of A's pattern less
-        the entries of :meth:`_drop`: ``up`` the positions of its entries in ``A.data``,
-        ``tmap`` those of their transposes (None when the pattern is not structurally
-        symmetric); cached per pattern."""
-        if self._upper is None or self._upper[0] != key:
-            n = A.shape[0]
-            rows = np.repeat(np.arange(n, dtype=np.int64), np.diff(A.indptr))
-            cols = A.indices.astype(np.int64)
-            up = np.flatnonzero((cols >= rows) & ~self._drop(rows, cols, n))
-            indptr = np.zeros(n + 1, np.int32)
-            np.cumsum(np.bincount(rows[up], minlength=n), out=indptr[1:])
-            keys = rows * n + cols  # sorted: rows ascending, sorted column indices
-            tpos = np.searchsorted(keys, cols[up] * n + rows[up])
-            tpos = np.minimum(tpos, len(keys) - 1)
-            tmap = tpos if np.array_equal(keys[tpos], cols[up] * n + rows[up]) else None
-            self._upper = (key, up, cols[up].astype(np.int32), indptr, tmap)
-        return self._upper
-
-    def _upper_sym(self, A: sp.csr_matrix, key: tuple) -> sp.csr_matrix | None:
-        """Upper triangle of the symmetric part ``(A + A^T) / 2`` on A's own pattern less
-        the entries of :meth:`_drop`, or None when that pattern is not structurally
-        symmetric."""
-        _, up, idx, ptr, tmap = self._upper_map(A, key)
-        if tmap is None:
-            return None
-        U = sp.csr_matrix((_half_sum(A.data, up, tmap), idx, ptr), shape=A.shape, copy=False)
-        U.has_sorted_indices = True
-        return U
-
     def _to_double(self) -> None:
-        for sym, be in list(self._backends.items()):
-            be.free()
-            self._backends[sym] = _Pardiso(be.mtype, single=False)
-            self._keys[sym] = None
-            self._factored[sym] = False
+        self.backend.free()
+        self.backend = Pardiso(single=False)
+        self._key_factored = None
+        self._factored = False
         self.precision = "double"
 
-    def _preconditioner(self, key: tuple) -> sp.csr_matrix | None:
-        """The caller's preconditioning matrix (assembled now if given as a function), or
-        None when there is none or its pattern is not ``key``'s."""
-        pre = self._pre
-        if callable(pre):
-            pre = self._pre = pre()
-        if pre is None:
-            return None
-        if self._key(pre) != key:
-            log.debug("preconditioning matrix of another pattern: ignored")
-            pre = self._pre = None
-        return pre
-
-    def _factorise(self, A: sp.csr_matrix, sym: bool, key: tuple) -> None:
-        be = self._backends[sym]
-        pre = self._preconditioner(key) if sym else None
+    def _factorise(self, A: sp.csr_matrix, key: tuple) -> None:
+        be = self.backend
         self._key(A)  # A's arrays are the ones remembered for the next call
-        if sym:
-            M = self._upper_sym(A if pre is None else pre, key)
-        else:
-            M = self._pruned(A, key)
-        if key != self._keys[sym]:
+        M = self._factored_matrix(A, key)
+        if key != self._key_factored:
             t0 = time.perf_counter()
-            if self._keys[sym] is not None:
+            if self._key_factored is not None:
                 be.free()
             be.analyse(M, self._order(M))
-            self._keys[sym] = key
+            self._key_factored = key
             self.n_analyses += 1
             self.time_analysis += time.perf_counter() - t0
         c0 = _cpu()
-        self._factored[sym] = False
+        self._factored = False
         be.factorise(M)
-        self._factored[sym] = True
-        self._stale[sym] = False
+        self._factored = True
+        self._stale = False
         self.cpu_factor = _cpu() - c0
         self.n_factorisations += 1
         fnnz = int(getattr(be, "factor_nnz", 0)) or 20 * M.nnz
@@ -561,11 +346,11 @@ class LinearSolver:
             return self.krylov_max
         return int(np.clip(self.reuse_budget * self.cost_ratio, 4, self.krylov_max))
 
-    def _krylov(self, A: sp.csr_matrix, b: np.ndarray, sym: bool, rtol: float, *,
+    def _krylov(self, A: sp.csr_matrix, b: np.ndarray, rtol: float, *,
                 fresh: bool) -> np.ndarray | None:
         """GMRES preconditioned by the stored factorisation; None if it does not reach
         ``rtol`` within :meth:`_k_max` iterations."""
-        be = self._backends[sym]
+        be = self.backend
         nb = _norm(b)
         if nb == 0.0:
             return np.zeros_like(b)
@@ -582,10 +367,10 @@ class LinearSolver:
         if res <= rtol * nb * (1 + 1e-6) and np.all(np.isfinite(x)):
             if not fresh:
                 self.n_krylov_solves += 1
-                self._stale[sym] = k > 0.25 * self.cost_ratio
+                self._stale = k > 0.25 * self.cost_ratio
             log.debug("%s factorisation: %d GMRES iterations to %.1e (asked %.1e), %.3f s CPU%s",
                       "fresh" if fresh else "re-used", k, res / nb, rtol, cpu,
-                      " (stale)" if self._stale[sym] else "")
+                      " (stale)" if self._stale else "")
             return x
         log.debug("%s factorisation: GMRES reached %.1e (asked %.1e) in %d iterations", "fresh" if fresh
                   else "re-used", res / nb, rtol, k)
@@ -621,15 +406,6 @@ def node_ordering(A: sp.csr_matrix, dof_nodes: np.ndarray) -> np.ndarray:
     rank = np.empty(nn, np.int64)
     rank[np.asarray(perm)] = np.arange(nn)
     return np.lexsort((np.arange(len(dof_nodes)), rank[dof_nodes])).astype(np.int32)
-
-
-@njit(cache=True)
-def _half_sum(data, up, tmap):
-    """``0.5 * (data[up] + data[tmap])`` in one pass (the values of the symmetric part)."""
-    out = np.empty(up.shape[0])
-    for j in range(up.shape[0]):
-        out[j] = 0.5 * (data[up[j]] + data[tmap[j]])
-    return out
 
 
 def _memory_id(a: np.ndarray) -> tuple:

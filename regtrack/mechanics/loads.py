@@ -1,49 +1,12 @@
-"""Dead nodal loads as a :class:`~regtrack.mechanics.contributions.Contribution`.
-
-``NodalForces(forces)`` adds ``r(u) = -t * forces`` to the residual during a step
-(``t`` the step's pseudo-time), i.e. a prescribed force ramped from 0 to ``forces``
-(N, 3) in N.  Used for verification problems (Cook's membrane) and point/edge loads.
-"""
+"""Dead nodal loads: the consistent nodal forces of a surface traction, for the
+``forces(t)`` of :func:`regtrack.mechanics.minimise.minimise_step` (verification problems
+such as Cook's membrane, point and edge loads)."""
 
 from __future__ import annotations
 
 import numpy as np
 
 from regtrack.mechanics.membrane import reference_geometry as _tri_geometry
-
-
-class NodalForces:
-    """Dead (non-follower) nodal forces ramped with the step's pseudo-time."""
-
-    def __init__(self, forces: np.ndarray, *, name: str = "nodal_forces", start: np.ndarray | None = None):
-        self.name = name
-        self.forces = np.asarray(forces, float).reshape(-1, 3)
-        self.start = np.zeros_like(self.forces) if start is None else np.asarray(start, float).reshape(-1, 3)
-        self.t = 0.0
-
-    def begin_step(self, step) -> None:
-        self.t = 0.0
-
-    def set_time(self, t: float) -> None:
-        self.t = float(t)
-
-    def current(self) -> np.ndarray:
-        return self.start + self.t * (self.forces - self.start)
-
-    def residual_tangent(self, u: np.ndarray):
-        return -self.current().reshape(-1), None
-
-    def commit(self, u: np.ndarray) -> None:
-        pass
-
-    def rollback(self) -> None:
-        pass
-
-    def augment(self, u: np.ndarray) -> bool:
-        return True
-
-    def report(self, u: np.ndarray) -> dict:
-        return {"total_force_n": self.current().sum(axis=0).tolist()}
 
 
 def traction_forces(points: np.ndarray, tris: np.ndarray, traction: np.ndarray) -> np.ndarray:

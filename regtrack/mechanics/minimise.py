@@ -44,12 +44,12 @@ Increments: a plate move is split into increments of at most ``max_plate_increme
 travel (friction is path dependent), a gravity change into ``1 / initial_increment``.  Each
 increment starts from the last state or the path extrapolated linearly from the last two,
 whichever has the lower potential (a start changes the iterations, not the minimiser).  The
-augmented-Lagrangian multipliers and the friction lag are updated once after each
-increment and carried into the next; in the last increment of a step they are iterated
+augmented-Lagrangian multipliers and the friction lag of every increment are iterated
 until the penetration is below ``penetration_tol_mm`` and the lagged slip bound agrees
-with the current pressure within ``friction_tol`` (then the state obeys Coulomb's law).
-An increment that does not converge in ``4 max_iterations`` is halved (a shorter path to the
-same state: no tolerance is relaxed).
+with the current pressure within ``friction_tol``: each increment is a backward-Euler step
+of Coulomb's law at its own pressure, so the frictional path does not carry a lag from
+one increment into the next.  An increment that does not converge in ``4 max_iterations``
+is halved (a shorter path to the same state: no tolerance is relaxed).
 """
 
 from __future__ import annotations
@@ -57,7 +57,7 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 import scipy.sparse as sp
@@ -66,34 +66,12 @@ from regtrack.errors import ContactDidNotConvergeError, SolverDidNotConvergeErro
 from regtrack.mechanics.linsolve import LinearSolveError, LinearSolver, serial_openblas
 from regtrack.mechanics.potential import PlateEval, PlatePotential
 from regtrack.mechanics.problem import Problem, body_force, dof_nodes, evaluate, scatter_add, system_matrix
+from regtrack.mechanics.types import StepStats
 
 log = logging.getLogger(__name__)
 
 #: Armijo's sufficient-decrease constant.
 ARMIJO_C = 1e-4
-
-
-@dataclass
-class MinimiseStats:
-    """Counts and times of one step (``to_dict`` is what the protocol records)."""
-
-    name: str = ""
-    increments: int = 0
-    iterations: int = 0
-    cutbacks: int = 0
-    augmentations: int = 0
-    factorisations: int = 0
-    krylov_solves: int = 0
-    inertia_corrections: int = 0
-    rejected_directions: int = 0
-    line_search_trials: int = 0
-    t_assembly: float = 0.0
-    t_solve: float = 0.0
-    t_total: float = 0.0
-    reports: list = field(default_factory=list)
-
-    def to_dict(self) -> dict:
-        return {k: getattr(self, k) for k in self.__dataclass_fields__ if k != "reports"}
 
 
 @dataclass
@@ -127,12 +105,12 @@ class Minimiser:
         self.free = np.ones(problem.n_dofs, bool)
         self.free[self.fixed_dofs] = False
         self._diag = problem.pattern.diagonal_positions()
-        self._cons = _constraint_positions(problem, self.fixed_dofs)
+        self._cons = constraint_positions(problem, self.fixed_dofs)
         self.n_groups = 0 if problem.groups is None else problem.groups.n_groups
         # every iteration lowers the potential, so a minimisation may take longer than a
         # Newton solve of the residual before an increment is halved
         self.max_iterations = 4 * options.max_iterations
-        self.stats = MinimiseStats()
+        self.stats = StepStats()
 
     # -- the potential ------------------------------------------------------------------
     def state(self, u: np.ndarray, fext: np.ndarray, plates: Sequence[PlatePotential], *,
@@ -161,10 +139,14 @@ class Minimiser:
         return _State(ue.reshape(-1, 3), energy, R, pe, ev, f_ref)
 
     def converged(self, s: _State) -> bool:
-        Rf = s.R[self.free]
-        norm = float(np.linalg.norm(Rf))
-        resultant = float(np.linalg.norm(Rf.reshape(-1, 3).sum(axis=0))) if Rf.size % 3 == 0 else norm
+        norm = float(np.linalg.norm(s.R[self.free]))
+        resultant = float(np.linalg.norm(self.free_resultant(s.R)))
         return norm <= self.o.force_tol * s.f_ref and resultant <= self.o.balance_tol * s.f_ref
+
+    def free_resultant(self, R: np.ndarray) -> np.ndarray:
+        """The resultant (3,) N of the residual's free components (a node may be held in
+        some directions only: symmetry rollers)."""
+        return np.where(self.free, R, 0.0).reshape(-1, 3).sum(axis=0)
 
     # -- Newton ---------------------------------------------------------------------------
     def matrix(self, s: _State, ev, shift: float) -> sp.csr_matrix:
@@ -203,7 +185,7 @@ class Minimiser:
             M = self.matrix(s, ev, tau * dscale)
             nf = self.ls.n_factorisations
             try:
-                x = self.ls.solve(M, b, symmetric=True, refactor=refactor, rtol=self.o.forcing_max)
+                x = self.ls.solve(M, b, refactor=refactor, rtol=self.o.forcing_max)
             except LinearSolveError:
                 x = None
             self.stats.t_solve += time.perf_counter() - t0
@@ -291,9 +273,10 @@ class Minimiser:
         return text
 
 
-def _constraint_positions(problem: Problem, dofs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Value positions of the system matrix zeroed (fixed rows/columns) and set to one
-    (their diagonal)."""
+def constraint_positions(problem: Problem, dofs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Value positions of the system matrix (fixed layout) zeroed (the rows and columns of
+    the constrained ``dofs``) and set to one (their diagonal): ``M.data[zero] = 0;
+    M.data[diag] = 1`` replaces them by the identity without a new sparsity analysis."""
     lay = problem.layout
     smask = np.zeros(lay.n, bool)
     smask[dofs] = True
@@ -318,20 +301,23 @@ def _linear_solver(problem: Problem, o) -> LinearSolver:
 Progress = Callable[[str, float], None]
 
 
-def minimise_step(problem: Problem, u0: np.ndarray, *, gravity: Callable[[float], np.ndarray],
-                  contacts: Sequence, n_increments: int, options=None, config=None,
-                  dirichlet: Callable[[float], tuple] | None = None, T0_mm: float | None = None,
+def minimise_step(problem: Problem, u0: np.ndarray, *, gravity: Callable[[float], np.ndarray] | None = None,
+                  contacts: Sequence = (), n_increments: int = 1, options=None, config=None,
+                  dirichlet: Callable[[float], tuple] | None = None,
+                  forces: Callable[[float], np.ndarray] | None = None, T0_mm: float | None = None,
                   progress: Progress | None = None, step_name: str = ""
-                  ) -> tuple[np.ndarray, MinimiseStats, np.ndarray]:
+                  ) -> tuple[np.ndarray, StepStats, np.ndarray]:
     """Run one load step from ``u0`` (N, 3) mm over ``n_increments`` equal increments of
-    pseudo-time; ``gravity(t)`` (m/s^2, model frame); ``contacts`` the step's
+    pseudo-time; ``gravity(t)`` (m/s^2, model frame; None: no weight); ``contacts`` the step's
     :class:`~.contact.PlateContact` objects (their ``set_time`` moves the plates), whose
     committed states are updated; ``config`` the :class:`~.contact.ContactConfig`
     (penetration and friction tolerances, penalty growth).  Returns ``u`` at ``t = 1``, the
     step's statistics and the residual ``dPi/du`` (N, 3) N there (at the fixed nodes: the
     support force on the body).  ``dirichlet(t) -> (dofs, values)``: displacements (mm)
     prescribed besides the model's fixed nodes (which keep their ``u0``), set at the start
-    of each increment.  ``progress(step_name, t, force_N=..., D=...)`` after each increment:
+    of each increment.  ``forces(t)``: dead (non-follower) nodal forces (N, 3) in N, a
+    prescribed point, edge or traction load (:func:`.loads.traction_forces`), whose
+    potential ``-f . u`` joins the weight's.  ``progress(step_name, t, force_N=..., D=...)`` after each increment:
     the upper plate's force (N) and, given the uncompressed thickness ``T0_mm``, the
     compression degree ``1 - gap / T0``.  Raises :class:`SolverDidNotConvergeError` with
     ``load_fraction`` and ``last_converged`` when an increment fails at the smallest
@@ -361,14 +347,14 @@ def minimise_step(problem: Problem, u0: np.ndarray, *, gravity: Callable[[float]
                         v = v.copy().reshape(-1)
                         v[np.asarray(dofs, np.int64)] = vals
                         starts[k] = v.reshape(-1, 3)
-                s = _increment(m, starts, t_new, gravity, contacts, plates, cfg,
-                               last=t_new >= 1.0 - 1e-12)
+                s = _increment(m, starts, t_new, _external(problem, gravity, forces), contacts, plates, cfg)
             except SolverDidNotConvergeError as exc:
                 for pl in plates:
                     pl.begin(u)
-                # the multipliers of the last increment failing at t = 1: a shorter
-                # increment ends at the same state, so it cannot help
-                if dt / 2 < min_dt or isinstance(exc, ContactDidNotConvergeError):
+                # multipliers failing at t = 1: a shorter increment ends at the same
+                # state, so it cannot help
+                at_end = t_new >= 1.0 - 1e-12 and isinstance(exc, ContactDidNotConvergeError)
+                if dt / 2 < min_dt or at_end:
                     raise SolverDidNotConvergeError(
                         f"step '{step_name}': no equilibrium at t = {t_new:.4g} from t = {t:.4g} "
                         f"(increments down to {dt:.3g}): {exc}", load_fraction=t,
@@ -389,6 +375,16 @@ def minimise_step(problem: Problem, u0: np.ndarray, *, gravity: Callable[[float]
     return u, m.stats, R.reshape(-1, 3)
 
 
+def _external(problem: Problem, gravity, forces) -> Callable[[float], np.ndarray]:
+    """``t -> f_ext(t)`` (3N,) N: the weight under ``gravity(t)`` plus the dead loads ``forces(t)``."""
+    def fext(t: float) -> np.ndarray:
+        f = np.zeros(problem.n_dofs) if gravity is None else body_force(problem, gravity(t))
+        if forces is not None:
+            f = f + np.asarray(forces(t), float).reshape(-1)
+        return f
+    return fext
+
+
 def _progress_info(plates, s: _State, T0_mm: float | None) -> dict:
     """The upper plate's normal force (N) at state ``s`` and, with ``T0_mm``, the
     compression degree ``D = 1 - gap / T0`` of the plates' current gap."""
@@ -404,22 +400,23 @@ def _progress_info(plates, s: _State, T0_mm: float | None) -> dict:
     return info
 
 
-def _increment(m: Minimiser, starts: Sequence[np.ndarray], t: float, gravity, contacts, plates,
-               cfg, *, last: bool):
+def _increment(m: Minimiser, starts: Sequence[np.ndarray], t: float, external, contacts, plates,
+               cfg):
     """One increment to ``t`` from the start of lowest potential among ``starts`` (the last
     state, and the path extrapolated from it: a starting guess changes the iterations, not
-    the minimiser): minimise, update the multipliers and the friction lag (the last
-    increment: until the penetration and the friction bound are converged)."""
+    the minimiser): minimise, and update the multipliers and the friction lag until the
+    penetration and the friction bound are converged (each increment is then a backward-
+    Euler step of Coulomb's law at its own pressure)."""
     for c in contacts:
         c.set_time(t)
-    fext = body_force(m.p, gravity(t))
+    fext = external(t)
     u = starts[0]
     if len(starts) > 1:
         trials = [m.state(v, fext, plates, hessian=False) for v in starts]
         energies = [np.inf if s is None else s.energy for s in trials]
         u = starts[int(np.argmin(energies))] if np.isfinite(min(energies)) else starts[0]
     previous: list = [None] * len(plates)
-    n_aug = m.o.max_augmentations if last else 1
+    n_aug = m.o.max_augmentations
     for k in range(n_aug):
         s = m.solve(u, fext, plates)
         u = s.u
@@ -429,16 +426,14 @@ def _increment(m: Minimiser, starts: Sequence[np.ndarray], t: float, gravity, co
         log.debug("%s: t = %.4g, update %d: %d iterations so far, penetration %.3g mm, "
                   "friction error %.3g, |R| %.3g N, resultant %.3g N", m.stats.name, t, k,
                   m.stats.iterations, pen, ferr, np.linalg.norm(s.R[m.free]),
-                  np.linalg.norm(s.R[m.free].reshape(-1, 3).sum(axis=0)))
-        if done and last:
+                  np.linalg.norm(m.free_resultant(s.R)))
+        if done:
             return s
         for i, (pl, e) in enumerate(zip(plates, s.plates)):
             eps_max = cfg.penalty_growth_max * float(np.max(pl.c.eps_n))
             previous[i] = pl.update(e, growth=cfg.penalty_growth, slow_ratio=cfg.slow_uzawa_ratio,
                                     eps_max=eps_max, previous=previous[i])
         m.stats.augmentations += 1
-        if not last:
-            return s
     raise ContactDidNotConvergeError(f"contact multipliers not converged in {n_aug} updates "
                                      f"(penetration {pen:.3g} mm, friction error {ferr:.3g})")
 
@@ -455,7 +450,7 @@ def minimiser_from_problem(problem: Problem, *, options=None, progress: Progress
     o = options or problem.config.solver
 
     def solve(u0, g0, g1, contribs, name, initial_increment=None, max_increment=None,
-              T0_mm=None, **_guards):
+              T0_mm=None):
         g0 = np.asarray(g0, float)
         g1 = np.asarray(g1, float)
         if initial_increment is not None and initial_increment >= 1.0:

@@ -47,11 +47,10 @@ Units: mm, N, MPa (N/mm^2); energies in N mm.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import scipy.sparse as sp
-
-from regtrack.mechanics.contact import PlateContact
 
 
 def normal_terms(gap: np.ndarray, normal: np.ndarray, lam: np.ndarray, eps: np.ndarray,
@@ -129,7 +128,7 @@ class PlatePotential:
     contact's (``PlateContact.set_time`` moves it).
     """
 
-    def __init__(self, contact: PlateContact, u: np.ndarray):
+    def __init__(self, contact: Any, u: np.ndarray):
         self.c = contact
         self.begin(u)
 
@@ -205,13 +204,20 @@ class PlatePotential:
 
     def commit(self, u: np.ndarray) -> None:
         """Store the converged increment in the contact: stick points slid by the slip of
-        the increment, multipliers and pressures (the next increment starts from them)."""
+        the increment, multipliers and pressures (the next increment starts from them), and
+        the number of nodes that slid (``n_slip`` of the contact's report)."""
         c = self.c
         x = self.positions(u)
         anchor = c.plate.to_model(self.anchor_local)
-        new = slid_anchor(x, anchor, self.nbar, c.mu * self.pbar, c.eps_t) if c.mu > 0 else x
-        self.anchor_local = c.plate.to_local(new)
+        n_slip = 0
+        if c.mu > 0:
+            bound = c.mu * self.pbar
+            slip = friction_terms(x, anchor, self.nbar, bound, c.eps_t, c.areas)[3]
+            n_slip = int(np.count_nonzero(slip & (bound > 0)))
+            x = slid_anchor(x, anchor, self.nbar, bound, c.eps_t)
+        self.anchor_local = c.plate.to_local(x)
         st = c.get_state()
         st.update(anchor=self.anchor_local.copy(), lam=self.lam.copy(), pconv=self.pbar.copy(),
                   eps=self.eps.copy(), plate=c.plate)
         c.set_state(st)
+        c.n_slip = n_slip

@@ -244,7 +244,6 @@ class Evaluation:
     energy: float
     n_inverted: int
     dv: np.ndarray | None = None
-    contrib_norm: float = 0.0  # largest resultant force of a contribution (plate force), set by the solver
 
     @property
     def bvals(self) -> np.ndarray | None:
@@ -312,6 +311,16 @@ def _evaluate_p2(problem: Problem, x: np.ndarray, want_k: bool) -> Evaluation:
 def internal_force(problem: Problem, u: np.ndarray) -> np.ndarray:
     """Tissue + skin internal force (N, 3) in N at displacement ``u`` (N, 3) mm."""
     return evaluate(problem, u, want_k=False).f.reshape(-1, 3)
+
+
+def reaction_forces(problem: Problem, u: np.ndarray, *, gravity_ms2=None) -> np.ndarray:
+    """Residual ``f_int - f_ext`` (N, 3) in N at ``u`` (N, 3) mm, ``f_ext`` the weight under
+    ``gravity_ms2`` (m/s^2; None: none): at constrained nodes the force the supports exert
+    on the body; at free nodes about zero after convergence (without contact)."""
+    R = evaluate(problem, u, want_k=False).f
+    if gravity_ms2 is not None:
+        R = R - body_force(problem, gravity_ms2)
+    return R.reshape(-1, 3)
 
 
 def tangent(problem: Problem, u: np.ndarray):

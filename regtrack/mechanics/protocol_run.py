@@ -7,8 +7,9 @@ with their frictional contact) and calls a *step solver* for each mechanical ste
 
 which must return an equilibrium ``u`` (N, 3) mm after ramping the gravity vector
 (m/s^2, model frame) from ``g_start`` to ``g_end`` while each contribution's
-``set_time(t)`` moves its plate (pseudo-time t: 0 -> 1).  :func:`solver_from_problem`
-adapts the mechanics core's ``solve_step``; tests use small mock solvers.
+``set_time(t)`` moves its plate (pseudo-time t: 0 -> 1).
+:func:`regtrack.mechanics.minimise.minimiser_from_problem` adapts the mechanics core's
+``minimise_step``; tests use small mock solvers.
 
 Plate placement (plate frame ``n, e_x`` of :func:`regtrack.virtual.frames.plate_frame`):
 both plates have their chest-wall (posterior) edge rounded with ``edge_radius_mm``, at
@@ -32,32 +33,24 @@ force), which measures the uncompressed thickness ``T_0`` (plate gap at first to
 then it travels to the gap ``(1 - D) T_0`` (degree), the given gap (gap), or until the
 plate force reaches the target within ``force_tol`` (force: marching + secant, each trial
 solved from the last accepted state).  After every step the penetration guard rail
-rejects a state with a node deeper than ``max_penetration_mm`` in a plate.  A plate move
-that does not converge is run again from its start with a lower cap on the contact
-penalty growth (``[contact] retry_penalty_growth_max``), then with a smaller plate travel
-per increment (``retry_plate_increment_mm``); one that crawls in stabilised increments
-(``[mechanics.solver] crawl_increments``) is stopped and retried in the other order
-(:meth:`ProtocolRunner._run_step_with_retry`).
+rejects a state with a node deeper than ``max_penetration_mm`` in a plate.
 
 Force balance: every step reports ``solver.force_balance`` (:func:`force_balance`), the
 resultant of the residual over the free nodes (the sum of chest-wall reaction, plate
-forces and weight) against the largest of those loads, and warns when it exceeds
-``[mechanics.solver] stall_force_tol``: a state reached through increments accepted at
-their best iterate can miss the balance although its residual norm passed.
+forces and weight) against the largest of those loads; the step solver refuses a state
+whose imbalance exceeds ``[mechanics.solver] stall_force_tol``.
 """
 
 from __future__ import annotations
 
 import logging
-import time
 from collections.abc import Callable
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
-from regtrack.errors import (ConfigError, ResultCheckError, SolverCrawlError,
-                             SolverDidNotConvergeError)
+from regtrack.errors import ConfigError, ResultCheckError, SolverDidNotConvergeError
 from regtrack.mechanics import compression as comp
 from regtrack.mechanics.contact import (ContactConfig, PlateContact, automatic_penalty,
                                         mean_edge_length, tributary_areas)
@@ -283,10 +276,6 @@ class ProtocolRunner:
         self.loads: dict[str, np.ndarray] = {}
         self.records: list[StepRecord] = []
         self._tmean0: float | None = None
-        self._contact_configs = {k: c.config for k, c in self.contacts.items()}
-        self._plate_cap: float | None = None  # a retry's [contact] max_plate_increment_mm
-        self._crawl_guard = False  # stop a crawling solve (a retry follows)
-        self._stall_guard = False  # stop a repeated multiplier stall at t = 1 (a retry follows)
 
     # -- one solve ------------------------------------------------------------------
     def _solve(self, g_end: np.ndarray, name: str, *, single: bool = False,
@@ -300,10 +289,6 @@ class ProtocolRunner:
                 kw["initial_increment"] = 1.0
             elif max_increment is not None and max_increment < 1.0:
                 kw["max_increment"] = max_increment
-            if self._crawl_guard:
-                kw["crawl_guard"] = True
-            if self._stall_guard:
-                kw["stall_guard"] = True
             if T0_mm is not None:  # the solver's progress reports D = 1 - gap / T0
                 kw["T0_mm"] = T0_mm
         u, stats = self.solve(self.u, self.g, g_end, contribs, name, **kw)
@@ -333,7 +318,7 @@ class ProtocolRunner:
         parts = [distance] if abs(distance) <= 1.5 * first else [np.sign(distance) * first,
                                                                  distance - np.sign(distance) * first]
         stats: dict = {}
-        cap = self._plate_cap if self._plate_cap is not None else self.config.max_plate_increment_mm
+        cap = self.config.max_plate_increment_mm
         for k, d in enumerate(parts):
             start = pc.plate.origin.copy()
             pc.set_motion(start, start + d * pc.plate.normal)
@@ -423,25 +408,12 @@ class ProtocolRunner:
         if pen > self.config.max_penetration_mm:
             raise ResultCheckError(
                 f"step '{step.name}': a skin node is {pen:.3f} mm inside a plate (limit "
-                f"{self.config.max_penetration_mm} mm); use [contact] method = "
-                "\"augmented-lagrangian\" or raise penalty_factor")
+                f"{self.config.max_penetration_mm} mm); lower [contact] penetration_tol_mm "
+                "or raise penalty_factor")
         gap = _gap(self.plates, self.n)
         rec = StepRecord(name=step.name, action=step.action, u=self.u.copy(), gravity_ms2=self.g.copy(),
                          plates={k: c.plate.to_dict() for k, c in self.plates.items()},
                          contact=reps, gap_mm=gap, max_penetration_mm=pen, solver=stats)
-        fb = stats.get("force_balance")
-        if isinstance(fb, dict) and not fb.get("ok", True):
-            n_stalled = int(stats.get("stalled_accepts", 0))
-            msg = (f"step '{step.name}': the forces on the breast do not balance: the residual "
-                   f"resultant is {fb['imbalance_N']:.3g} N, {100 * fb['relative']:.2g} % of the "
-                   f"largest load ({fb['load_N']:.3g} N; allowed {100 * fb['tol']:.2g} %, "
-                   f"[mechanics.solver] stall_force_tol), after {n_stalled} "
-                   f"increment{'' if n_stalled == 1 else 's'} accepted at the best "
-                   "iterate: plate forces and displacements may be off by about that much; "
-                   "a lower stall_force_tol (e.g. 1e-3) refuses such increments and cuts "
-                   "them back instead (slower; a run may then stop short)")
-            log.warning(msg)
-            rec.warnings.append(msg)
         depth, count = behind_chest_wall(self.body.points, self.u, self.body.fixed)
         rec.behind_chest_wall_mm, rec.behind_chest_wall_nodes = depth, count
         if depth is not None and depth > self.config.behind_wall_warn_mm:
@@ -457,119 +429,6 @@ class ProtocolRunner:
             rec.D = comp.compression_degree(T0, gap)
             if self._tmean0:
                 rec.D_mean = 1.0 - self._mean_thickness() / self._tmean0
-        return rec
-
-    def _remedies(self) -> list[tuple[str, float]]:
-        """The retries of a plate move, each a ``(setting, value)`` of ``[contact]``."""
-        cfg, out = self.config, []
-        if cfg.retry_penalty_growth_max > 0:
-            out.append(("penalty_growth_max", cfg.retry_penalty_growth_max))
-        if cfg.retry_plate_increment_mm > 0:
-            cap = cfg.retry_plate_increment_mm
-            if 0 < cfg.max_plate_increment_mm <= cap:
-                cap = 0.5 * cfg.max_plate_increment_mm
-            out.append(("max_plate_increment_mm", cap))
-        return out
-
-    def _apply_remedy(self, remedy: tuple[str, float] | None) -> None:
-        """Set one retry's setting (None: the configured ones again)."""
-        self._plate_cap = None
-        for k, c in self.contacts.items():
-            c.config = self._contact_configs[k]
-        if remedy is None:
-            return
-        what, value = remedy
-        if what == "max_plate_increment_mm":
-            self._plate_cap = value
-            return
-        for c in self.contacts.values():
-            low = min(value, c.config.penalty_growth_max)
-            c.config = replace(c.config, penalty_growth_max=low)
-            c.eps_node = np.minimum(c.eps_node, low * c.eps_n)
-
-    def _attempt(self, step: Step, remedy: tuple[str, float] | None, snap,
-                 failed: list[dict], *, last: bool = False) -> StepRecord | None:
-        """One attempt of a plate move with a retry's setting (None: the first attempt,
-        the only one with the crawl guard; every attempt but the ``last`` has the stall
-        guard); a failure is appended to ``failed`` (with the state restored to ``snap``)
-        and gives None."""
-        self._apply_remedy(remedy)
-        self._crawl_guard = remedy is None
-        self._stall_guard = not last
-        t0 = time.perf_counter()
-        try:
-            return self._run_step(step)
-        except SolverDidNotConvergeError as err:
-            failed.append({"remedy": None if remedy is None else dict([remedy]),
-                           "error": str(err), "s": time.perf_counter() - t0, "exc": err})
-        self._restore(snap)
-        return None
-
-    def _run_step_with_retry(self, step: Step) -> StepRecord:
-        """:meth:`_run_step`; a plate move that does not converge, or crawls, is run again
-        from the state at its start, with one setting changed per retry (``_remedies``):
-
-        * the node-wise contact penalty capped at ``[contact] retry_penalty_growth_max``
-          times the automatic one;
-        * the plate travel per increment capped at ``[contact] retry_plate_increment_mm``.
-
-        A crawl (:class:`SolverCrawlError`, ``[mechanics.solver] crawl_increments``) is
-        retried with the plate cap first, a non-convergence with the penalty cap first.
-        Only the first attempt runs with the crawl guard: a retry crawls on to its end,
-        because a run of small stabilised increments may recover (a real MLO with 17
-        stabilised increments in a row completed when let run).  Every attempt but
-        the last runs with the stall guard (``stall_guard`` of
-        :func:`regtrack.mechanics.solver.solve_step`: the last increment failing twice in a
-        row with the multipliers stalled on the same node), whose cut-backs cannot change
-        the state at t = 1.  The last error reports every attempt.
-
-        Why the penalty cap: the penalty growth that speeds up the multiplier updates of skin
-        pinched at the chest wall (``penalty_growth_max``, 256) also stiffens nodes at the
-        rim of the contact zone, and Newton then cycles there.  Measured, Pelicano exam 03 CC
-        at D = 50 % (1,667 nodes): at the rim of the upper plate's contact zone, one skin
-        node went in and out of contact (gap +0.2 / -2.1 mm, |R| 0.2 / 4 N) at every
-        iteration next to pressed nodes with 16 and 64 times the automatic penalty, and the
-        step stopped; with the cap at 16 it completes.  A lower cap is not the default: at
-        8.9k nodes it doubled the iterations of exam 10 CC.  Why the plate cap: a crawl is a
-        frictional path stuck in the chest-wall pinch, and the plate travel per increment
-        changes the path (friction is integrated per increment).
-
-        The retry is recorded in the step's solver statistics (``retry``: the setting that
-        worked, the first attempt's error and wall time, and ``failed_attempts``; the
-        other figures are the successful attempt's).
-        """
-        remedies = self._remedies()
-        if step.action != "move_plate" or not remedies:
-            return self._run_step(step)
-        snap = self._snapshot()
-        failed: list[dict] = []
-        try:
-            rec = self._attempt(step, None, snap, failed)
-            if rec is None:  # the retries, in the order that suits the failure
-                order = sorted(remedies, key=lambda r: r[0] != "max_plate_increment_mm")
-                if not isinstance(failed[0]["exc"], SolverCrawlError):
-                    order.reverse()
-                for k, remedy in enumerate(order):
-                    log.warning("step '%s' did not converge (%s); retrying it from its start "
-                                "with [contact] %s = %g", step.name, failed[-1]["exc"], *remedy)
-                    rec = self._attempt(step, remedy, snap, failed, last=k == len(order) - 1)
-                    if rec is not None:
-                        break
-                else:
-                    last = failed[-1]["exc"]
-                    tried = " and ".join(f"a retry with [contact] {k} = {v:g}"
-                                         for f in failed[1:] for k, v in f["remedy"].items())
-                    raise type(last)(f"{last} (also after {tried}; the first attempt: "
-                                     f"{failed[0]['error']})", load_fraction=last.load_fraction,
-                                     last_converged=last.last_converged) from last
-        finally:
-            self._apply_remedy(None)
-            self._crawl_guard = self._stall_guard = False
-        if failed:
-            rec.solver["retry"] = dict([remedy], first_attempt=failed[0]["error"],
-                                       first_attempt_s=failed[0]["s"],
-                                       failed_attempts=[{k: v for k, v in f.items() if k != "exc"}
-                                                        for f in failed])
         return rec
 
     def _mean_thickness(self) -> float:
@@ -590,7 +449,7 @@ class ProtocolRunner:
             log.info("protocol %s: step %d/%d '%s'", self.protocol.name, i + 1,
                      len(self.protocol.steps), step.name)
             try:
-                self.records.append(self._run_step_with_retry(step))
+                self.records.append(self._run_step(step))
             except SolverDidNotConvergeError as err:
                 result.error = f"step '{step.name}' did not converge: {err}"
                 raise type(err)(f"protocol '{self.protocol.name}' step {i + 1} '{step.name}': "
@@ -613,12 +472,10 @@ def force_balance(problem: Any, u: np.ndarray, r: np.ndarray, g_ms2: np.ndarray,
     the free nodes, ``|sum_free R|`` (N), which equals the sum of the chest-wall reaction,
     the plate forces and the weight, against the largest of those loads (N).
 
-    The Newton tests bound ``||R||_2`` over the free dofs.  A converged state balances to
-    round-off (about 1e-6 of the load at 10k nodes); an increment accepted at its best
-    iterate (``stall_force_tol``, counted in ``stalled_accepts``) can leave a resultant up
-    to ``sqrt(free nodes)`` times larger, since many small nodal errors of one sign add
-    up (measured: 0.42 N, 1.0 % of a 40.8 N plate force).  ``ok`` is False when the
-    relative imbalance exceeds ``tol`` (the caller passes ``stall_force_tol``)."""
+    The convergence test bounds ``||R||_2`` over the free dofs, which bounds the resultant
+    only to ``sqrt(free nodes)`` times it, since many small nodal errors of one sign add
+    up; this is the check of the sum itself.  ``ok`` is False when the relative imbalance
+    exceeds ``tol`` (the caller passes ``stall_force_tol``)."""
     fixed = problem.model.fixed
     imbalance = float(np.linalg.norm(r[~fixed].sum(axis=0)))
     loads = [float(np.linalg.norm(r[fixed].sum(axis=0))),
@@ -631,44 +488,3 @@ def force_balance(problem: Any, u: np.ndarray, r: np.ndarray, g_ms2: np.ndarray,
     rel = imbalance / load if load > 0 else 0.0
     return {"imbalance_N": imbalance, "load_N": load, "relative": rel, "tol": float(tol),
             "ok": bool(rel <= tol)}
-
-
-def solver_from_problem(problem: Any, *, options: Any = None, progress: Any = None,
-                        dirichlet: Any = None) -> StepSolver:
-    """Adapt :func:`regtrack.mechanics.solver.solve_step` to the engine's step solver.
-
-    Gravity is ramped linearly from ``g_start`` to ``g_end`` (m/s^2); the returned stats
-    dict is :meth:`StepStats.to_dict` plus the chest-wall reaction (N), the force the
-    fixed nodes exert on the body.
-    """
-    from regtrack.mechanics.solver import reaction_forces, solve_step
-
-    from dataclasses import replace
-
-    def solve(u0, g0, g1, contribs, name, initial_increment=None, max_increment=None,
-              crawl_guard=False, stall_guard=False, T0_mm=None):
-        g0 = np.asarray(g0, float)
-        g1 = np.asarray(g1, float)
-        opts = options
-        o = options or problem.config.solver
-        if initial_increment is not None:
-            opts = replace(o, initial_increment=initial_increment,
-                           max_increment=max(o.max_increment, initial_increment))
-        elif max_increment is not None:
-            cap = min(o.max_increment, max_increment)
-            opts = replace(o, max_increment=cap, initial_increment=min(o.initial_increment, cap))
-        u, st = solve_step(problem, u0, gravity=lambda t: g0 + t * (g1 - g0), dirichlet=dirichlet,
-                           contributions=contribs, options=opts, progress=progress,
-                           step_name=name, step=name, crawl_guard=crawl_guard,
-                           stall_guard=stall_guard)
-        out = st.to_dict()
-        out.pop("reports", None)
-        fixed = problem.model.fixed
-        if fixed.any():
-            r = reaction_forces(problem, u, gravity_ms2=g1, contributions=contribs)
-            out["chest_wall_reaction_N"] = r[fixed].sum(axis=0).tolist()
-            out["force_balance"] = force_balance(problem, u, r, g1, contribs, o.stall_force_tol)
-        return u, out
-    solve.takes_increment = True  # type: ignore[attr-defined]
-    return solve
-

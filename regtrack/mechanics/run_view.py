@@ -29,8 +29,7 @@ from regtrack.config import parse_section, to_table
 from regtrack.errors import ConfigError, ResultCheckError, SolverDidNotConvergeError
 from regtrack.mechanics.contact import ContactConfig
 from regtrack.mechanics.protocol import Protocol, protocol_for_view
-from regtrack.mechanics.protocol_run import (BodySetup, ProtocolResult, ProtocolRunner,
-                                             solver_from_problem)
+from regtrack.mechanics.protocol_run import BodySetup, ProtocolResult, ProtocolRunner
 from regtrack.model.types import BreastModel
 
 log = logging.getLogger(__name__)
@@ -62,25 +61,15 @@ def run_protocol_on_model(model: BreastModel, protocol: Protocol, *, mechanics: 
                           ) -> tuple[ProtocolResult, dict]:
     """Run ``protocol`` on ``model``; return the result and timings per phase (s)."""
     from regtrack.mechanics.config import MechanicsConfig
-    from regtrack.mechanics.solver import build_problem
+    from regtrack.mechanics.minimise import minimiser_from_problem
+    from regtrack.mechanics.problem import build_problem
 
     mechanics = mechanics or MechanicsConfig()
     t0 = time.perf_counter()
     problem = build_problem(model, mechanics)
     t1 = time.perf_counter()
     contact = contact or ContactConfig()
-    if mechanics.solver.method == "energy":
-        from dataclasses import replace
-
-        from regtrack.mechanics.minimise import minimiser_from_problem
-
-        step_solver = minimiser_from_problem(problem, progress=progress)
-        # every increment's minimisation converges by construction: no retried plate moves;
-        # the contacts report the friction of the potential (slip bound of the last update)
-        contact = replace(contact, retry_penalty_growth_max=0.0, retry_plate_increment_mm=0.0,
-                          friction_bound="multiplier")
-    else:
-        step_solver = solver_from_problem(problem, progress=progress)
+    step_solver = minimiser_from_problem(problem, progress=progress)
     runner = ProtocolRunner(body_from_model(model, mechanics, problem.tissue_c1.mean_kpa), protocol,
                             step_solver, config=contact)
     result = runner.run()
@@ -157,18 +146,14 @@ def summarise(result: ProtocolResult, timing: dict | None = None) -> dict:
     81 N on 8.9k, while the rest of the breast carries 5.4 to 6.6 N on every mesh
     (pipelines/mesh_convergence.py).  ``upper_body_force_N`` is
     the rest, ``upper_force_N - upper_edge_force_N``: the force of the breast between the
-    plates, the part that does not grow with mesh refinement.  ``retried_steps``: the
-    plate moves that converged only on an automatic retry (``[contact]
-    retry_penalty_growth_max``, ``retry_plate_increment_mm``; the step's ``solver.retry``
-    says which); their figures are those of the retry.  ``behind_chest_wall_mm``: the
+    plates, the part that does not grow with mesh refinement.  ``behind_chest_wall_mm``: the
     deepest any node ended a step behind the chest-wall plane
     (:func:`regtrack.mechanics.protocol_run.behind_chest_wall`); ``warnings``: every step's
-    warnings (``[contact] behind_wall_warn_mm``, and the force balance below).
+    warnings (``[contact] behind_wall_warn_mm``).
     ``force_imbalance_rel``: the largest over the steps of the global force imbalance
     (the residual's resultant over the free nodes) relative to the step's largest load
-    (:func:`regtrack.mechanics.protocol_run.force_balance`; about 1e-6 for converged
-    states, a step warns above ``[mechanics.solver] stall_force_tol``), None without
-    fixed nodes."""
+    (:func:`regtrack.mechanics.protocol_run.force_balance`; a step above ``[mechanics.solver]
+    stall_force_tol`` is refused), None without fixed nodes."""
     behind = [s.behind_chest_wall_mm for s in result.steps if s.behind_chest_wall_mm is not None]
     balance = [s.solver["force_balance"]["relative"] for s in result.steps
                if isinstance(s.solver.get("force_balance"), dict)]
@@ -186,28 +171,10 @@ def summarise(result: ProtocolResult, timing: dict | None = None) -> dict:
             "increments": sum(s.solver.get("increments", 0) for s in result.steps),
             "iterations": sum(s.solver.get("iterations", 0) for s in result.steps),
             "cutbacks": sum(s.solver.get("cutbacks", 0) for s in result.steps),
-            "retried_steps": [s.name for s in result.steps if "retry" in s.solver],
             "behind_chest_wall_mm": max(behind) if behind else None,
             "force_imbalance_rel": max(balance) if balance else None,
             "warnings": [w for s in result.steps for w in s.warnings],
             "tissue": result.materials, "timing_s": timing or {}}
-
-
-def retry_summary(result: ProtocolResult, *, errors: bool = False) -> str:
-    """The automatic retries of the plate moves (``ProtocolRunner._run_step_with_retry``),
-    one per retried step: the setting that worked and each failed attempt's wall seconds
-    (``errors``: and the first attempt's error), or ``"none"``.  The step's other figures
-    (increments, iterations, ...) are the successful attempt's."""
-    out = []
-    for s in result.steps:
-        r = s.solver.get("retry")
-        if r:
-            won = ", ".join(f"{k} = {v:g}" for k, v in r.items()
-                            if k in ("penalty_growth_max", "max_plate_increment_mm"))
-            lost = " + ".join(f"{f['s']:.0f} s" for f in r.get("failed_attempts", []))
-            first = f"; the first stopped with: {r.get('first_attempt')}" if errors else ""
-            out.append(f"{s.name}: {won} (failed attempts {lost}{first})")
-    return "; ".join(out) or "none"
 
 
 def write_outputs(result: ProtocolResult, model: BreastModel, out_dir: Path, *, stem: str,

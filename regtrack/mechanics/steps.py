@@ -32,8 +32,8 @@ import numpy as np
 from regtrack.config import parse_section
 from regtrack.errors import ConfigError
 from regtrack.mechanics.config import MechanicsConfig
-from regtrack.mechanics.problem import Problem
-from regtrack.mechanics.solver import reaction_forces, solve_step
+from regtrack.mechanics.minimise import minimise_step
+from regtrack.mechanics.problem import Problem, reaction_forces
 from regtrack.mechanics.types import Deformation, SolverStats, StepResult
 
 log = logging.getLogger(__name__)
@@ -124,11 +124,15 @@ def run_steps(problem: Problem, steps: list[LoadStep], *, node_sets: dict[str, n
               progress: Callable[[str, float], None] | None = None, where: str = "config [[steps]]") -> Deformation:
     """Run ``steps`` in order from the undeformed state; one :class:`StepResult` per step.
 
+    Each step is a minimisation of the incremental potential (:func:`.minimise.minimise_step`)
+    in ``1 / [mechanics.solver] initial_increment`` increments.
+
     The reaction of each step (``reaction``, N) is the force the supports (fixed nodes and
     prescribed node sets) exert on the body; ``chest_wall_reaction_n`` sums it over the
     model's fixed (chest-wall) nodes.
     """
     fields = node_sets or {}
+    n_increments = int(np.ceil(1.0 / problem.config.solver.initial_increment - 1e-9))
     u = np.zeros_like(problem.X)
     g_vec, g_scale = np.zeros(3), 0.0
     held: dict[int, float] = {}
@@ -163,8 +167,9 @@ def run_steps(problem: Problem, steps: list[LoadStep], *, node_sets: dict[str, n
             dirichlet = _held(held, (dofs, start, inc))
             for d, val in zip(dofs, start + inc):
                 held[int(d)] = float(val)
-        u, sstats = solve_step(problem, u, gravity=gravity, dirichlet=dirichlet, step_name=st.name,
-                               progress=progress)
+        u, sstats, _ = minimise_step(problem, u, gravity=gravity, dirichlet=dirichlet,
+                                     n_increments=n_increments, step_name=st.name,
+                                     progress=progress)
         _check_state(problem, u, st.name)
         R = reaction_forces(problem, u, gravity_ms2=gravity(1.0))
         cons = np.zeros(problem.n_dofs, bool)

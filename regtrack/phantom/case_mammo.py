@@ -53,7 +53,7 @@ def mismatch_statement(p: MammoTruthParams, sim: TruthSimulation) -> dict:
             "stagnating near 1e-3 N)" if p.friction == 0 else ""),
         "mesh": (f"its own mesh, {sim.model.n_nodes} nodes (element size {p.element_size_mm} mm), vs the "
                  "pipeline's (about 10000 nodes by default; the sample case's case.toml sets 1500)"),
-        "solver": (f"Newton relative tolerance {p.force_tol:g} on force and displacement "
+        "solver": (f"relative residual tolerance {p.force_tol:g} of the energy solver "
                    f"(pipeline default {SolverOptions().force_tol:g})"),
         "in_plane_rotation_deg": {"CC": p.rotation_cc_deg, "MLO": p.rotation_mlo_deg},
         "in_plane_shift_mm": {"CC": list(p.shift_cc_mm), "MLO": list(p.shift_mlo_mm)},

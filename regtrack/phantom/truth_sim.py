@@ -118,14 +118,15 @@ def simulate_view(model: BreastModel, view: str, p: MammoTruthParams, *, progres
     from regtrack.mechanics.materials import KPA
     from regtrack.mechanics.problem import build_problem
     from regtrack.mechanics.protocol import protocol_for_view
-    from regtrack.mechanics.protocol_run import ProtocolRunner, solver_from_problem
+    from regtrack.mechanics.minimise import minimiser_from_problem
+    from regtrack.mechanics.protocol_run import ProtocolRunner
     from regtrack.mechanics.run_view import body_from_model, summarise
 
     c1 = element_c1_kpa(model, p)
     mats = material_summary(model, c1, p)
     cfg = MechanicsConfig(tissue_c1_kpa=mats["tissue_c1_mean_kpa"], tumour_c1_kpa=p.tumour_c1_kpa, nu=p.nu,
                           skin_enabled=p.skin_membrane,
-                          solver=SolverOptions(force_tol=p.force_tol, disp_tol=p.force_tol,
+                          solver=SolverOptions(force_tol=p.force_tol,
                                                initial_increment=p.initial_increment))
     t0 = time.perf_counter()
     problem = build_problem(model, cfg)
@@ -133,8 +134,8 @@ def simulate_view(model: BreastModel, view: str, p: MammoTruthParams, *, progres
     problem.mats = dataclasses.replace(problem.mats, c1=c1 * KPA)
     protocol = protocol_for_view(view, {"target_D": p.target_D(view)}, where="phantom truth")
     runner = ProtocolRunner(body_from_model(model, cfg), protocol,
-                            solver_from_problem(problem, progress=progress),
-                            # the bundled truth was made with the paper's model (no wall)
+                            minimiser_from_problem(problem, progress=progress),
+                            # the paper's model: no chest-wall contact
                             config=ContactConfig(friction=p.friction, chest_wall_contact=False))
     result = runner.run()
     t1 = time.perf_counter()
