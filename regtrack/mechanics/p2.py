@@ -15,7 +15,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from regtrack.mechanics.tissue import _det3, _inv_transpose
+from regtrack.mechanics.tissue import _det3, _inv_transpose, tangent_entry
 
 EDGES = np.array([[0, 1], [1, 2], [0, 2], [0, 3], [1, 3], [2, 3]])
 _A, _B = 0.5854101966249685, 0.1381966011250105
@@ -123,12 +123,8 @@ def tet10_kernel(x, tets, G, W, c1, kappa, want_k, f, data, base, rowstride):
                     b0 = base[e, a, b]
                     for i in range(3):
                         for k in range(3):
-                            v = (mu_e * (-2.0 / 3.0 * (fa[a, i] * ha[b, k] + ha[a, i] * fa[b, k])
-                                         + 2.0 / 9.0 * I1 * ha[a, i] * ha[b, k])
-                                 + cvol * ha[a, i] * ha[b, k] + cgeo * ha[a, k] * ha[b, i])
-                            if i == k:
-                                v += mu_e * gg
-                            data[b0 + i * rs + k] += w * v
+                            data[b0 + i * rs + k] += w * tangent_entry(fa, ha, a, b, i, k, mu_e,
+                                                                       I1, cvol, cgeo, gg)
     return energy, bad
 
 

@@ -166,8 +166,8 @@ def tet_kernel(x, tets, G, V, c1, p, dp, want_k, project, f, data, base, rowstri
             continue
         cvol = (dp[e] * J + pe) * J
         cgeo = mu_e * I1 / 3.0 - pe * J
+        _element_tangent(G, e, fa, ha, mu_e, I1, cvol, cgeo, V[e], Ke)
         if project:
-            _element_tangent(G, e, fa, ha, mu_e, I1, cvol, cgeo, V[e], Ke)
             w, Q = np.linalg.eigh(Ke)
             Ke[:, :] = 0.0
             for m in range(12):
@@ -175,35 +175,29 @@ def tet_kernel(x, tets, G, V, c1, p, dp, want_k, project, f, data, base, rowstri
                     for r in range(12):
                         for q in range(12):
                             Ke[r, q] += w[m] * Q[r, m] * Q[q, m]
-            for a in range(4):
-                na = tets[e, a]
-                if owned[na]:
-                    rs = rowstride[na]
-                    for b in range(4):
-                        b0 = base[e, a, b]
-                        for i in range(3):
-                            for k in range(3):
-                                data[b0 + i * rs + k] += Ke[3 * a + i, 3 * b + k]
-            continue
         for a in range(4):
             na = tets[e, a]
-            if not owned[na]:
-                continue
-            rs = rowstride[na]
-            for b in range(4):
-                gg = 0.0
-                for L in range(3):
-                    gg += G[e, a, L] * G[e, b, L]
-                b0 = base[e, a, b]
-                for i in range(3):
-                    for k in range(3):
-                        v = (mu_e * (-2.0 / 3.0 * (fa[a, i] * ha[b, k] + ha[a, i] * fa[b, k])
-                                     + 2.0 / 9.0 * I1 * ha[a, i] * ha[b, k])
-                             + cvol * ha[a, i] * ha[b, k] + cgeo * ha[a, k] * ha[b, i])
-                        if i == k:
-                            v += mu_e * gg
-                        data[b0 + i * rs + k] += V[e] * v
+            if owned[na]:
+                rs = rowstride[na]
+                for b in range(4):
+                    b0 = base[e, a, b]
+                    for i in range(3):
+                        for k in range(3):
+                            data[b0 + i * rs + k] += Ke[3 * a + i, 3 * b + k]
     return bad
+
+
+@njit(cache=True, inline="always")
+def tangent_entry(fa, ha, a, b, i, k, mu_e, I1, cvol, cgeo, gg):
+    """``sum_JL G_aJ A_iJkL G_bL`` of the module docstring at one point (MPa/mm^2), from
+    ``fa = F G_a``, ``ha = H G_a``, ``gg = G_a . G_b``, ``mu_e = 2 c1 J^(-2/3)`` and the
+    volumetric and geometric coefficients ``cvol = (p' J + p) J``, ``cgeo = mu_e I1 / 3 - p J``."""
+    v = (mu_e * (-2.0 / 3.0 * (fa[a, i] * ha[b, k] + ha[a, i] * fa[b, k])
+                 + 2.0 / 9.0 * I1 * ha[a, i] * ha[b, k])
+         + cvol * ha[a, i] * ha[b, k] + cgeo * ha[a, k] * ha[b, i])
+    if i == k:
+        v += mu_e * gg
+    return v
 
 
 @njit(cache=True)
@@ -216,12 +210,8 @@ def _element_tangent(G, e, fa, ha, mu_e, I1, cvol, cgeo, Ve, Ke):
                 gg += G[e, a, L] * G[e, b, L]
             for i in range(3):
                 for k in range(3):
-                    v = (mu_e * (-2.0 / 3.0 * (fa[a, i] * ha[b, k] + ha[a, i] * fa[b, k])
-                                 + 2.0 / 9.0 * I1 * ha[a, i] * ha[b, k])
-                         + cvol * ha[a, i] * ha[b, k] + cgeo * ha[a, k] * ha[b, i])
-                    if i == k:
-                        v += mu_e * gg
-                    Ke[3 * a + i, 3 * b + k] = Ve * v
+                    Ke[3 * a + i, 3 * b + k] = Ve * tangent_entry(fa, ha, a, b, i, k, mu_e, I1,
+                                                                  cvol, cgeo, gg)
 
 
 @njit(cache=True)
