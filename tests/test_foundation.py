@@ -76,9 +76,9 @@ def test_run_set_overrides_parse_into_sections():
     from regtrack.errors import ConfigError
 
     assert parse_sets(["model.target_nodes=3000", "protocol.CC.target_D=0.3",
-                       "contact.method=penalty", "mechanics.skin_enabled=false"]) == {
+                       "contact.friction=0.2", "mechanics.skin_enabled=false"]) == {
         "model": {"target_nodes": 3000}, "protocol": {"CC": {"target_D": 0.3}},
-        "contact": {"method": "penalty"}, "mechanics": {"skin_enabled": False}}
+        "contact": {"friction": 0.2}, "mechanics": {"skin_enabled": False}}
     for bad in ("target_nodes=3", "model.=3", "model.target_nodes"):
         with pytest.raises(ConfigError, match="SECTION.KEY=VALUE"):
             parse_sets([bad])
