@@ -51,8 +51,8 @@ class SolverOptions:
     initial_increment: float = param(0.25, "-", "pseudo-time increment of a gravity step (1 / the "
                                      "number of increments; plate moves use [contact] "
                                      "max_plate_increment_mm)", gt=0, le=1)
-    max_augmentations: int = param(20, "-", "contact multiplier and friction-lag updates of a step's "
-                                   "last increment before it stops", ge=1)
+    max_augmentations: int = param(20, "-", "contact multiplier and friction-lag updates of an "
+                                   "increment before it is cut back (at t = 1: before the step stops)", ge=1)
     linear_solver: str = param("auto", "", "sparse solver", choices=("auto", "pardiso", "splu"))
     assembly_threads: int = param(0, "-", "threads of the tetrahedron force/tangent kernel (0: the "
                                   "CPUs this process may use, at most 4, and at most a study worker's "
