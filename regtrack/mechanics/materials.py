@@ -54,12 +54,16 @@ class ElementMaterials:
     group : (E,) int
         Material group index (0 tissue, 1 tumour); the average-nodal-pressure formulation
         averages the volume change per (node, group) so stiff inclusions do not smear.
+    tissue_young_mpa : float
+        Small-strain Young's modulus of the tissue's (volume-weighted mean) c1 (MPa): the
+        scale of the automatic contact penalty.
     """
 
     c1: np.ndarray
     kappa: np.ndarray
     rho: np.ndarray
     group: np.ndarray
+    tissue_young_mpa: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -168,18 +172,22 @@ def element_materials(region: np.ndarray, config: MechanicsConfig,
 
     ``tissue`` (:func:`tissue_stiffness`) gives the tissue c1 per element; without it the
     tissue is homogeneous with ``tissue_c1_kpa``.  The tissue's bulk modulus is that of its
-    volume-weighted mean c1 and ``nu``.
+    volume-weighted mean c1 and ``nu``.  This is where the configuration's kPa become the
+    MPa of the mechanics, once.
     """
     region = np.asarray(region)
     tum = region == TUMOUR
     nu_t = config.nu if config.tumour_nu is None else config.tumour_nu
     c1_t = tissue.c1_kpa if tissue is not None else np.full(len(region), config.tissue_c1_kpa)
     c1_mean = tissue.mean_kpa if tissue is not None else config.tissue_c1_kpa
-    c1 = np.where(tum, config.tumour_c1_kpa, c1_t) * KPA
+    # kPa (the configuration) -> MPa (the mechanics): the one conversion
+    c1_t, c1_mean, c1_tum = (np.asarray(v, float) * KPA for v in (c1_t, c1_mean, config.tumour_c1_kpa))
+    c1 = np.where(tum, c1_tum, c1_t)
     nu = np.where(tum, nu_t, config.nu)
-    kappa = bulk_modulus(2.0 * np.where(tum, config.tumour_c1_kpa, c1_mean) * KPA, nu)
+    kappa = bulk_modulus(2.0 * np.where(tum, c1_tum, c1_mean), nu)
     rho = np.full(len(region), float(config.density_kg_m3))
-    return ElementMaterials(c1=c1, kappa=kappa, rho=rho, group=tum.astype(np.int64))
+    return ElementMaterials(c1=c1, kappa=kappa, rho=rho, group=tum.astype(np.int64),
+                            tissue_young_mpa=young_modulus(float(c1_mean), config.nu))
 
 
 def skin_material(config: MechanicsConfig) -> SkinMaterial:

@@ -45,15 +45,11 @@ class ViewResult:
     summary: dict = field(default_factory=dict)
 
 
-def body_from_model(model: BreastModel, mechanics: Any, c1_kpa: float | None = None) -> BodySetup:
-    """:class:`BodySetup` of a model; ``E = 4 c1 (1 + nu)`` of the tissue (MPa), with ``c1``
-    the tissue's (mean) c1: ``c1_kpa``, or that of ``mechanics`` (``tissue_model``)."""
-    from regtrack.mechanics.materials import KPA, tissue_stiffness, young_modulus
-
-    if c1_kpa is None:
-        c1_kpa = tissue_stiffness(model.region, model.tissue_label, model.tet_volumes(), mechanics).mean_kpa
+def body_from_model(model: BreastModel, young_mpa: float) -> BodySetup:
+    """:class:`BodySetup` of a model whose tissue has the small-strain Young's modulus
+    ``young_mpa`` (MPa; :attr:`.materials.ElementMaterials.tissue_young_mpa`)."""
     return BodySetup(points=model.points, tets=model.tets, skin=model.skin, fixed=model.fixed,
-                     side=model.frame.side, young_mpa=young_modulus(c1_kpa * KPA, mechanics.nu))
+                     side=model.frame.side, young_mpa=young_mpa)
 
 
 def run_protocol_on_model(model: BreastModel, protocol: Protocol, *, mechanics: Any = None,
@@ -70,7 +66,7 @@ def run_protocol_on_model(model: BreastModel, protocol: Protocol, *, mechanics: 
     t1 = time.perf_counter()
     contact = contact or ContactConfig()
     step_solver = minimiser_from_problem(problem, progress=progress)
-    runner = ProtocolRunner(body_from_model(model, mechanics, problem.tissue_c1.mean_kpa), protocol,
+    runner = ProtocolRunner(body_from_model(model, problem.mats.tissue_young_mpa), protocol,
                             step_solver, config=contact)
     result = runner.run()
     result.materials = problem.tissue_c1.info

@@ -133,7 +133,7 @@ def simulate_view(model: BreastModel, view: str, p: MammoTruthParams, *, progres
     # heterogeneous deviatoric stiffness; K (hence the ANP groups) stays that of the mean c1
     problem.mats = dataclasses.replace(problem.mats, c1=c1 * KPA)
     protocol = protocol_for_view(view, {"target_D": p.target_D(view)}, where="phantom truth")
-    runner = ProtocolRunner(body_from_model(model, cfg), protocol,
+    runner = ProtocolRunner(body_from_model(model, problem.mats.tissue_young_mpa), protocol,
                             minimiser_from_problem(problem, progress=progress),
                             # the paper's model: no chest-wall contact
                             config=ContactConfig(friction=p.friction, chest_wall_contact=False))
