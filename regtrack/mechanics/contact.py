@@ -204,6 +204,11 @@ class PlateContact:
         return float(self.plate.query(x).gap.min())
 
     # -- plate motion -----------------------------------------------------------------
+    def place(self, plate: RigidPlate) -> None:
+        """Put the plate at rest at ``plate``: the start of the next step, no motion."""
+        self.plate = self._plate0 = plate
+        self.motion = None
+
     def set_motion(self, start, end) -> None:
         """Move the plate face origin linearly from ``start`` to ``end`` (mm) over t in [0, 1]."""
         self.motion = (np.asarray(start, float).reshape(3), np.asarray(end, float).reshape(3))

@@ -439,30 +439,29 @@ def _increment(m: Minimiser, starts: Sequence[np.ndarray], t: float, external, c
 
 
 def minimiser_from_problem(problem: Problem, *, options=None, progress: Progress | None = None):
-    """The protocol engine's step solver (:class:`.protocol_run.ProtocolRunner`) with
-    :func:`minimise_step`: a plate move in increments of the engine's ``max_increment``
-    (its plate travel cap), a single increment where the engine asks for one, a gravity
-    change in ``1 / initial_increment`` increments.  The stats carry the chest-wall
+    """The protocol engine's step solver (:data:`.protocol_run.StepSolver`) with
+    :func:`minimise_step`: as the :class:`.protocol_run.StepControl` asks, a plate move in
+    increments of ``max_increment`` (its plate travel cap), a single increment, or a
+    gravity change in ``1 / initial_increment`` increments.  The stats carry the chest-wall
     reaction (N) and the force balance; a state whose balance misses ``stall_force_tol``
     (0.5 % by default) is never returned."""
     from regtrack.mechanics.protocol_run import force_balance
 
     o = options or problem.config.solver
 
-    def solve(u0, g0, g1, contribs, name, initial_increment=None, max_increment=None,
-              T0_mm=None):
+    def solve(u0, g0, g1, contribs, name, control):
         g0 = np.asarray(g0, float)
         g1 = np.asarray(g1, float)
-        if initial_increment is not None and initial_increment >= 1.0:
+        if control.single:
             n = 1
-        elif max_increment is not None:
-            n = int(np.ceil(1.0 / max_increment - 1e-9))
+        elif control.max_increment is not None:
+            n = int(np.ceil(1.0 / control.max_increment - 1e-9))
         else:
             n = int(np.ceil(1.0 / o.initial_increment - 1e-9))
         cfg = contribs[0].config if contribs else None
         u, st, r = minimise_step(problem, u0, gravity=lambda t: g0 + t * (g1 - g0), contacts=contribs,
                                  n_increments=n, options=o, config=cfg, progress=progress,
-                                 step_name=name, T0_mm=T0_mm)
+                                 step_name=name, T0_mm=control.T0_mm)
         out = st.to_dict()
         fixed = problem.model.fixed
         if fixed.any():
@@ -475,5 +474,4 @@ def minimiser_from_problem(problem: Problem, *, options=None, progress: Progress
                     f"{fb['load_N']:.3g} N; allowed {100 * fb['tol']:.2g} %)", load_fraction=1.0,
                     last_converged=u)
         return u, out
-    solve.takes_increment = True  # type: ignore[attr-defined]
     return solve

@@ -60,7 +60,27 @@ from regtrack.mechanics.protocol import G_STANDARD, Protocol, Step
 
 log = logging.getLogger(__name__)
 
-StepSolver = Callable[[np.ndarray, np.ndarray, np.ndarray, list, str], tuple[np.ndarray, dict]]
+
+
+@dataclass(frozen=True)
+class StepControl:
+    """How the protocol engine asks a step to be incremented.
+
+    single : one increment first (a touching plate; the solver cuts it back if it fails).
+    max_increment : the largest pseudo-time increment (a plate move's travel cap / its
+        distance), or None for the solver's own gravity increments.
+    T0_mm : the uncompressed thickness, for the progress's ``D = 1 - gap / T0``.
+    """
+
+    single: bool = False
+    max_increment: float | None = None
+    T0_mm: float | None = None
+
+
+#: ``solve(u0, g0, g1, contacts, step_name, control) -> (u, stats)``: one protocol step
+#: from gravity ``g0`` to ``g1`` (m/s^2) with the contacts' plates moving over it.
+StepSolver = Callable[[np.ndarray, np.ndarray, np.ndarray, list, str, StepControl],
+                      tuple[np.ndarray, dict]]
 
 
 @dataclass
@@ -253,8 +273,7 @@ def _gap(plates: dict[str, PlateContact], n: np.ndarray) -> float:
 
 def _touch(pc: PlateContact, u: np.ndarray) -> None:
     """Translate a plate along its normal until it just touches the body (no force)."""
-    pc.plate = pc._plate0 = pc.plate.translated(pc.min_gap(u) * pc.plate.normal)
-    pc.motion = None
+    pc.place(pc.plate.translated(pc.min_gap(u) * pc.plate.normal))
 
 
 class ProtocolRunner:
@@ -283,21 +302,14 @@ class ProtocolRunner:
         contribs = list(self.contacts.values())
         for c in contribs:
             c.begin_step(name)
-        kw = {}
-        if getattr(self.solve, "takes_increment", False):
-            if single:  # one increment first (the solver cuts it back if it fails)
-                kw["initial_increment"] = 1.0
-            elif max_increment is not None and max_increment < 1.0:
-                kw["max_increment"] = max_increment
-            if T0_mm is not None:  # the solver's progress reports D = 1 - gap / T0
-                kw["T0_mm"] = T0_mm
-        u, stats = self.solve(self.u, self.g, g_end, contribs, name, **kw)
+        control = StepControl(single=single, T0_mm=T0_mm, max_increment=(
+            max_increment if max_increment is not None and max_increment < 1.0 else None))
+        u, stats = self.solve(self.u, self.g, g_end, contribs, name, control)
         self.u = np.asarray(u, float).reshape(-1, 3)
         self.g = np.asarray(g_end, float)
         for c in contribs:
             c.set_time(1.0)
-            c.motion = None
-            c._plate0 = c.plate
+            c.place(c.plate)
         return dict(stats or {})
 
     def _penetration(self) -> tuple[float, dict]:
@@ -481,9 +493,7 @@ def force_balance(problem: Any, u: np.ndarray, r: np.ndarray, g_ms2: np.ndarray,
     loads = [float(np.linalg.norm(r[fixed].sum(axis=0))),
              float(np.linalg.norm(problem.body_weight.sum() * np.asarray(g_ms2, float)))]
     for c in contribs:
-        nodal = getattr(c, "nodal_forces", None)
-        if nodal is not None:
-            loads.append(float(np.linalg.norm(nodal(u)[0].sum(axis=0))))
+        loads.append(float(np.linalg.norm(c.nodal_forces(u)[0].sum(axis=0))))
     load = max(loads)
     rel = imbalance / load if load > 0 else 0.0
     return {"imbalance_N": imbalance, "load_N": load, "relative": rel, "tol": float(tol),
