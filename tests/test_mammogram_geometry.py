@@ -20,7 +20,7 @@ from pydicom.uid import ExplicitVRLittleEndian, generate_uid
 
 from regtrack.errors import ConfigError
 from regtrack.imaging.mammogram.geometry import RANGES, read_geometry, read_geometry_file
-from regtrack.pipeline.geometry import resolve_geometry
+from regtrack.pipeline.geometry import GeometryInputs, resolve_geometry
 from regtrack.virtual import xray
 from regtrack.virtual.config import VirtualConfig
 from regtrack.virtual.project import _point_source
@@ -54,9 +54,8 @@ def _ctx(tmp_path, views: dict[str, Dataset], tables=None, virtual=None):
     vi = {v: SimpleNamespace(mammogram=_write(tmp_path / f"{v.lower()}.dcm", ds))
           for v, ds in views.items()}
     case = SimpleNamespace(views=vi, toml_path=tmp_path / "case.toml", root=tmp_path)
-    return SimpleNamespace(case=case, protocol_tables={v: dict((tables or {}).get(v, {}))
-                                                       for v in views},
-                           configs={"virtual": virtual or VirtualConfig()}, ids=None)
+    return GeometryInputs(case, {v: dict((tables or {}).get(v, {})) for v in views},
+                          virtual or VirtualConfig())
 
 
 # -- cone beam ---------------------------------------------------------------------------

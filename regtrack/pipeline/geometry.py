@@ -49,6 +49,19 @@ MIN_DEGREE, MAX_DEGREE = 0.05, 0.75
 
 
 @dataclass
+class GeometryInputs:
+    """What :func:`resolve_geometry` reads and writes: the case (its views and where its
+    case.toml lies), the ``[protocol.<VIEW>]`` tables (the DICOM's choices are written into
+    them), the base virtual-mammogram config and the identifier scrubber of the log lines
+    (None: no identifiers to scrub)."""
+
+    case: Any
+    protocol_tables: dict
+    virtual: Any = None
+    ids: Any = None
+
+
+@dataclass
 class Choice:
     """One geometry value and where it came from."""
 
@@ -186,7 +199,7 @@ def _projection(view: str, cfg, g: DicomGeometry) -> tuple[Choice, Any]:
     return Choice("orthogonal", "default (no DICOM source distances)"), cfg
 
 
-def resolve_geometry(ctx, model=None, *, views=None) -> dict[str, ViewGeometry]:
+def resolve_geometry(ctx: GeometryInputs, model=None, *, views=None) -> dict[str, ViewGeometry]:
     """Decide each real view's geometry; write the DICOM's choices into
     ``ctx.protocol_tables`` (a copy per view) and return them by view.
 
@@ -196,8 +209,7 @@ def resolve_geometry(ctx, model=None, *, views=None) -> dict[str, ViewGeometry]:
     Warnings are logged (one line each, naming the tag) and recorded.
     """
     out: dict[str, ViewGeometry] = {}
-    cfgs = ctx.configs
-    base_virtual = cfgs.get("virtual") if isinstance(cfgs, dict) else getattr(cfgs, "virtual", None)
+    base_virtual = ctx.virtual
     if base_virtual is None:
         from regtrack.virtual.config import VirtualConfig
 
@@ -221,7 +233,7 @@ def resolve_geometry(ctx, model=None, *, views=None) -> dict[str, ViewGeometry]:
                        + "; reported only, not used as a load", "N") if g.force_N is not None \
             else Choice(None, "absent or implausible in the DICOM")
         for w in warnings:
-            log.warning("%s", ctx.ids.scrub(w) if getattr(ctx, "ids", None) else w)
+            log.warning("%s", ctx.ids.scrub(w) if ctx.ids is not None else w)
         ctx.protocol_tables[view] = table
         out[view] = ViewGeometry(view, g, gap, angle, proj, force, vcfg, table, warnings)
     return out
@@ -232,8 +244,6 @@ def apply_geometry(ctx, model, views) -> None:
     hand the resulting ``[protocol.<VIEW>]`` tables to ``ctx.configs`` (the protocols are
     parsed again, so the simulations and their cache keys follow the DICOM)."""
     tables = {v: dict(t) for v, t in ctx.configs.protocol_tables.items()}
-    from types import SimpleNamespace
-
-    probe = SimpleNamespace(case=ctx.case, configs=ctx.configs, ids=ctx.ids, protocol_tables=tables)
-    ctx.geometry = resolve_geometry(probe, model, views=views)
+    inputs = GeometryInputs(ctx.case, tables, ctx.configs.virtual, ctx.ids)
+    ctx.geometry = resolve_geometry(inputs, model, views=views)
     ctx.configs = ctx.configs.with_protocol_tables(ctx.case, {v: tables[v] for v in ctx.geometry})
