@@ -86,7 +86,8 @@ def format_reference() -> str:
             continue
         done.add(target)
         cls = config_class(section)
-        name = "protocol.CC] / [protocol.MLO" if section.startswith("protocol.") else section
+        name = ("protocol.CC] / [protocol.MLO] / [protocol.BIOPSY" if section.startswith("protocol.")
+                else section)
         lines.append(f"Overrides `{target.replace(':', '.')}`.")
         lines.append("")
         lines += section_table(cls, name)
