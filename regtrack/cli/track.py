@@ -65,6 +65,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     g.add_argument("--compressed-point", nargs=3, type=float, metavar=("X", "Y", "Z"),
                    help="point of the compressed breast (LPS mm, the MRI's frame) mapped back "
                         "to the MRI")
+    g.add_argument("--compare-mri", metavar="LABELS",
+                   help="label map of the compressed MRI (the case's label scheme): distance "
+                        "of the simulated skin to its breast surface (RMS, p95, mm)")
+    g.add_argument("--compare-landmarks", metavar="FILE",
+                   help="the --landmarks picked in the compressed MRI (same names, LPS mm): "
+                        "distance of each simulated landmark")
     g.add_argument("--warp", action="store_true",
                    help="write the label map (and the MR series) warped into the compression "
                         "as NIfTI")
@@ -82,7 +88,8 @@ def run(args: argparse.Namespace) -> int:
     if args.ray_step is not None and not 0 < args.ray_step <= 5:  # also refuses NaN
         raise TrackingError(f"--ray-step {args.ray_step}: must be in (0, 5] mm")
     _check_numbers(args)
-    if args.view is not None or args.landmarks or args.compressed_point or args.warp:
+    if (args.view is not None or args.landmarks or args.compressed_point or args.warp
+            or args.compare_mri or args.compare_landmarks):
         return _track_3d(args, console)
     existing_file(args.cc_contour, "--cc-contour", "contour JSON")
     existing_file(args.mlo_contour, "--mlo-contour", "contour JSON")
@@ -188,18 +195,24 @@ def _track_3d(args: argparse.Namespace, console) -> int:
     from regtrack.errors import TrackingError
 
     if args.view is None:
-        raise TrackingError("--landmarks, --compressed-point and --warp need --view "
-                            "cc|mlo|biopsy (the compression to track into)")
+        raise TrackingError("--landmarks, --compressed-point, --warp and --compare-* need "
+                            "--view cc|mlo|biopsy (the compression to track into)")
     other = [o for o in ("label", "cc_point", "mlo_point", "cc_contour", "mlo_contour", "views")
              if getattr(args, o) is not None]
     if other:
         raise TrackingError(f"--view {args.view.lower()} tracks in 3-D: --"
                             f"{other[0].replace('_', '-')} belongs to the mammogram tracking; "
                             "run it without --view")
-    if not any((args.mri_point, args.landmarks, args.compressed_point, args.warp)):
+    if not any((args.mri_point, args.landmarks, args.compressed_point, args.warp,
+                args.compare_mri, args.compare_landmarks)):
         raise TrackingError(f"--view {args.view.lower()}: nothing to track; give --mri-point, "
-                            "--landmarks, --compressed-point or --warp")
+                            "--landmarks, --compressed-point, --warp or --compare-mri")
+    if args.compare_landmarks and not args.landmarks:
+        raise TrackingError("--compare-landmarks needs --landmarks (the same landmarks in "
+                            "the MRI)")
     existing_file(args.landmarks, "--landmarks", "landmark file")
+    existing_file(args.compare_landmarks, "--compare-landmarks", "landmark file")
+    existing_file(args.compare_mri, "--compare-mri", "label map")
     writable_folder(args.out, "--out")
     writable_folder(args.cache, "--cache")
     from regtrack.privacy import identifiers_of_case_folder, pseudonymous_id, scrub_logs
@@ -212,6 +225,7 @@ def _track_3d(args: argparse.Namespace, console) -> int:
         from regtrack.tracking.landmarks import read_landmarks
 
         landmarks = read_landmarks(args.landmarks) if args.landmarks else None  # before any work
+        observed = read_landmarks(args.compare_landmarks) if args.compare_landmarks else None
         case = load_case(args.case, deep=False)
         case_id = pseudonymous_id(case.id, found)
         out = (Path(args.out) if args.out
@@ -228,14 +242,30 @@ def _track_3d(args: argparse.Namespace, console) -> int:
         mapped = []
         if args.mri_point is not None:
             mapped.append(map_points(state.dmap, ["mri-point"], [args.mri_point]))
+        predicted = None
         if landmarks is not None:
-            mapped.append(map_points(state.dmap, landmarks.names, landmarks.lps_mm))
+            predicted = map_points(state.dmap, landmarks.names, landmarks.lps_mm)
+            mapped.append(predicted)
         if args.compressed_point is not None:
             mapped.append(map_points(state.dmap, ["compressed-point"], [args.compressed_point],
                                      inverse=True))
         paths = write_points(out, state, mapped) if mapped else []
         if args.warp:
             paths += write_warped(out, state, progress=progress)
+        if args.compare_mri or observed is not None:
+            from regtrack.tracking.compressed import write_comparison
+
+            path, doc = write_comparison(out, state, labels_path=args.compare_mri,
+                                         predicted=predicted, observed=observed)
+            paths.append(path)
+            if "surface_distance" in doc:
+                sd = doc["surface_distance"]
+                console.print(f"skin vs the compressed MRI: RMS {sd['rms_mm']:.2f} mm, p95 "
+                              f"{sd['p95_mm']:.2f} mm, max {sd['max_mm']:.2f} mm "
+                              f"({sd['n_points']} skin nodes)", highlight=False)
+            for r in doc.get("landmarks", []):
+                console.print(f"{r['name']}: {r['distance_mm']:.1f} mm from the compressed "
+                              "MRI's landmark", highlight=False)
         for m in mapped:
             for r in m.rows():
                 a, b = ((r["mri_lps_mm"], r["compressed_lps_mm"]) if m.direction == "mri->compressed"

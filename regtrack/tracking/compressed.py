@@ -8,10 +8,11 @@ to the compressed state and back (:class:`~regtrack.tracking.deformation.Deforma
 and resamples the MRI label map (and the MR series) into it (:mod:`.warp`).  No
 mammogram is needed: everything stays in 3-D, in the MRI's patient frame (LPS, mm).
 
-Outputs (:func:`write_points`, :func:`write_warped`): ``points_<view>.json`` /
-``points_<view>.csv`` (one row per point: name, direction, the given position, the mapped
-position, the displacement, all LPS mm) and ``labels_<view>.nii.gz`` /
-``mri_<view>.nii.gz``.
+Outputs (:func:`write_points`, :func:`write_warped`, :func:`write_comparison`):
+``points_<view>.json`` / ``points_<view>.csv`` (one row per point: name, direction, the
+given position, the mapped position, the displacement, all LPS mm),
+``labels_<view>.nii.gz`` / ``mri_<view>.nii.gz``, and ``compare_<view>.json`` (the
+simulated compression against an imaged compressed MRI, :mod:`.compare`).
 """
 
 from __future__ import annotations
@@ -42,6 +43,7 @@ class CompressedState:
     view: str
     dmap: DeformationMap
     summary: dict
+    model: Any = None  # BreastModel
     stage_keys: dict[str, str] = field(default_factory=dict)
     simulated_now: list[str] = field(default_factory=list)
 
@@ -85,7 +87,7 @@ def open_compressed(case_dir: str | Path, view: str, *, cache_dir: str | Path | 
         apply_geometry(ctx, mesh.model, (v,))
     sim = stages.simulate_stage(ctx, mesh, v)
     dmap = DeformationMap.from_model(mesh.model, sim.positions, view=v)
-    return CompressedState(case, v, dmap, sim.summary,
+    return CompressedState(case, v, dmap, sim.summary, mesh.model,
                            {"mesh": mesh.key, f"simulate_{v}": sim.key}, todo)
 
 
@@ -166,3 +168,21 @@ def write_warped(out: Path, state: CompressedState, *, series: bool = True,
         w = warp_volume(read_image_volume(src), state.dmap, order=1)
         paths.append(write_image_volume(w.volume, out / f"mri_{v}.nii.gz"))
     return paths
+
+
+def write_comparison(out: Path, state: CompressedState, *, labels_path: str | Path | None,
+                     predicted: MappedPoints | None = None, observed=None) -> tuple[Path, dict]:
+    """``compare_<view>.json``: the simulated skin against the breast of the compressed MRI
+    label map ``labels_path`` (surface distance, mm), and the ``predicted`` landmarks
+    against the ``observed`` ones of the compressed MRI (matched by name)."""
+    from regtrack.imaging.readers import read_label_map
+    from regtrack.tracking.compare import landmark_distances, skin_distance
+
+    doc: dict = {"view": state.view, "frame": "patient LPS, mm"}
+    if labels_path is not None:
+        sd = skin_distance(state.model, state.dmap.deformed, read_label_map(labels_path),
+                           state.case.mri.scheme)
+        doc["surface_distance"] = sd.to_dict()
+    if predicted is not None and observed is not None:
+        doc["landmarks"] = landmark_distances(predicted.names, predicted.mapped_lps_mm, observed)
+    return write_json(out / f"compare_{state.view.lower()}.json", doc), doc
