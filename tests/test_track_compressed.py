@@ -22,7 +22,8 @@ PHANTOM = Path(__file__).resolve().parents[1] / "sample_cases" / "phantom01"
 
 
 @pytest.mark.parametrize("extra, message", [
-    (["--landmarks", "x.csv"], r"--landmarks, --compressed-point, --warp and --compare-\* need --view"),
+    (["--landmarks", "x.csv"],
+     r"--landmarks, --compressed-point, --warp, --uncertainty and --compare-\* need --view"),
     (["--warp"], r"need --view cc\|mlo\|biopsy"),
     (["--view", "biopsy"], r"--view biopsy: nothing to track; give --mri-point"),
     (["--view", "biopsy", "--cc-point", "1", "2"],
@@ -66,13 +67,21 @@ def test_track_and_warp_in_the_biopsy_compression(tmp_path, capsys):
     lm = tmp_path / "points.csv"
     lm.write_text("name,x,y,z\ntumour,-109.7,0.3,10.3\nfat,-100,-20,0\n")
     rc = main(["track", str(PHANTOM), "--view", "biopsy", "--landmarks", str(lm),
-               "--compressed-point", "-105", "0", "5", "--warp", "--cache", str(cache),
-               "--out", str(out)])
+               "--compressed-point", "-105", "0", "5", "--warp", "--uncertainty",
+               "--cache", str(cache), "--out", str(out)])
     assert rc == 0, capsys.readouterr().err
     rows = list(csv.DictReader((out / "points_biopsy.csv").open()))
     assert [r["name"] for r in rows] == ["tumour", "fat", "compressed-point"]
     doc = json.loads((out / "points_biopsy.json").read_text())
     assert doc["compression"]["D"] == pytest.approx(0.26, abs=1e-9)
+    # uncertainty: the plate moved by degree_sigma T0 more moves every point; scaling the
+    # phantom's fat and gland c1 alike leaves the shape under a prescribed plate travel
+    # without gravity unchanged (only the skin membrane keeps its own stiffness)
+    for r in doc["points"]:
+        t = r["sigma_terms_mm"]
+        assert set(t) == {"c1", "nu", "plate"}
+        assert t["plate"] > 0.5 and t["c1"] < 0.2 * t["plate"]
+        assert r["sigma_mm"] == pytest.approx(np.sqrt(sum(v ** 2 for v in t.values())))
     # the state is cached now: reopened without simulating
     state = open_compressed(PHANTOM, "biopsy", cache_dir=cache, simulate=False)
     dmap = state.dmap

@@ -65,6 +65,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     g.add_argument("--compressed-point", nargs=3, type=float, metavar=("X", "Y", "Z"),
                    help="point of the compressed breast (LPS mm, the MRI's frame) mapped back "
                         "to the MRI")
+    g.add_argument("--uncertainty", action="store_true",
+                   help="1-sigma of each mapped point from c1, nu and the plate position "
+                        "([tracking] c1_rel_sigma, nu_sigma, degree_sigma): three more "
+                        "simulations (cached)")
     g.add_argument("--compare-mri", metavar="LABELS",
                    help="label map of the compressed MRI (the case's label scheme): distance "
                         "of the simulated skin to its breast surface (RMS, p95, mm)")
@@ -89,7 +93,7 @@ def run(args: argparse.Namespace) -> int:
         raise TrackingError(f"--ray-step {args.ray_step}: must be in (0, 5] mm")
     _check_numbers(args)
     if (args.view is not None or args.landmarks or args.compressed_point or args.warp
-            or args.compare_mri or args.compare_landmarks):
+            or args.compare_mri or args.compare_landmarks or args.uncertainty):
         return _track_3d(args, console)
     existing_file(args.cc_contour, "--cc-contour", "contour JSON")
     existing_file(args.mlo_contour, "--mlo-contour", "contour JSON")
@@ -195,8 +199,9 @@ def _track_3d(args: argparse.Namespace, console) -> int:
     from regtrack.errors import TrackingError
 
     if args.view is None:
-        raise TrackingError("--landmarks, --compressed-point, --warp and --compare-* need "
-                            "--view cc|mlo|biopsy (the compression to track into)")
+        raise TrackingError("--landmarks, --compressed-point, --warp, --uncertainty and "
+                            "--compare-* need --view cc|mlo|biopsy (the compression to track "
+                            "into)")
     other = [o for o in ("label", "cc_point", "mlo_point", "cc_contour", "mlo_contour", "views")
              if getattr(args, o) is not None]
     if other:
@@ -249,6 +254,16 @@ def _track_3d(args: argparse.Namespace, console) -> int:
         if args.compressed_point is not None:
             mapped.append(map_points(state.dmap, ["compressed-point"], [args.compressed_point],
                                      inverse=True))
+        if args.uncertainty and mapped:
+            import dataclasses
+
+            from regtrack.tracking.sensitivity import point_sigma
+
+            for i, m in enumerate(mapped):
+                ps = point_sigma(args.case, state, m.names, m.given_lps_mm,
+                                 inverse=m.direction != "mri->compressed", cache_dir=args.cache,
+                                 simulate=not args.no_simulate, progress=progress)
+                mapped[i] = dataclasses.replace(m, sigma_mm=ps.sigma_mm, sigma_terms_mm=ps.terms_mm)
         paths = write_points(out, state, mapped) if mapped else []
         if args.warp:
             paths += write_warped(out, state, progress=progress)
@@ -270,9 +285,11 @@ def _track_3d(args: argparse.Namespace, console) -> int:
             for r in m.rows():
                 a, b = ((r["mri_lps_mm"], r["compressed_lps_mm"]) if m.direction == "mri->compressed"
                         else (r["compressed_lps_mm"], r["mri_lps_mm"]))
+                sigma = f" ± {r['sigma_mm']:.1f} mm (1 sigma)" if "sigma_mm" in r else ""
                 console.print(f"{r['name']}: ({', '.join(f'{v:.1f}' for v in a)}) -> "
-                              f"({', '.join(f'{v:.1f}' for v in b)}) LPS mm, {m.direction}, "
-                              f"moved {r['displacement_mm']:.1f} mm", highlight=False)
+                              f"({', '.join(f'{v:.1f}' for v in b)}) LPS mm{sigma}, "
+                              f"{m.direction}, moved {r['displacement_mm']:.1f} mm",
+                              highlight=False)
         dt = time.perf_counter() - t0
         console.print(f"{state.view} (D = {state.summary.get('D') or 0:.2f}): "
                       f"{len(paths)} files written to {out} ({dt:.1f} s)")

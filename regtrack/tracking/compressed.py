@@ -99,6 +99,8 @@ class MappedPoints:
     direction: str  # "mri->compressed" or "compressed->mri"
     given_lps_mm: np.ndarray
     mapped_lps_mm: np.ndarray
+    sigma_mm: np.ndarray | None = None  # 1-sigma of the mapped position (.sensitivity)
+    sigma_terms_mm: dict | None = None
 
     @property
     def displacement_mm(self) -> np.ndarray:
@@ -108,10 +110,15 @@ class MappedPoints:
     def rows(self) -> list[dict]:
         mri, comp = ((self.given_lps_mm, self.mapped_lps_mm) if self.direction == "mri->compressed"
                      else (self.mapped_lps_mm, self.given_lps_mm))
-        return [{"name": n, "direction": self.direction, "mri_lps_mm": mri[i].tolist(),
+        rows = [{"name": n, "direction": self.direction, "mri_lps_mm": mri[i].tolist(),
                  "compressed_lps_mm": comp[i].tolist(),
                  "displacement_mm": float(self.displacement_mm[i])}
                 for i, n in enumerate(self.names)]
+        if self.sigma_mm is not None:
+            for i, r in enumerate(rows):
+                r["sigma_mm"] = float(self.sigma_mm[i])
+                r["sigma_terms_mm"] = {k: float(v[i]) for k, v in (self.sigma_terms_mm or {}).items()}
+        return rows
 
 
 def map_points(dmap: DeformationMap, names, lps_mm, *, inverse: bool = False) -> MappedPoints:
@@ -133,15 +140,19 @@ def write_points(out: Path, state: CompressedState, mapped: list[MappedPoints]) 
                                                               "lower_force_N",
                                                               "force_imbalance_rel")},
            "stage_keys": state.stage_keys, "points": rows,
-           "uncertainty": "not computed (c1, nu and plate-position sensitivity not done)"}
+           "uncertainty": ("1-sigma from c1, nu and the plate position (regtrack.tracking."
+                           "sensitivity)" if any("sigma_mm" in r for r in rows)
+                           else "not computed (give --uncertainty)")}
     js = write_json(out / f"{stem}.json", doc)
     buf = io.StringIO()
     w = csv.writer(buf, lineterminator="\n")
     w.writerow(["name", "direction", "mri_x", "mri_y", "mri_z", "compressed_x", "compressed_y",
-                "compressed_z", "displacement_mm"])
+                "compressed_z", "displacement_mm", "sigma_mm"])
     for r in rows:
+        sigma = f"{r['sigma_mm']:.3f}" if "sigma_mm" in r else ""
         w.writerow([r["name"], r["direction"], *(f"{v:.3f}" for v in r["mri_lps_mm"]),
-                    *(f"{v:.3f}" for v in r["compressed_lps_mm"]), f"{r['displacement_mm']:.3f}"])
+                    *(f"{v:.3f}" for v in r["compressed_lps_mm"]), f"{r['displacement_mm']:.3f}",
+                    sigma])
     path = out / f"{stem}.csv"
     with atomic_path(path) as tmp:
         Path(tmp).write_text(buf.getvalue(), encoding="utf-8")
