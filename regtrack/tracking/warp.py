@@ -104,15 +104,19 @@ def warp_volume(vol: Volume, dmap: DeformationMap, *, order: int | None = None,
     affine = vol.affine.copy()
     affine[:3, 3] = vol.affine[:3, :3] @ (-offset) + vol.affine[:3, 3]
     out = np.full(shape, background, dtype=data.dtype if order == 0 else np.float32)
-    # deformed nodes in output-voxel indices, reference nodes in input-voxel indices
+    # deformed nodes in output-voxel indices, reference nodes in input-voxel indices; the
+    # pulled-back positions are kept for the deformed model's bounding box only
     x_idx = _to_index(affine, deformed_lps)
+    lo = np.maximum(np.floor(x_idx.min(axis=0)).astype(int), 0)
+    hi = np.minimum(np.ceil(x_idx.max(axis=0)).astype(int) + 1, np.array(shape))
     X_src = _to_index(vol.affine, dmap.frame.to_patient(dmap.reference))
-    src = np.full(shape + (3,), np.nan)
-    _scan_convert(x_idx, np.asarray(dmap.tets, np.int64), X_src, src, 1e-9)
+    src = np.full(tuple(int(v) for v in hi - lo) + (3,), np.nan)
+    _scan_convert(x_idx - lo, np.asarray(dmap.tets, np.int64), X_src, src, 1e-9)
     ok = np.isfinite(src[..., 0])
     inside = int(ok.sum())
     if inside:
-        out[ok] = map_coordinates(data, src[ok].T, order=order, mode="constant",
+        box = out[lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]]  # a view: filled in place
+        box[ok] = map_coordinates(data, src[ok].T, order=order, mode="constant",
                                   cval=background, prefilter=False)
     log.info("warped %s: %d voxels inside the deformed breast, grid %s (offset %s)",
              type(vol).__name__, inside, shape, offset.tolist())
