@@ -37,7 +37,8 @@ from regtrack.tracking.warp import warp_volume
 def _rotation(axis, deg):
     from scipy.spatial.transform import Rotation
 
-    return Rotation.from_rotvec(np.deg2rad(deg) * np.asarray(axis, float) / np.linalg.norm(axis)).as_matrix()
+    axis = np.asarray(axis, float) / np.linalg.norm(axis)
+    return Rotation.from_rotvec(np.deg2rad(deg) * axis).as_matrix()
 
 
 FRAME = AnatomicalFrame(origin=np.array([-90.0, -40.0, 12.0]), axes=_rotation([1, 2, 3], 35.0),

@@ -65,7 +65,8 @@ def parse_overrides(doc: dict, *, where: str) -> tuple[dict[str, tuple[dict, Any
                     near = closest_key(name, SIMULATED_VIEWS)
                     problems.append(
                         f"{where} [protocol.{name}]: unknown view '{name}'; valid views: "
-                        + ", ".join(SIMULATED_VIEWS) + (f" (did you mean '{near}'?)" if near else ""))
+                        + ", ".join(SIMULATED_VIEWS)
+                        + (f" (did you mean '{near}'?)" if near else ""))
                 else:
                     problems.append(
                         f"{where} [protocol] {name} = {sub!r}: protocol overrides belong in "

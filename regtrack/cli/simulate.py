@@ -47,7 +47,8 @@ def run(args: argparse.Namespace) -> int:
     writable_folder(out_path.parent if out_path.suffix == ".vtu" else out_path, "--out")
     if args.case is not None or args.view is not None:
         if args.case is None or args.view is None:
-            raise ConfigError("regtrack simulate: the case-level form needs both CASE and --view cc|mlo|biopsy")
+            raise ConfigError("regtrack simulate: the case-level form needs both CASE and "
+                              "--view cc|mlo|biopsy")
         from regtrack.case.loader import load_case
         from regtrack.mechanics.run_view import simulate_view
 
@@ -58,7 +59,8 @@ def run(args: argparse.Namespace) -> int:
         log.info("wrote %s", ", ".join(str(f) for f in getattr(res, "files", [])))
         return 0
     if not args.config:
-        raise ConfigError("regtrack simulate: give --config C.toml (file-level form) or CASE --view cc|mlo|biopsy")
+        raise ConfigError("regtrack simulate: give --config C.toml (file-level form) or CASE "
+                          "--view cc|mlo|biopsy")
     return _run_file_level(Path(args.model), Path(args.config), Path(args.out), log)
 
 

@@ -283,8 +283,9 @@ def _track_3d(args: argparse.Namespace, console) -> int:
                               "MRI's landmark", highlight=False)
         for m in mapped:
             for r in m.rows():
-                a, b = ((r["mri_lps_mm"], r["compressed_lps_mm"]) if m.direction == "mri->compressed"
-                        else (r["compressed_lps_mm"], r["mri_lps_mm"]))
+                a, b = r["mri_lps_mm"], r["compressed_lps_mm"]
+                if m.direction != "mri->compressed":
+                    a, b = b, a
                 sigma = f" ± {r['sigma_mm']:.1f} mm (1 sigma)" if "sigma_mm" in r else ""
                 console.print(f"{r['name']}: ({', '.join(f'{v:.1f}' for v in a)}) -> "
                               f"({', '.join(f'{v:.1f}' for v in b)}) LPS mm{sigma}, "

@@ -117,7 +117,8 @@ class MappedPoints:
         if self.sigma_mm is not None:
             for i, r in enumerate(rows):
                 r["sigma_mm"] = float(self.sigma_mm[i])
-                r["sigma_terms_mm"] = {k: float(v[i]) for k, v in (self.sigma_terms_mm or {}).items()}
+                terms = self.sigma_terms_mm or {}
+                r["sigma_terms_mm"] = {k: float(v[i]) for k, v in terms.items()}
         return rows
 
 

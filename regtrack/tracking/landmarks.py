@@ -61,7 +61,8 @@ def _number(text: str, where: str) -> float:
     try:
         v = float(text)
     except ValueError:
-        raise TrackingError(f"{where}: {text.strip()!r} is not a number; give x, y, z in mm") from None
+        raise TrackingError(f"{where}: {text.strip()!r} is not a number; give x, y, z in "
+                            "mm") from None
     if not math.isfinite(v):
         raise TrackingError(f"{where}: {text.strip()!r} must be a finite number of mm")
     return v
