@@ -3,7 +3,8 @@
 For every exam of ``../shared/data/pelicano`` (Pelicano et al., Sensors 2021 / PLoS One
 2024) the breast holding the larger tumour volume is meshed at the defaults (both breasts
 where both hold a tumour), and each model is compressed in the selected views at the
-protocol defaults (D = 38 % CC, 28 % MLO) and at D = 50 %.  Every stage runs as its own
+protocol defaults (D = 38 % CC, 28 % MLO, 26 % biopsy) and at D = 50 %.  ``--views biopsy
+--D 0.12 0.26 0.32`` gives the MR-biopsy cohort table of issue 55.  Every stage runs as its own
 ``python -m regtrack.cli`` child process, ``--jobs`` of them at a time (default: one per
 core), each killed after ``--timeout`` seconds; a failed or killed run is recorded and the
 benchmark goes on.  Usage::
@@ -120,7 +121,8 @@ def write_case(folder: Path, *, case_id: str, labels: Path, side: str | None, D:
     if side:
         lines.append(f'side = "{side}"')
     if D is not None:
-        lines += ["", "[protocol.CC]", f"target_D = {D}", "", "[protocol.MLO]", f"target_D = {D}"]
+        for v in ("CC", "MLO", "BIOPSY"):
+            lines += ["", f"[protocol.{v}]", f"target_D = {D}"]
     (folder / "case.toml").write_text("\n".join(lines) + "\n")
     return folder
 
@@ -297,7 +299,8 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--data", type=Path, default=PELICANO, help="folder of Exam_NN folders")
     ap.add_argument("--exams", nargs="*", default=None, help="exam numbers (default: all)")
-    ap.add_argument("--views", nargs="*", default=["cc", "mlo"], choices=["cc", "mlo"])
+    ap.add_argument("--views", nargs="*", default=["cc", "mlo"],
+                    choices=["cc", "mlo", "biopsy"])
     ap.add_argument("--D", nargs="*", default=["default", "0.5"],
                     help="compression settings: 'default' (protocol D) and/or target D values")
     ap.add_argument("--target-nodes", type=int, default=None, help="mesh size (default: the mesher's)")

@@ -26,6 +26,10 @@ from dataclasses import dataclass, field
 import numpy as np
 
 VIEWS = ("CC", "MLO")
+#: Every compression the mechanics simulates: the mammographic views and the latero-medial
+#: compression of the prone breast in an MR biopsy coil (no mammogram; the shipped protocol
+#: ``regtrack/mechanics/data/protocols/biopsy.toml``).
+SIMULATED_VIEWS = (*VIEWS, "BIOPSY")
 LATERALITIES = ("L", "R")
 
 

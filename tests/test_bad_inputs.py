@@ -587,7 +587,8 @@ ARGS: list[tuple[str, Callable[[Path, Path], list[str]], str]] = [
      r"\[model\] \(did you mean 'target_nodes'\?\)$"),
     ("run --set unknown section", lambda c, w: ["run", str(c), "--set", "bogus.key=1"],
      r"^regtrack run: error: --set bogus\.key=1: unknown section 'bogus'; sections: model, "
-     r"mechanics, contact, protocol\.CC, protocol\.MLO, registration, virtual, tracking$"),
+     r"mechanics, contact, protocol\.CC, protocol\.MLO, protocol\.BIOPSY, registration, "
+     r"virtual, tracking$"),
     ("run --set misspelt section", lambda c, w: ["run", str(c), "--set", "mechanic.nu=0.4"],
      r"--set mechanic\.nu=0\.4: unknown section 'mechanic' \(did you mean 'mechanics'\?\)"),
     ("run --set unknown view", lambda c, w: ["run", str(c), "--set", "protocol.ML.target_D=0.3"],

@@ -671,5 +671,6 @@ def test_generated_key_reference_is_up_to_date() -> None:
         "docs/case-format.md key reference is stale: run "
         "`python -m regtrack.case.reference --write docs/case-format.md`")
     for heading in ("#### `[model]`", "#### `[mechanics]`", "#### `[contact]`",
-                    "#### `[protocol.CC] / [protocol.MLO]`", "#### `[registration]`"):
+                    "#### `[protocol.CC] / [protocol.MLO] / [protocol.BIOPSY]`",
+                    "#### `[registration]`"):
         assert heading in current, heading

@@ -23,7 +23,7 @@ from typing import Any
 from regtrack.case.overrides import SECTIONS
 from regtrack.config import parse_section, to_table, unknown_name
 from regtrack.errors import CaseError
-from regtrack.views import VIEWS
+from regtrack.views import SIMULATED_VIEWS
 
 #: Sections only a command sets (case.toml has no such section) -> "module:Class".
 COMMAND_SECTIONS: dict[str, str] = {
@@ -106,15 +106,15 @@ def resolve_configs(case: Any, overrides: dict | None = None) -> Configs:
         values[name] = base
     proto_over = overrides.get("protocol") or {}
     for view in proto_over:
-        if view not in VIEWS:
+        if view not in SIMULATED_VIEWS:
             problems.append(f"overrides [protocol.{view}]: unknown view '{view}'; use "
-                            + " or ".join(VIEWS))
+                            + ", ".join(SIMULATED_VIEWS))
     if problems:
         raise CaseError(problems)
     from regtrack.mechanics.protocol import protocol_for_view
 
     tables = {v: {**case.override_table(f"protocol.{v}"), **dict(proto_over.get(v) or {})}
-              for v in VIEWS}
+              for v in SIMULATED_VIEWS}
     protocols = {v: protocol_for_view(v, tables[v] or None, where=where, base_dir=case.root)
-                 for v in VIEWS}
+                 for v in SIMULATED_VIEWS}
     return Configs(**values, protocols=protocols, protocol_tables=tables, overrides=overrides)

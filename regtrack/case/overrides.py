@@ -14,7 +14,7 @@ from typing import Any
 
 from regtrack.case._paths import resolve_inside, strip_path
 from regtrack.config import closest_key, parse_section
-from regtrack.views import VIEWS
+from regtrack.views import SIMULATED_VIEWS
 
 
 #: Section of ``case.toml`` -> "module:Class" of the stage config it overrides.
@@ -24,6 +24,7 @@ SECTIONS: dict[str, str] = {
     "contact": "regtrack.mechanics.contact:ContactConfig",
     "protocol.CC": "regtrack.mechanics.protocol:ProtocolOverrides",
     "protocol.MLO": "regtrack.mechanics.protocol:ProtocolOverrides",
+    "protocol.BIOPSY": "regtrack.mechanics.protocol:ProtocolOverrides",
     "registration": "regtrack.registration.config:RegistrationConfig",
     "virtual": "regtrack.virtual.config:VirtualConfig",
     "tracking": "regtrack.tracking.config:TrackingConfig",
@@ -42,7 +43,8 @@ def parse_overrides(doc: dict, *, where: str) -> tuple[dict[str, tuple[dict, Any
     """Parse every override section present in the TOML document ``doc``.
 
     Returns ``({section: (table, config_or_None)}, problems, warnings)``.  ``[protocol]``
-    must hold only the view tables ``[protocol.CC]`` / ``[protocol.MLO]``.
+    must hold only the view tables ``[protocol.CC]`` / ``[protocol.MLO]`` /
+    ``[protocol.BIOPSY]``.
     """
     problems: list[str] = []
     warnings: list[str] = []
@@ -57,13 +59,14 @@ def parse_overrides(doc: dict, *, where: str) -> tuple[dict[str, tuple[dict, Any
                             "overrides as [protocol.CC] / [protocol.MLO] tables")
         else:
             for name, sub in proto.items():
-                if name in VIEWS:
+                if name in SIMULATED_VIEWS:
                     tables[f"protocol.{name}"] = sub
                 elif isinstance(sub, dict):
-                    near = closest_key(name, VIEWS)
+                    near = closest_key(name, SIMULATED_VIEWS)
                     problems.append(
                         f"{where} [protocol.{name}]: unknown view '{name}'; valid views: "
-                        + ", ".join(VIEWS) + (f" (did you mean '{near}'?)" if near else ""))
+                        + ", ".join(SIMULATED_VIEWS)
+                        + (f" (did you mean '{near}'?)" if near else ""))
                 else:
                     problems.append(
                         f"{where} [protocol] {name} = {sub!r}: protocol overrides belong in "

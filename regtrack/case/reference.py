@@ -86,7 +86,9 @@ def format_reference() -> str:
             continue
         done.add(target)
         cls = config_class(section)
-        name = "protocol.CC] / [protocol.MLO" if section.startswith("protocol.") else section
+        name = section
+        if section.startswith("protocol."):
+            name = "protocol.CC] / [protocol.MLO] / [protocol.BIOPSY"
         lines.append(f"Overrides `{target.replace(':', '.')}`.")
         lines.append("")
         lines += section_table(cls, name)

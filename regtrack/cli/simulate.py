@@ -9,7 +9,7 @@ sets; see :mod:`regtrack.mechanics.steps`) with its ``[mechanics]`` overrides an
 ``R.vtu`` (displacement per step) and ``R.json`` (statistics, chest-wall reaction,
 config).  Case level::
 
-    regtrack simulate CASE --view cc --model M.vtu --out DIR
+    regtrack simulate CASE --view cc|mlo|biopsy --model M.vtu --out DIR
 
 runs the view's compression protocol (:func:`regtrack.mechanics.run_view.simulate_view`).
 """
@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import argparse
 
-HELP = "simulate a model: load steps from a config file, or a CC/MLO compression of a case"
+HELP = "simulate a model: load steps from a config file, or a CC/MLO/biopsy compression of a case"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -26,7 +26,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--model", required=True, help="model .vtu (from `regtrack mesh` or any tool "
                         "following the model contract)")
     parser.add_argument("--config", help="simulation config TOML ([mechanics] + [[steps]]); file-level form")
-    parser.add_argument("--view", choices=["cc", "mlo", "CC", "MLO"], help="mammographic view (case-level form)")
+    parser.add_argument("--view", type=str.upper, choices=["CC", "MLO", "BIOPSY"],
+                        help="mammographic view, or BIOPSY: the latero-medial compression of the "
+                        "prone breast in an MR biopsy coil (case-level form)")
     parser.add_argument("--out", required=True, help="result .vtu (file level) or output folder (case level)")
 
 
@@ -45,7 +47,8 @@ def run(args: argparse.Namespace) -> int:
     writable_folder(out_path.parent if out_path.suffix == ".vtu" else out_path, "--out")
     if args.case is not None or args.view is not None:
         if args.case is None or args.view is None:
-            raise ConfigError("regtrack simulate: the case-level form needs both CASE and --view cc|mlo")
+            raise ConfigError("regtrack simulate: the case-level form needs both CASE and "
+                              "--view cc|mlo|biopsy")
         from regtrack.case.loader import load_case
         from regtrack.mechanics.run_view import simulate_view
 
@@ -56,7 +59,8 @@ def run(args: argparse.Namespace) -> int:
         log.info("wrote %s", ", ".join(str(f) for f in getattr(res, "files", [])))
         return 0
     if not args.config:
-        raise ConfigError("regtrack simulate: give --config C.toml (file-level form) or CASE --view cc|mlo")
+        raise ConfigError("regtrack simulate: give --config C.toml (file-level form) or CASE "
+                          "--view cc|mlo|biopsy")
     return _run_file_level(Path(args.model), Path(args.config), Path(args.out), log)
 
 

@@ -7,11 +7,20 @@ Examples::
     regtrack track CASE --cc-point 1510 2210                  # DICOM (row, col) on the CC
     regtrack track CASE --mlo-point 1800 2000 --label tumour  # curve on the CC + most likely point
     regtrack track CASE --cc-contour mammo/cc_tumour.json     # region on the MLO
+    regtrack track CASE --view biopsy --mri-point -109.7 0.3 10.3   # 3-D, in the compressed breast
+    regtrack track CASE --view biopsy --landmarks points.mrk.json --warp
+    regtrack track CASE --view cc --compressed-point -100 5 12      # compressed -> MRI
 
 The mesh and the simulations come from the stage cache of ``regtrack run`` (same
 ``--cache``); when they are missing they are run first (minutes, with progress
 messages) unless ``--no-simulate`` is given, which stops with an error instead.
 Writes ``tracking.json``, ``track_cc.png``/``track_mlo.png`` and ``tracking.pdf``.
+
+With ``--view cc|mlo|biopsy`` the tracking stays in 3-D (no mammogram is needed): MRI points
+and landmark lists are mapped into that simulated compression, points of the compressed
+breast back to the MRI, and ``--warp`` resamples the label map (and the MR series) into it
+(:mod:`regtrack.tracking.compressed`); writes ``points_<view>.json/.csv`` and
+``labels_<view>.nii.gz`` / ``mri_<view>.nii.gz``.
 """
 
 from __future__ import annotations
@@ -47,6 +56,28 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="sampling of the projection ray for --cc-point/--mlo-point "
                         "(mm, default 0.25)")
     p.add_argument("--no-pdf", action="store_true", help="JSON and PNG overlays only")
+    g = p.add_argument_group("3-D tracking in one simulated compression (no mammogram needed)")
+    g.add_argument("--view", type=str.upper, choices=["CC", "MLO", "BIOPSY"],
+                   help="the compression: CC, MLO or BIOPSY (prone, latero-medial, MR biopsy "
+                        "coil); --mri-point and --landmarks are mapped into it")
+    g.add_argument("--landmarks", metavar="FILE",
+                   help="MRI landmarks: CSV (name,x,y,z, LPS mm) or a 3D Slicer .mrk.json")
+    g.add_argument("--compressed-point", nargs=3, type=float, metavar=("X", "Y", "Z"),
+                   help="point of the compressed breast (LPS mm, the MRI's frame) mapped back "
+                        "to the MRI")
+    g.add_argument("--uncertainty", action="store_true",
+                   help="1-sigma of each mapped point from c1, nu and the plate position "
+                        "([tracking] c1_rel_sigma, nu_sigma, degree_sigma): three more "
+                        "simulations (cached)")
+    g.add_argument("--compare-mri", metavar="LABELS",
+                   help="label map of the compressed MRI (the case's label scheme): distance "
+                        "of the simulated skin to its breast surface (RMS, p95, mm)")
+    g.add_argument("--compare-landmarks", metavar="FILE",
+                   help="the --landmarks picked in the compressed MRI (same names, LPS mm): "
+                        "distance of each simulated landmark")
+    g.add_argument("--warp", action="store_true",
+                   help="write the label map (and the MR series) warped into the compression "
+                        "as NIfTI")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -61,6 +92,9 @@ def run(args: argparse.Namespace) -> int:
     if args.ray_step is not None and not 0 < args.ray_step <= 5:  # also refuses NaN
         raise TrackingError(f"--ray-step {args.ray_step}: must be in (0, 5] mm")
     _check_numbers(args)
+    if (args.view is not None or args.landmarks or args.compressed_point or args.warp
+            or args.compare_mri or args.compare_landmarks or args.uncertainty):
+        return _track_3d(args, console)
     existing_file(args.cc_contour, "--cc-contour", "contour JSON")
     existing_file(args.mlo_contour, "--mlo-contour", "contour JSON")
     writable_folder(args.out, "--out")
@@ -155,13 +189,121 @@ def _track(args: argparse.Namespace, console, found, pseudonymous_id) -> int:
     return 0
 
 
+def _track_3d(args: argparse.Namespace, console) -> int:
+    """``--view``: points and the warped MRI in one simulated compression (3-D only)."""
+    import logging
+    import time
+    from pathlib import Path
+
+    from regtrack.cli._checks import existing_file, writable_folder
+    from regtrack.errors import TrackingError
+
+    if args.view is None:
+        raise TrackingError("--landmarks, --compressed-point, --warp, --uncertainty and "
+                            "--compare-* need --view cc|mlo|biopsy (the compression to track "
+                            "into)")
+    other = [o for o in ("label", "cc_point", "mlo_point", "cc_contour", "mlo_contour", "views")
+             if getattr(args, o) is not None]
+    if other:
+        raise TrackingError(f"--view {args.view.lower()} tracks in 3-D: --"
+                            f"{other[0].replace('_', '-')} belongs to the mammogram tracking; "
+                            "run it without --view")
+    if not any((args.mri_point, args.landmarks, args.compressed_point, args.warp,
+                args.compare_mri, args.compare_landmarks)):
+        raise TrackingError(f"--view {args.view.lower()}: nothing to track; give --mri-point, "
+                            "--landmarks, --compressed-point, --warp or --compare-mri")
+    if args.compare_landmarks and not args.landmarks:
+        raise TrackingError("--compare-landmarks needs --landmarks (the same landmarks in "
+                            "the MRI)")
+    existing_file(args.landmarks, "--landmarks", "landmark file")
+    existing_file(args.compare_landmarks, "--compare-landmarks", "landmark file")
+    existing_file(args.compare_mri, "--compare-mri", "label map")
+    writable_folder(args.out, "--out")
+    writable_folder(args.cache, "--cache")
+    from regtrack.privacy import identifiers_of_case_folder, pseudonymous_id, scrub_logs
+
+    found = identifiers_of_case_folder(args.case)
+    with scrub_logs(found):
+        from regtrack.case import load_case
+        from regtrack.tracking.compressed import (map_points, open_compressed, write_points,
+                                                  write_warped)
+        from regtrack.tracking.landmarks import read_landmarks
+
+        landmarks = read_landmarks(args.landmarks) if args.landmarks else None  # before any work
+        observed = read_landmarks(args.compare_landmarks) if args.compare_landmarks else None
+        case = load_case(args.case, deep=False)
+        case_id = pseudonymous_id(case.id, found)
+        out = (Path(args.out) if args.out
+               else Path("reports") / case_id / f"track_{args.view.lower()}")
+        t0 = time.perf_counter()
+
+        def progress(msg: str) -> None:
+            console.print(f"[dim]{time.perf_counter() - t0:7.1f} s[/dim]  {msg}")
+
+        if not logging.getLogger().isEnabledFor(logging.DEBUG):
+            logging.getLogger("regtrack").setLevel(logging.WARNING)
+        state = open_compressed(args.case, args.view, cache_dir=args.cache,
+                                simulate=not args.no_simulate, progress=progress)
+        mapped = []
+        if args.mri_point is not None:
+            mapped.append(map_points(state.dmap, ["mri-point"], [args.mri_point]))
+        predicted = None
+        if landmarks is not None:
+            predicted = map_points(state.dmap, landmarks.names, landmarks.lps_mm)
+            mapped.append(predicted)
+        if args.compressed_point is not None:
+            mapped.append(map_points(state.dmap, ["compressed-point"], [args.compressed_point],
+                                     inverse=True))
+        if args.uncertainty and mapped:
+            import dataclasses
+
+            from regtrack.tracking.sensitivity import point_sigma
+
+            for i, m in enumerate(mapped):
+                ps = point_sigma(args.case, state, m.names, m.given_lps_mm,
+                                 inverse=m.direction != "mri->compressed", cache_dir=args.cache,
+                                 simulate=not args.no_simulate, progress=progress)
+                mapped[i] = dataclasses.replace(m, sigma_mm=ps.sigma_mm, sigma_terms_mm=ps.terms_mm)
+        paths = write_points(out, state, mapped) if mapped else []
+        if args.warp:
+            paths += write_warped(out, state, progress=progress)
+        if args.compare_mri or observed is not None:
+            from regtrack.tracking.compressed import write_comparison
+
+            path, doc = write_comparison(out, state, labels_path=args.compare_mri,
+                                         predicted=predicted, observed=observed)
+            paths.append(path)
+            if "surface_distance" in doc:
+                sd = doc["surface_distance"]
+                console.print(f"skin vs the compressed MRI: RMS {sd['rms_mm']:.2f} mm, p95 "
+                              f"{sd['p95_mm']:.2f} mm, max {sd['max_mm']:.2f} mm "
+                              f"({sd['n_points']} skin nodes)", highlight=False)
+            for r in doc.get("landmarks", []):
+                console.print(f"{r['name']}: {r['distance_mm']:.1f} mm from the compressed "
+                              "MRI's landmark", highlight=False)
+        for m in mapped:
+            for r in m.rows():
+                a, b = r["mri_lps_mm"], r["compressed_lps_mm"]
+                if m.direction != "mri->compressed":
+                    a, b = b, a
+                sigma = f" ± {r['sigma_mm']:.1f} mm (1 sigma)" if "sigma_mm" in r else ""
+                console.print(f"{r['name']}: ({', '.join(f'{v:.1f}' for v in a)}) -> "
+                              f"({', '.join(f'{v:.1f}' for v in b)}) LPS mm{sigma}, "
+                              f"{m.direction}, moved {r['displacement_mm']:.1f} mm",
+                              highlight=False)
+        dt = time.perf_counter() - t0
+        console.print(f"{state.view} (D = {state.summary.get('D') or 0:.2f}): "
+                      f"{len(paths)} files written to {out} ({dt:.1f} s)")
+    return 0
+
+
 def _check_numbers(args: argparse.Namespace) -> None:
     """Finite coordinates for every point option (NaN/inf are refused before any work)."""
     import math
 
     from regtrack.errors import TrackingError
 
-    for opt in ("mri_point", "cc_point", "mlo_point"):
+    for opt in ("mri_point", "cc_point", "mlo_point", "compressed_point"):
         value = getattr(args, opt)
         if value is not None and not all(math.isfinite(v) for v in value):
             raise TrackingError(f"--{opt.replace('_', '-')} {' '.join(map(str, value))}: "

@@ -47,6 +47,7 @@ import numpy as np
 
 from regtrack.config import param, parse_section
 from regtrack.errors import ConfigError
+from regtrack.views import SIMULATED_VIEWS
 
 ACTIONS = ("gravity", "remove_gravity", "move_plate", "hold")
 PLATE_MODES = ("contact", "degree", "gap", "force", "position")
@@ -152,8 +153,9 @@ def parse_protocol(table: dict, *, where: str) -> Protocol:
         if k not in known:
             problems.append(f"{where}: unknown key '{k}' (valid: {', '.join(sorted(known))})")
     view = str(table.get("view", "")).upper()
-    if view not in ("CC", "MLO"):
-        problems.append(f"{where} view = {table.get('view')!r}: must be \"CC\" or \"MLO\"")
+    if view not in SIMULATED_VIEWS:
+        problems.append(f"{where} view = {table.get('view')!r}: must be one of "
+                        + ", ".join(f'"{v}"' for v in SIMULATED_VIEWS))
     plates, p, _ = parse_section(PlateGeometry, table.get("plates"), where=f"{where} [plates]")
     problems += p
     raw = table.get("steps")
@@ -193,7 +195,7 @@ def load_protocol(path: str | Path) -> Protocol:
 
 
 def shipped_protocol(name: str) -> Protocol:
-    """A shipped protocol by name: ``"cc"`` or ``"mlo"``."""
+    """A shipped protocol by name: ``"cc"``, ``"mlo"`` or ``"biopsy"``."""
     fn = f"{str(name).lower()}.toml"
     res = resources.files("regtrack.mechanics") / "data" / "protocols" / fn
     if not res.is_file():
@@ -229,7 +231,7 @@ def apply_overrides(protocol: Protocol, ov: ProtocolOverrides) -> Protocol:
 
 def protocol_for_view(view: str, overrides: dict | None = None, *, where: str = "case.toml",
                       base_dir: Path | None = None) -> Protocol:
-    """The protocol of ``view`` ("CC"/"MLO"): shipped or from ``protocol = FILE``, plus overrides.
+    """The protocol of ``view`` ("CC"/"MLO"/"BIOPSY"): shipped or from ``protocol = FILE``, plus overrides.
 
     ``overrides`` is the raw ``[protocol.<VIEW>]`` table; problems raise :class:`ConfigError`.
     """

@@ -1,6 +1,6 @@
 """Case-level simulation of one mammographic view: model + protocol -> result files.
 
-:func:`simulate_view` is what ``regtrack simulate CASE --view cc|mlo`` calls: it reads the
+:func:`simulate_view` is what ``regtrack simulate CASE --view cc|mlo|biopsy`` calls: it reads the
 case's ``[mechanics]``, ``[contact]`` and ``[protocol.<VIEW>]`` overrides, runs the
 view's protocol (:mod:`.protocol_run`) on the model, and writes
 

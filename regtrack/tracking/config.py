@@ -36,3 +36,9 @@ class TrackingConfig:
     thickness_sigma_mm: float = param(3.0, "mm", "1-sigma uncertainty of the DICOM's "
                                       "BodyPartThickness (the displayed paddle height)", ge=0.0,
                                       le=50.0)
+    c1_rel_sigma: float = param(0.3, "-", "3-D tracking (track --view --uncertainty): 1-sigma "
+                                "relative uncertainty of the tissue c1 (a stated estimate)",
+                                ge=0.0, le=2.0)
+    nu_sigma: float = param(0.02, "-", "3-D tracking (track --view --uncertainty): 1-sigma "
+                            "uncertainty of Poisson's ratio nu (a stated estimate)", ge=0.0,
+                            le=0.2)

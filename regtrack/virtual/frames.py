@@ -40,8 +40,10 @@ import numpy as np
 
 from regtrack.errors import ConfigError
 
-#: Nominal plate angle (degrees) per view.
-NOMINAL_ANGLE_DEG = {"CC": 0.0, "MLO": 45.0}
+#: Nominal plate angle (degrees) per view.  "BIOPSY" is the latero-medial compression of
+#: the prone breast in an MR biopsy coil (plates in the sagittal plane, ``n`` medial); it
+#: has no mammogram.
+NOMINAL_ANGLE_DEG = {"CC": 0.0, "MLO": 45.0, "BIOPSY": 90.0}
 
 
 @dataclass(frozen=True)
@@ -121,13 +123,13 @@ def plate_frame(view: str, side: str, *, angle_deg: float | None = None,
 
     Parameters
     ----------
-    view : {"CC", "MLO"}
-        Mammographic view (case-insensitive).
+    view : {"CC", "MLO", "BIOPSY"}
+        Mammographic view, or the MR biopsy compression (case-insensitive).
     side : {"L", "R"}
         Breast side.
     angle_deg : float, optional
-        Plate rotation theta about the antero-posterior axis (degrees); default 0 for CC
-        and 45 for MLO.
+        Plate rotation theta about the antero-posterior axis (degrees); default 0 for CC,
+        45 for MLO and 90 for BIOPSY.
     origin : (3,) float
         A point of the lower plate plane (mm, model frame).
 
@@ -139,7 +141,7 @@ def plate_frame(view: str, side: str, *, angle_deg: float | None = None,
     """
     v = str(view).upper()
     if v not in NOMINAL_ANGLE_DEG:
-        raise ConfigError(f"view {view!r} invalid: use 'CC' or 'MLO'")
+        raise ConfigError(f"view {view!r} invalid: use one of {', '.join(NOMINAL_ANGLE_DEG)}")
     m = medial_unit(side)
     theta = NOMINAL_ANGLE_DEG[v] if angle_deg is None else float(angle_deg)
     if not np.isfinite(theta):
