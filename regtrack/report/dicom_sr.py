@@ -167,8 +167,8 @@ def build_sr(headers: dict, results: list, *, case_id: str, series_number: int =
         for lesion in r.extra.get("lesions") or []:
             groups += _lesion_groups(r.view, h, lesion)
         groups.append(_metrics_group(r.view, h, r.row))
-    if mri_frame_uid:
-        groups += _mri_lesion_groups(results, mri_frame_uid)
+    mri_points = _mri_lesion_groups(results, mri_frame_uid) if mri_frame_uid else []
+    groups += mri_points
     observer = hd.sr.ObserverContext(
         observer_type=hd.sr.CodedConcept("121007", "DCM", "Device"),
         observer_identifying_attributes=hd.sr.DeviceObserverIdentifyingAttributes(
@@ -181,10 +181,7 @@ def build_sr(headers: dict, results: list, *, case_id: str, series_number: int =
     with warnings.catch_warnings():  # a one-component PatientName (a pseudonym) is intended
         warnings.filterwarnings("ignore", message=".*person name.*", category=UserWarning)
         # SCOORD3D content (the MRI points) needs the Comprehensive 3D SR SOP class
-        sop = hd.sr.Comprehensive3DSR if mri_frame_uid and any(
-            isinstance(g.roi, hd.sr.ImageRegion3D) for g in groups
-            if isinstance(g, hd.sr.PlanarROIMeasurementsAndQualitativeEvaluations)) \
-            else hd.sr.ComprehensiveSR
+        sop = hd.sr.Comprehensive3DSR if mri_points else hd.sr.ComprehensiveSR
         sr = sop(
             evidence=evidence, content=report[0], series_instance_uid=hd.UID(),
             series_number=series_number, sop_instance_uid=hd.UID(), instance_number=1,
@@ -291,9 +288,10 @@ def write_dicom_results(out: Path, results: list, mammograms: dict, *, case_id: 
         studies.setdefault(str(headers[r.view].get("StudyInstanceUID", "")), []).append(r)
     paths = []
     pdf = Path(pdf_path).read_bytes() if pdf_path is not None else None
+    mri_frame = mri_frame_of_reference(mri_series)
     for n, (_uid, rs) in enumerate(studies.items(), 1):
         docs = [("sr", build_sr(headers, rs, case_id=case_id,
-                                mri_frame_uid=mri_frame_of_reference(mri_series)))]
+                                mri_frame_uid=mri_frame))]
         if pdf is not None:
             docs.append(("report", build_encapsulated_pdf(pdf, headers[rs[0].view],
                                                           case_id=case_id)))

@@ -43,6 +43,7 @@ from regtrack.tracking.deformation import DeformationMap
 
 log = logging.getLogger(__name__)
 
+
 @dataclass
 class WarpedVolume:
     """A warped volume and how its grid relates to the input's.
