@@ -15,7 +15,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from regtrack.mechanics.tissue import _det3, _inv_transpose, tangent_entry
+from regtrack.mechanics.tissue import _det3, force_entry, point_state, tangent_entry
 
 EDGES = np.array([[0, 1], [1, 2], [0, 2], [0, 3], [1, 3], [2, 3]])
 _A, _B = 0.5854101966249685, 0.1381966011250105
@@ -87,29 +87,14 @@ def tet10_kernel(x, tets, G, W, c1, kappa, want_k, f, data, base, rowstride):
             if J <= 0.0:
                 bad += 1
                 continue
-            _inv_transpose(F, J, H)
-            I1 = 0.0
-            for i in range(3):
-                for j in range(3):
-                    I1 += F[i, j] * F[i, j]
-            Jm23 = J ** (-2.0 / 3.0)
-            mu_e = 2.0 * c1[e] * Jm23
+            I1, Jm23, mu_e = point_state(F, J, c1[e], G[e, q], H, fa, ha)
             p = kappa[e] * (J - 1.0)
             w = W[e, q]
             energy += w * (c1[e] * (Jm23 * I1 - 3.0) + 0.5 * kappa[e] * (J - 1.0) ** 2)
             for a in range(nn):
-                for i in range(3):
-                    sf = 0.0
-                    sh = 0.0
-                    for L in range(3):
-                        sf += F[i, L] * G[e, q, a, L]
-                        sh += H[i, L] * G[e, q, a, L]
-                    fa[a, i] = sf
-                    ha[a, i] = sh
-            for a in range(nn):
                 n = tets[e, a]
                 for i in range(3):
-                    f[n, i] += w * (mu_e * (fa[a, i] - I1 / 3.0 * ha[a, i]) + p * J * ha[a, i])
+                    f[n, i] += w * force_entry(fa, ha, a, i, mu_e, I1, p, J)
             if not want_k:
                 continue
             cvol = (kappa[e] * J + p) * J

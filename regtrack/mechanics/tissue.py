@@ -136,31 +136,16 @@ def tet_kernel(x, tets, G, V, c1, p, dp, want_k, project, f, data, base, rowstri
                 bad += 1
                 ee[e] = 0.0
             continue
-        _inv_transpose(F, J, H)
-        I1 = 0.0
-        for i in range(3):
-            for j in range(3):
-                I1 += F[i, j] * F[i, j]
-        Jm23 = J ** (-2.0 / 3.0)
-        mu_e = 2.0 * c1[e] * Jm23
+        I1, Jm23, mu_e = point_state(F, J, c1[e], G[e], H, fa, ha)
         if counts:
             ee[e] = V[e] * c1[e] * (Jm23 * I1 - 3.0)
-        for a in range(4):
-            for i in range(3):
-                sf = 0.0
-                sh = 0.0
-                for L in range(3):
-                    sf += F[i, L] * G[e, a, L]
-                    sh += H[i, L] * G[e, a, L]
-                fa[a, i] = sf
-                ha[a, i] = sh
         pe = p[e]
         for a in range(4):
             n = tets[e, a]
             if not owned[n]:
                 continue
             for i in range(3):
-                f[n, i] += V[e] * (mu_e * (fa[a, i] - I1 / 3.0 * ha[a, i]) + pe * J * ha[a, i])
+                f[n, i] += V[e] * force_entry(fa, ha, a, i, mu_e, I1, pe, J)
                 dv[e, a, i] = V[e] * J * ha[a, i]
         if not want_k:
             continue
@@ -185,6 +170,42 @@ def tet_kernel(x, tets, G, V, c1, p, dp, want_k, project, f, data, base, rowstri
                         for k in range(3):
                             data[b0 + i * rs + k] += Ke[3 * a + i, 3 * b + k]
     return bad
+
+
+@njit(cache=True, inline="always")
+def point_state(F, J, c1, Ga, H, fa, ha):
+    """The neo-Hookean state at one point, shared by the P1 and P2 kernels.
+
+    From the deformation gradient ``F`` with ``J = det F > 0``, the material's ``c1``
+    (MPa) and the shape-function gradients ``Ga`` (n, 3) 1/mm of the element's n nodes,
+    fills ``H = F^-T`` and ``fa[a] = F G_a``, ``ha[a] = H G_a`` (n, 3), and returns
+    ``(I1, J^(-2/3), mu_e)`` with ``I1 = tr(F^T F)`` and ``mu_e = 2 c1 J^(-2/3)`` (MPa).
+    """
+    _inv_transpose(F, J, H)
+    I1 = 0.0
+    for i in range(3):
+        for j in range(3):
+            I1 += F[i, j] * F[i, j]
+    Jm23 = J ** (-2.0 / 3.0)
+    mu_e = 2.0 * c1 * Jm23
+    for a in range(Ga.shape[0]):
+        for i in range(3):
+            sf = 0.0
+            sh = 0.0
+            for L in range(3):
+                sf += F[i, L] * Ga[a, L]
+                sh += H[i, L] * Ga[a, L]
+            fa[a, i] = sf
+            ha[a, i] = sh
+    return I1, Jm23, mu_e
+
+
+@njit(cache=True, inline="always")
+def force_entry(fa, ha, a, i, mu_e, I1, p, J):
+    """``(P G_a)_i`` of the module docstring at one point (MPa/mm): the first Piola-Kirchhoff
+    stress applied to node ``a``'s gradient, from :func:`point_state`'s ``fa``, ``ha``,
+    ``mu_e``, ``I1`` and the pressure ``p`` (MPa)."""
+    return mu_e * (fa[a, i] - I1 / 3.0 * ha[a, i]) + p * J * ha[a, i]
 
 
 @njit(cache=True, inline="always")
