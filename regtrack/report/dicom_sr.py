@@ -89,6 +89,17 @@ def _measurement(value: float, code: str, meaning: str, unit: str):
     return _hd().sr.Measurement(name=_code(code, meaning), value=float(value), unit=_unit(unit))
 
 
+def _roi_group(identifier: str, region, measurements: list | None = None):
+    """One TID 1410 group (planar ROI) of a lesion: its tracking identifier, the region
+    (a 2-D ``ImageRegion`` on a mammogram or a 3-D ``ImageRegion3D`` in the MRI's frame)
+    and the measurements attached to it."""
+    hd = _hd()
+    return hd.sr.PlanarROIMeasurementsAndQualitativeEvaluations(
+        tracking_identifier=hd.sr.TrackingIdentifier(uid=hd.UID(), identifier=identifier),
+        referenced_region=region, finding_type=hd.sr.CodedConcept("52988006", "SCT", "Lesion"),
+        measurements=measurements)
+
+
 def _lesion_groups(view: str, header, lesion) -> list:
     """The outline and centroid groups (TID 1410) of one lesion on one mammogram."""
     hd = _hd()
@@ -99,25 +110,19 @@ def _lesion_groups(view: str, header, lesion) -> list:
     if lesion.error_mm is not None:
         meas.append(_measurement(lesion.error_mm, "lesion_error",
                                  "Predicted lesion error against the outline", "mm"))
-    finding = hd.sr.CodedConcept("52988006", "SCT", "Lesion")
+    name = f"MRI lesion {lesion.lesion} on {view}"
     groups = []
     if lesion.outline_px is not None and len(lesion.outline_px) >= 3:
         rc = np.asarray(lesion.outline_px, float)
         cr = np.vstack([rc[:, ::-1], rc[:1, ::-1]])  # (column, row), closed
-        groups.append(hd.sr.PlanarROIMeasurementsAndQualitativeEvaluations(
-            tracking_identifier=hd.sr.TrackingIdentifier(
-                uid=hd.UID(), identifier=f"MRI lesion {lesion.lesion} on {view}: outline"),
-            referenced_region=hd.sr.ImageRegion(graphic_type=hd.sr.GraphicTypeValues.POLYLINE,
-                                                graphic_data=cr, source_image=src),
-            finding_type=finding, measurements=meas))
+        groups.append(_roi_group(f"{name}: outline", hd.sr.ImageRegion(
+            graphic_type=hd.sr.GraphicTypeValues.POLYLINE, graphic_data=cr, source_image=src),
+            meas))
     if lesion.centroid_px is not None:
         c = np.asarray(lesion.centroid_px, float)[::-1][None]
-        groups.append(hd.sr.PlanarROIMeasurementsAndQualitativeEvaluations(
-            tracking_identifier=hd.sr.TrackingIdentifier(
-                uid=hd.UID(), identifier=f"MRI lesion {lesion.lesion} on {view}: centroid"),
-            referenced_region=hd.sr.ImageRegion(graphic_type=hd.sr.GraphicTypeValues.POINT,
-                                                graphic_data=c, source_image=src),
-            finding_type=finding, measurements=meas))
+        groups.append(_roi_group(f"{name}: centroid", hd.sr.ImageRegion(
+            graphic_type=hd.sr.GraphicTypeValues.POINT, graphic_data=c, source_image=src),
+            meas))
     return groups
 
 
@@ -130,14 +135,9 @@ def _mri_lesion_groups(results: list, frame_of_reference_uid: str) -> list:
         for lesion in r.extra.get("lesions") or []:
             if lesion.mri_lps_mm is not None:
                 points.setdefault(int(lesion.lesion), np.asarray(lesion.mri_lps_mm, float))
-    return [hd.sr.PlanarROIMeasurementsAndQualitativeEvaluations(
-        tracking_identifier=hd.sr.TrackingIdentifier(uid=hd.UID(),
-                                                     identifier=f"MRI lesion {k} on the MRI"),
-        referenced_region=hd.sr.ImageRegion3D(graphic_type=hd.sr.GraphicTypeValues3D.POINT,
-                                              graphic_data=p[None],
-                                              frame_of_reference_uid=frame_of_reference_uid),
-        finding_type=hd.sr.CodedConcept("52988006", "SCT", "Lesion"))
-        for k, p in sorted(points.items())]
+    return [_roi_group(f"MRI lesion {k} on the MRI", hd.sr.ImageRegion3D(
+        graphic_type=hd.sr.GraphicTypeValues3D.POINT, graphic_data=p[None],
+        frame_of_reference_uid=frame_of_reference_uid)) for k, p in sorted(points.items())]
 
 
 def _metrics_group(view: str, header, row: dict):
