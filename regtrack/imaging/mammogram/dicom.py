@@ -29,6 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from regtrack.errors import DicomError, MammogramError
+from regtrack.views import LATERALITIES, VIEWS
 
 from .orient import (Orientation, orientation_from_hanging, orientation_from_tag,
                      parse_patient_orientation)
@@ -78,21 +79,15 @@ class MammogramImage:
         return self.orientation.to_source_px(rc)
 
 
-def _norm_view(view: str | None, where: str) -> str | None:
-    if view is None:
+def _user_choice(value: str | None, allowed: tuple[str, ...], what: str, where: str) -> str | None:
+    """The caller's view or laterality (``what``) upper-cased and checked against ``allowed``;
+    None when not given (the tags and the image decide)."""
+    if value is None:
         return None
-    v = str(view).strip().upper()
-    if v not in ("CC", "MLO"):
-        raise DicomError(f"{where}: view {view!r} is not supported; use 'CC' or 'MLO'")
-    return v
-
-
-def _norm_lat(lat: str | None, where: str) -> str | None:
-    if lat is None:
-        return None
-    v = str(lat).strip().upper()
-    if v not in ("L", "R"):
-        raise DicomError(f"{where}: laterality {lat!r} is not supported; use 'L' or 'R'")
+    v = str(value).strip().upper()
+    if v not in allowed:
+        choices = " or ".join(repr(a) for a in allowed)
+        raise DicomError(f"{where}: {what} {value!r} is not supported; use {choices}")
     return v
 
 
@@ -144,7 +139,7 @@ def _spacing_tag(ds, keyword: str, name: str) -> np.ndarray:
 def _laterality_from_tags(ds) -> tuple[str | None, str]:
     for kw in ("ImageLaterality", "Laterality"):
         v = str(ds.get(kw, "") or "").strip().upper()
-        if v in ("L", "R"):
+        if v in LATERALITIES:
             return v, kw
     return None, ""
 
@@ -278,7 +273,8 @@ def read_mammogram(path: str | os.PathLike, *, pixel_spacing_mm=None, view: str 
     meta.update(pinfo)
     lat_tag, lat_src = _laterality_from_tags(ds)
     view_tag, view_src = _view_from_tags(ds)
-    lat_user, view_user = _norm_lat(laterality, name), _norm_view(view, name)
+    lat_user = _user_choice(laterality, LATERALITIES, "laterality", name)
+    view_user = _user_choice(view, VIEWS, "view", name)
     return _canonicalise(
         img, spacing, name=name, meta=meta,
         laterality=(lat_user or lat_tag), laterality_source=("user" if lat_user else lat_src),
@@ -305,7 +301,8 @@ def mammogram_from_array(image, *, pixel_spacing_mm, view: str | None = None,
         raise DicomError(f"{source}: pixel_spacing_mm is required for an array")
     sp, _ = _spacing_from_tags({}, source, pixel_spacing_mm)
     meta: dict = {"modality": None, "notes": [], "spacing_source": "user (pixel_spacing_mm)"}
-    lat_user, view_user = _norm_lat(laterality, source), _norm_view(view, source)
+    lat_user = _user_choice(laterality, LATERALITIES, "laterality", source)
+    view_user = _user_choice(view, VIEWS, "view", source)
     return _canonicalise(((arr - lo) / (hi - lo)).astype(np.float32), sp, name=source, meta=meta,
                          laterality=lat_user, laterality_source="user" if lat_user else "",
                          view=view_user, view_source="user" if view_user else "",
