@@ -47,27 +47,15 @@ class SolverStats:
 
     steps: list[StepStats] = field(default_factory=list)
 
-    @property
-    def iterations(self) -> int:
-        return sum(s.iterations for s in self.steps)
-
-    @property
-    def increments(self) -> int:
-        return sum(s.increments for s in self.steps)
-
-    @property
-    def cutbacks(self) -> int:
-        return sum(s.cutbacks for s in self.steps)
-
-    @property
-    def time_total(self) -> float:
-        return sum(s.t_total for s in self.steps)
+    def total(self, name: str) -> float:
+        """Sum of the :class:`StepStats` field ``name`` over the steps."""
+        return sum(getattr(s, name) for s in self.steps)
 
     def to_dict(self) -> dict:
-        return {"steps": len(self.steps), "increments": self.increments, "iterations": self.iterations,
-                "cutbacks": self.cutbacks, "t_total_s": self.time_total,
-                "t_assembly_s": sum(s.t_assembly for s in self.steps),
-                "t_solve_s": sum(s.t_solve for s in self.steps)}
+        return {"steps": len(self.steps), "increments": self.total("increments"),
+                "iterations": self.total("iterations"), "cutbacks": self.total("cutbacks"),
+                "t_total_s": self.total("t_total"), "t_assembly_s": self.total("t_assembly"),
+                "t_solve_s": self.total("t_solve")}
 
 
 @dataclass
