@@ -7,7 +7,7 @@ Usage::
     .venv/bin/python pipelines/bench_protocols.py --concurrent   # views at the same time
 
 ``--concurrent`` runs the views in two processes at the same time, as ``regtrack run``
-does on two or more cores (:func:`regtrack.pipeline.stages.simulate_concurrently`); each
+does on two or more cores (:func:`regtrack.pipeline.workers.simulate_concurrently`); each
 view's table is then printed when both are done, and "all views" is the wall-clock time
 of the pair.
 

@@ -1,6 +1,6 @@
 """A stand-in ``regtrack`` command for the signal tests (tests/test_signals.py).
 
-``sleepy`` runs :func:`regtrack.pipeline.stages.simulate_concurrently` with two views whose
+``sleepy`` runs :func:`regtrack.pipeline.workers.simulate_concurrently` with two views whose
 worker (:func:`sleepy_worker`) opens a stage temporary in the cache, writes its pid next
 to the cache and sleeps: the test then signals the command and checks that the workers
 are gone, the temporaries removed and one line printed.
@@ -43,12 +43,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from regtrack.pipeline import stages
+    from regtrack.pipeline import stages, workers
     from regtrack.pipeline.cache import StageCache
 
     stages.simulate_key = lambda ctx, key, view: view  # no case: the view names the stage
     ctx = FakeContext(StageCache(Path(args.cache)))
     (Path(args.cache) / "parent-ready").write_text(str(os.getpid()))
-    stages.simulate_concurrently(ctx, stages.MeshOutput("mesh", Path(args.cache), None),
-                                 ["CC", "MLO"], worker=sleepy_worker)
+    workers.simulate_concurrently(ctx, stages.MeshOutput("mesh", Path(args.cache), None),
+                                  ["CC", "MLO"], worker=sleepy_worker)
     return 0

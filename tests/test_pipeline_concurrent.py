@@ -1,5 +1,5 @@
 """The views of a case simulated at the same time (``regtrack run`` on two or more cores):
-:func:`regtrack.pipeline.stages.simulate_concurrently` with stand-in workers, so the
+:func:`regtrack.pipeline.workers.simulate_concurrently` with stand-in workers, so the
 process pool, the error hand-back and the fallback are checked in seconds.  The real
 simulations, and that they equal the serial ones, are checked end to end in
 ``tests/test_pipeline_run.py``."""
@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 
 from regtrack.errors import SolverDidNotConvergeError
-from regtrack.pipeline import stages
+from regtrack.pipeline import stages, workers
 from regtrack.pipeline.run import RunContext
 
 
@@ -55,7 +55,7 @@ class _Mesh(str):
 
 def test_a_failed_view_is_handed_back_and_the_other_one_is_kept(ctx, tmp_path):
     mesh = _Mesh(str(tmp_path))
-    failed = stages.simulate_concurrently(ctx, mesh, ["CC", "MLO"], worker=_ok_or_fail)
+    failed = workers.simulate_concurrently(ctx, mesh, ["CC", "MLO"], worker=_ok_or_fail)
     assert list(failed) == ["CC"]
     assert isinstance(failed["CC"], SolverDidNotConvergeError)
     assert "t = 0.5" in str(failed["CC"])
@@ -69,12 +69,12 @@ def test_a_failed_view_is_handed_back_and_the_other_one_is_kept(ctx, tmp_path):
 def test_nothing_runs_concurrently_with_fewer_than_two_views_to_simulate(ctx, tmp_path):
     ctx.cache = _Cache(cached={"CC"})
     mesh = _Mesh(str(tmp_path))
-    assert stages.simulate_concurrently(ctx, mesh, ["CC", "MLO"], worker=_ok_or_fail) == {}
+    assert workers.simulate_concurrently(ctx, mesh, ["CC", "MLO"], worker=_ok_or_fail) == {}
     assert not (tmp_path / "MLO.done").exists()  # left to the serial loop
     assert ctx.msgs == []
 
 
 def test_a_dead_worker_leaves_its_view_to_the_serial_loop(ctx, tmp_path, caplog):
     mesh = _Mesh(str(tmp_path))
-    assert stages.simulate_concurrently(ctx, mesh, ["CC", "MLO"], worker=_die) == {}
+    assert workers.simulate_concurrently(ctx, mesh, ["CC", "MLO"], worker=_die) == {}
     assert "simulating it again in this process" in caplog.text

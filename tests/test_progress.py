@@ -9,7 +9,7 @@ import logging
 import pytest
 
 from regtrack.cli._console import OnceFilter, SimulationProgress, increment_text
-from regtrack.pipeline import stages
+from regtrack.pipeline import stages, workers
 from regtrack.pipeline.run import RunContext
 from regtrack.privacy import Identifiers
 
@@ -66,7 +66,7 @@ class _Mesh(str):
 
 def _reporting_worker(ctx, mesh, view):
     """Worker: two increments, a warning and the end, as simulate_stage in a worker sends."""
-    ctx = stages.worker_context(ctx)
+    ctx = workers.worker_context(ctx)
     ctx.sim_progress(view, "compression", 0.5, increment=1)
     ctx.sim_progress(view, "compression", 1.0, increment=2, D=0.38)
     logging.getLogger("regtrack.test").warning("%s: solver warning", view)
@@ -80,7 +80,7 @@ def test_workers_relay_increments_and_warnings(monkeypatch, caplog):
     ctx = _ctx(progress=msgs.append, sim_progress=lambda *a, **k: seen.append((a, k)))
     ctx.cache = _Cache()
     with caplog.at_level(logging.WARNING):
-        assert stages.simulate_concurrently(ctx, _Mesh("/tmp"), ["CC", "MLO"],
+        assert workers.simulate_concurrently(ctx, _Mesh("/tmp"), ["CC", "MLO"],
                                             worker=_reporting_worker) == {}
     for v in ("CC", "MLO"):
         mine = [a for a, _ in seen if a[0] == v]

@@ -1,7 +1,7 @@
 """SIGTERM and SIGINT stop every worker process and leave the cache consistent (issue 53).
 
 A real ``regtrack`` process runs a stand-in command (tests/_signal_fakes.py) whose two view
-workers, started by :func:`regtrack.pipeline.stages.simulate_concurrently` exactly as in
+workers, started by :func:`regtrack.pipeline.workers.simulate_concurrently` exactly as in
 ``regtrack run``, each hold an unfinished stage folder in the cache and sleep.  The test
 signals the parent and checks: one line on stderr naming the signal, no traceback, the
 exit status, both workers gone, no ``.part`` temporary left and no stage folder made.

@@ -26,7 +26,7 @@ import numpy as np
 from regtrack import __version__, _io
 from regtrack.case.configs import Configs
 from regtrack.errors import CaseError, RegtrackError
-from regtrack.pipeline import stages
+from regtrack.pipeline import stages, workers
 from regtrack.pipeline.cache import DEFAULT_CACHE, StageCache, file_digest, fingerprint
 from regtrack.privacy import (IDENTIFYING_KEYWORDS, Identifiers, identifiers_of_case_folder,
                               pseudonymous_id, scrub_logs)
@@ -110,7 +110,7 @@ def run_case(case_dir: str | Path, *, overrides: dict | None = None,
         replaced by a pseudonym.
     concurrent : bool, optional
         Simulate the views that are not cached at the same time, one process each
-        (:func:`regtrack.pipeline.stages.simulate_concurrently`).  Default (None): when this
+        (:func:`regtrack.pipeline.workers.simulate_concurrently`).  Default (None): when this
         process may use two or more cores and may start processes (not a daemon, such as
         a Dask worker).  Studies pass False: they already run cases side by side.
     """
@@ -228,14 +228,14 @@ def run_stages(ctx: RunContext, views: tuple[str, ...], *, concurrent: bool
     """Mesh, then per view simulate, virtual mammogram and (with a real mammogram) the
     alignment and metrics; the real mammograms are read first, so that a bad DICOM fails
     in seconds, before any stage is computed or cached.  ``concurrent``: simulate the
-    uncached views at the same time (:func:`stages.simulate_concurrently`)."""
+    uncached views at the same time (:func:`.workers.simulate_concurrently`)."""
     reals = {view: stages.real_stage(ctx, view) for view in views if view in ctx.case.views}
     mesh_out = stages.mesh_stage(ctx)
     if ctx.case.views and not ctx.geometry:  # the DICOM's plate gap, MLO angle, projection
         from regtrack.pipeline.geometry import apply_geometry
 
         apply_geometry(ctx, mesh_out.model, views)
-    failed = stages.simulate_concurrently(ctx, mesh_out, views) if concurrent else {}
+    failed = workers.simulate_concurrently(ctx, mesh_out, views) if concurrent else {}
     results = []
     for view in views:
         if view in failed:
