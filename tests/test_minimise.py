@@ -89,6 +89,39 @@ def test_residual_is_the_gradient_of_the_potential():
         assert fd == pytest.approx(an, rel=1e-6, abs=1e-12)
 
 
+def test_friction_potential_is_c2_and_saturates_at_the_coulomb_bound():
+    """The friction potential of one node: gradient and Hessian equal central differences
+    of the energy and of the gradient (5e-6 relative: the differences' truncation error at
+    h = 1e-6 mm), the traction is ``2 eps_T s`` near rest and exactly ``B`` beyond the slip
+    ``delta = B / eps_T``, and the Hessian is continuous across ``s = delta`` (within 1e-4
+    of its scale two micro-slips either side), which a piecewise-linear traction is not."""
+    n = np.array([[0.0, 0.0, 1.0]])
+    B, eps_t, A = np.array([2e-3]), 0.01, np.array([3.0])
+    delta = B[0] / eps_t
+    anchor = np.zeros((1, 3))
+
+    def terms(x):
+        return friction_terms(np.asarray(x, float).reshape(1, 3), anchor, n, B, eps_t, A)
+
+    d = np.array([0.6, 0.8, 0.0])
+    for s in (0.3 * delta, 0.99 * delta, 1.7 * delta):
+        x = s * d + np.array([0.0, 0.0, 0.05])
+        _, g, H, slip = terms(x)
+        assert bool(slip[0]) == (s >= delta)
+        h = 1e-6
+        for k in range(3):
+            e = np.zeros(3)
+            e[k] = h
+            fd = (terms(x + e)[0] - terms(x - e)[0]) / (2 * h)
+            assert fd == pytest.approx(g[0, k], rel=5e-6, abs=1e-12)
+            fdg = (terms(x + e)[1] - terms(x - e)[1])[0] / (2 * h)
+            np.testing.assert_allclose(fdg, H[0][:, k], rtol=5e-6, atol=5e-6 * np.abs(H).max())
+    assert np.linalg.norm(terms(1e-4 * delta * d)[1]) == pytest.approx(A[0] * 2 * eps_t * 1e-4 * delta, rel=1e-3)
+    assert np.linalg.norm(terms(3 * delta * d)[1]) == pytest.approx(A[0] * B[0], rel=1e-12)
+    Hm, Hp = terms((1 - 1e-6) * delta * d)[2], terms((1 + 1e-6) * delta * d)[2]
+    assert np.abs(Hm - Hp).max() <= 1e-4 * A[0] * eps_t
+
+
 def test_contact_and_friction_hessians_are_positive_semidefinite():
     rng = np.random.default_rng(2)
     M = 200
@@ -318,3 +351,18 @@ def test_multipliers_failing_at_the_end_of_a_step_stop_it_without_cut_backs(monk
                       contacts=contacts, n_increments=1, options=SolverOptions())
     assert calls == [1.0] and err.value.load_fraction == 0.0
     assert "multipliers not converged" in str(err.value)
+
+
+def test_friction_error_of_a_barely_touching_plate_is_measured_against_the_load_scale():
+    """The lag error of the slip bound is relative to the plate's normal force, or to the
+    step's load scale when the plate barely touches: a 100 % error on 1e-6 N of contact is
+    1e-6 of a 1 N load, and converged; on a plate carrying 1 N it is not."""
+    from types import SimpleNamespace
+
+    pl = PlatePotential.__new__(PlatePotential)
+    pl.c = SimpleNamespace(areas=np.array([1.0, 1.0]), mu=0.1)
+    pl.pbar = np.zeros(2)
+    for pressure, err in ((np.array([1e-6, 0.0]), 1e-6), (np.array([0.5, 0.5]), 1.0)):
+        ev = SimpleNamespace(pressure=pressure)
+        assert pl.friction_error(ev, 1.0) == pytest.approx(err, rel=1e-12)
+        assert pl.friction_error(ev) == pytest.approx(1.0, rel=1e-12)

@@ -13,7 +13,7 @@ updates, are in :mod:`.potential`; the contact force on a node is
 
     f_i = A_i (p_i n_i + t_i),\\qquad p_i = \\max(0, \\lambda_i - \\varepsilon_i g_i),
 
-with the friction traction ``t_i`` of the lagged Huber potential (slip bound ``mu pbar_i``).
+with the friction traction ``t_i`` of the lagged C2 friction potential (slip bound ``mu pbar_i``).
 
 Automatic penalty (pressure per mm of penetration, MPa/mm)
 
@@ -64,8 +64,9 @@ class ContactConfig:
                                       gt=0.0, le=5.0)
     max_penetration_mm: float = param(0.1, "mm", "guard rail: a converged step with a deeper "
                                       "penetration is rejected", gt=0.0)
-    friction_tol: float = param(0.005, "-", "accepted error of the lagged friction bound at the "
-                                "end of a step, relative to mu * normal force", gt=0.0,
+    friction_tol: float = param(0.005, "-", "accepted error of the lagged friction bound at "
+                                "the end of an increment, relative to mu times the plate's "
+                                "normal force (or the step's load scale, when larger)", gt=0.0,
                                 le=0.5)
     first_plate_increment_mm: float = param(2.0, "mm", "protocols: largest plate travel of the "
                                             "first increment of a plate move (the first "

@@ -46,10 +46,12 @@ increment starts from the last state or the path extrapolated linearly from the 
 whichever has the lower potential (a start changes the iterations, not the minimiser).  The
 augmented-Lagrangian multipliers and the friction lag of every increment are iterated
 until the penetration is below ``penetration_tol_mm`` and the lagged slip bound agrees
-with the current pressure within ``friction_tol``: each increment is a backward-Euler step
-of Coulomb's law at its own pressure, so the frictional path does not carry a lag from
-one increment into the next.  An increment that does not converge in ``4 max_iterations``
-is halved (a shorter path to the same state: no tolerance is relaxed).
+with the current pressure within ``friction_tol`` of the plate's normal force (or of the
+load scale ``F_ref`` when that is larger: a plate that barely touches): each increment
+is a backward-Euler step of Coulomb's law at its own pressure, so the frictional path
+does not carry a lag from one increment into the next.  An increment that does not
+converge in ``4 max_iterations`` is halved (a shorter path to the same state: no
+tolerance is relaxed).
 """
 
 from __future__ import annotations
@@ -241,13 +243,15 @@ class Minimiser:
             if forces_ok and np.abs(du[self.free]).max(initial=0.0) <= self.o.disp_abs_tol_mm:
                 return s
             self.stats.iterations += 1
+            trials = self.stats.line_search_trials
             nxt = self.line_search(s, du, fext, plates)
             if nxt is None:
                 raise SolverDidNotConvergeError("line search found no decrease of the potential")
             if log.isEnabledFor(5):
-                log.log(5, "  iteration: Pi %.10g -> %.10g, |R| %.3g -> %.3g N, |du| %.3g mm, corrections %d",
-                        s.energy, nxt.energy, np.linalg.norm(s.R[self.free]),
-                        np.linalg.norm(nxt.R[self.free]), np.abs(nxt.u - s.u).max(),
+                log.log(5, "  iteration: Pi %.10g -> %.10g, |R| %.3g -> %.3g N, |du| %.3g mm, "
+                        "step 2^-%d, corrections %d", s.energy, nxt.energy,
+                        np.linalg.norm(s.R[self.free]), np.linalg.norm(nxt.R[self.free]),
+                        np.abs(nxt.u - s.u).max(), self.stats.line_search_trials - trials - 1,
                         self.stats.inertia_corrections)
             s = self.state(nxt.u, fext, plates, hessian=True)
             if s is None:  # cannot happen: the line search evaluated this state
@@ -421,7 +425,7 @@ def _increment(m: Minimiser, starts: Sequence[np.ndarray], t: float, external, c
         s = m.solve(u, fext, plates)
         u = s.u
         pen = max((pl.max_violation(e) for pl, e in zip(plates, s.plates)), default=0.0)
-        ferr = max((pl.friction_error(e) for pl, e in zip(plates, s.plates)), default=0.0)
+        ferr = max((pl.friction_error(e, s.f_ref) for pl, e in zip(plates, s.plates)), default=0.0)
         done = cfg is None or (pen <= cfg.penetration_tol_mm and ferr <= cfg.friction_tol)
         log.debug("%s: t = %.4g, update %d: %d iterations so far, penetration %.3g mm, "
                   "friction error %.3g, |R| %.3g N, resultant %.3g N", m.stats.name, t, k,

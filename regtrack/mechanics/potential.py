@@ -27,19 +27,26 @@ positive semi-definite; the gradient stays exact.
 Contact*, section 5): with the stick point ``a_i`` (committed at the end of the last
 increment and carried with the plate), the lagged normal ``nbar_i`` and slip bound
 ``B_i = mu pbar_i`` (the pressure of the last multiplier update), the tangential slip
-``s_i = |T_i (x_i - a_i)|``, ``T_i = I - nbar_i nbar_i^T``, enters the Huber potential
+``s_i = |T_i (x_i - a_i)|``, ``T_i = I - nbar_i nbar_i^T``, enters a C2 friction
+potential (the cubic mollifier of IPC's ``f_1``, scaled so that sliding starts at the slip
+``delta_i = B_i / eps_T``; ``r = s / delta``)
 
 .. math::
 
     \\Pi_T = \\sum_i A_i \\varphi(s_i),\\qquad
-    \\varphi(s) = \\begin{cases} \\varepsilon_T s^2 / 2 & \\varepsilon_T s \\le B \\\\
-    B s - B^2 / (2\\varepsilon_T) & \\text{otherwise,} \\end{cases}
+    \\varphi(s) = \\begin{cases} B \\delta (r^2 - r^3/3) & r < 1 \\\\
+    B (s - \\delta / 3) & r \\ge 1, \\end{cases}\\qquad
+    \\varphi'(s) = B (2 \\bar r - \\bar r^2),\\quad \\bar r = \\min(r, 1),
 
-convex and C1 in ``x``.  Its gradient is ``A_i min(eps_T s_i, B_i) ghat_i`` (``ghat =
-T (x - a) / s``, the traction of the return mapping) and its Hessian ``A_i eps_T T_i``
-(stick) or ``A_i (B_i / s_i)(T_i - ghat ghat^T)`` (slip), both positive semi-definite.
-The minimiser iterates the lag to consistency (``pbar = p``, ``nbar = n``) in the last
-increment of a step, so the converged state obeys Coulomb's law at the current pressure.
+convex in ``x``.  Its gradient is ``A_i varphi'(s_i) ghat_i`` (``ghat = T (x - a) / s``,
+the traction: ``eps_T``-scaled stick, saturating at the Coulomb bound ``B`` at ``s =
+delta``) and its Hessian ``A_i [varphi'' ghat ghat^T + (varphi' / s)(T - ghat ghat^T)]``
+with ``varphi'' = 2 eps_T (1 - r)^+`` and ``varphi' / s = eps_T (2 - r)`` while sticking,
+both non-negative.  The traction is C1 in the slip: the Hessian does not jump between
+stick and slip (a piecewise-linear Huber traction does, and Newton then alternates a node
+between the two states without converging).  The minimiser iterates the lag to
+consistency (``pbar = p``, ``nbar = n``) in every increment, so the converged state obeys
+Coulomb's law at the current pressure.
 
 Units: mm, N, MPa (N/mm^2); energies in N mm.
 """
@@ -67,26 +74,28 @@ def normal_terms(gap: np.ndarray, normal: np.ndarray, lam: np.ndarray, eps: np.n
 
 def friction_terms(x: np.ndarray, anchor: np.ndarray, nbar: np.ndarray, bound: np.ndarray,
                    eps_t: float, areas: np.ndarray) -> tuple[float, np.ndarray, np.ndarray, np.ndarray]:
-    """Lagged Huber friction of ``M`` nodes at positions ``x`` with stick points ``anchor``
+    """Lagged C2 friction of ``M`` nodes at positions ``x`` with stick points ``anchor``
     (mm, model frame), lagged normals ``nbar`` and slip bounds ``bound`` (MPa):
     ``(energy N mm, gradient (M, 3) N, Hessian blocks (M, 3, 3) N/mm, slip mask (M,))``."""
     T = np.eye(3)[None] - np.einsum("ni,nj->nij", nbar, nbar)
     gt = np.einsum("nij,nj->ni", T, x - anchor)
     s = np.linalg.norm(gt, axis=1)
     B = np.maximum(bound, 0.0)
-    slip = (eps_t * s > B) & (s > 0)
-    stick = ~slip
-    phi = np.where(slip, B * s - B * B / (2.0 * eps_t), 0.5 * eps_t * s * s)
+    delta = B / eps_t
+    r = np.divide(s, delta, out=np.full_like(s, np.inf), where=delta > 0)
+    slip = (r >= 1.0) & (B > 0)
+    rc = np.minimum(r, 1.0)
+    phi = np.where(slip, B * (s - delta / 3.0), B * delta * (rc * rc - rc ** 3 / 3.0))
+    phi = np.where(B > 0, phi, 0.0)
     energy = float(np.sum(areas * phi))
     ghat = gt / np.where(s > 0, s, 1.0)[:, None]
-    force = np.where(slip, B, eps_t * s)
+    force = np.where(B > 0, B * (2.0 * rc - rc * rc), 0.0)
     grad = (areas * force)[:, None] * ghat
-    hess = np.zeros((len(x), 3, 3))
-    hess[stick] = (areas[stick] * eps_t)[:, None, None] * T[stick]
-    if slip.any():
-        g = ghat[slip]
-        hess[slip] = (areas[slip] * B[slip] / s[slip])[:, None, None] * (
-            T[slip] - np.einsum("ni,nj->nij", g, g))
+    d2 = np.where(slip | (B <= 0), 0.0, 2.0 * eps_t * (1.0 - rc))          # varphi''
+    tang = np.where(B <= 0, 0.0, np.where(slip, B / np.where(s > 0, s, 1.0),
+                                          eps_t * (2.0 - rc)))              # varphi' / s
+    gg = np.einsum("ni,nj->nij", ghat, ghat)
+    hess = areas[:, None, None] * (d2[:, None, None] * gg + tang[:, None, None] * (T - gg))
     return energy, grad, hess, slip
 
 
@@ -177,11 +186,14 @@ class PlatePotential:
         act = ev.pressure > 0
         return float(max(0.0, -ev.gap[act].min())) if act.any() else 0.0
 
-    def friction_error(self, ev: PlateEval) -> float:
-        """``sum_i A_i mu |p_i - pbar_i| / (mu sum_i A_i p_i)``: the relative error of the
-        lagged slip bound against Coulomb's at the current pressure (0 without friction)."""
+    def friction_error(self, ev: PlateEval, floor_n: float = 0.0) -> float:
+        """``sum_i A_i mu |p_i - pbar_i| / (mu max(sum_i A_i p_i, floor_n))``: the error of
+        the lagged slip bound against Coulomb's at the current pressure, relative to the
+        plate's normal force or, when the plate barely touches, to ``floor_n`` (N; the
+        step's load scale, against which equilibrium itself is judged).  0 without
+        friction."""
         c = self.c
-        ref = float(np.sum(c.areas * ev.pressure))
+        ref = max(float(np.sum(c.areas * ev.pressure)), floor_n)
         if c.mu <= 0 or ref <= 0:
             return 0.0
         return float(np.sum(c.areas * np.abs(ev.pressure - self.pbar))) / ref
