@@ -27,7 +27,9 @@ What is read from the children (nothing else: the solver's internals may change)
   ``meta.preparation.tumour_volume_by_side_mm3`` (to mesh the other breast too);
 * ``regtrack simulate``: its exit code and the result JSON's ``summary`` fields
   ``complete``, ``D``, ``upper_force_N``, ``force_imbalance_rel``, ``iterations``,
-  ``max_penetration_mm``, and the top-level ``error``.  Every field is optional: a missing
+  ``max_penetration_mm``, ``plate_gap_mm``, the plate normal of ``plate_frame`` and the
+  top-level ``error``; from the model, the fixed (chest-wall) nodes, for the height of the
+  chest-wall section along the plate normal over the final gap (``wall_section_to_gap``).  Every field is optional: a missing
   one is left empty in the table.
 
 Wall seconds are measured here; CPU seconds and peak memory come from ``os.wait4`` on the
@@ -55,6 +57,8 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
+
+import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
 PELICANO = REPO.parent / "shared" / "data" / "pelicano"
@@ -216,6 +220,8 @@ def simulate_model(m: Model, view: str, D: float | None, *, timeout_s: float, th
     row = {
         "exam": m.exam, "side": m.side, "view": view.upper(), "D_setting": tag, "nodes": m.row.get("nodes"),
         "completed": r.rc == 0 and bool(s.get("complete", False)) and not doc.get("error"),
+        "wall_section_to_gap": wall_section_to_gap(m.vtu, _get(doc, "plate_frame", "normal"),
+                                                   s.get("plate_gap_mm")),
         "force_balance_rel": s.get("force_imbalance_rel"), "D": s.get("D"),
         "plate_force_N": s.get("upper_force_N"), "iterations": s.get("iterations"),
         "max_penetration_mm": s.get("max_penetration_mm"),
@@ -226,13 +232,27 @@ def simulate_model(m: Model, view: str, D: float | None, *, timeout_s: float, th
     return row
 
 
+def wall_section_to_gap(vtu: Path, normal, gap_mm) -> float | None:
+    """Height of the fixed chest-wall section along the plate normal over the final plate
+    gap: above 1, the plates' chest-wall edges end up inside the fixed section, and the
+    tissue between them and the fixed nodes is pinched (None when either is unknown)."""
+    if normal is None or not gap_mm or not vtu.is_file():
+        return None
+    from regtrack.model.io import load_model
+
+    model = load_model(vtu)
+    h = model.points[model.fixed] @ np.asarray(normal, float)
+    return float(np.ptp(h)) / float(gap_mm) if len(h) else None
+
+
 # ---------------------------------------------------------------- tables
 
 MESH_COLS = ["exam", "side", "completed", "nodes", "tets", "min_dihedral_deg", "gamma_p5", "volume_error",
              "tumours", "tumour_ml", "tumour_volume_errors", "worst_tumour_volume_error", "attempt_used",
              "meshings", "tumour_refinements",
              "wall_s", "cpu_s", "peak_rss_mb", "exit_code", "error"]
-SIM_COLS = ["exam", "side", "view", "D_setting", "nodes", "completed", "force_balance_rel", "D", "plate_force_N",
+SIM_COLS = ["exam", "side", "view", "D_setting", "nodes", "completed", "wall_section_to_gap",
+            "force_balance_rel", "D", "plate_force_N",
             "iterations", "max_penetration_mm", "wall_s", "cpu_s", "peak_rss_mb", "error"]
 
 
@@ -247,6 +267,8 @@ def fmt(v, col: str = "") -> str:
             return f"{100 * v:.1f} %"
         if col == "force_balance_rel":
             return f"{100 * v:.3g} %"
+        if col == "wall_section_to_gap":
+            return f"{v:.2f}"
         return f"{v:.1f}" if abs(v) >= 1 or v == 0 else f"{v:.3g}"
     return str(v).replace("|", "/")
 
