@@ -12,6 +12,7 @@ volume, since the tissue is nearly incompressible (nu = 0.49).
 from __future__ import annotations
 
 import csv
+import dataclasses
 import json
 from pathlib import Path
 
@@ -88,6 +89,7 @@ def test_track_and_warp_in_the_biopsy_compression(tmp_path, capsys):
     mri = np.array([[float(r[f"mri_{a}"]) for a in "xyz"] for r in rows])
     comp = np.array([[float(r[f"compressed_{a}"]) for a in "xyz"] for r in rows])
     np.testing.assert_allclose(dmap.forward(mri), comp, atol=1e-3)  # the CSV's 3 decimals
+    _check_biopsy_report(out / "biopsy.pdf", state, doc, rows)
     # inverse after forward on every element centroid of the model (acceptance: 0.1 mm)
     X = dmap.frame.to_patient(dmap.reference[dmap.tets].mean(axis=1))
     err = np.linalg.norm(dmap.inverse(dmap.forward(X)) - X, axis=1)
@@ -120,3 +122,34 @@ def test_track_and_warp_in_the_biopsy_compression(tmp_path, capsys):
     cmp = json.loads((out / "compare_biopsy.json").read_text())
     assert 0 < cmp["surface_distance"]["rms_mm"] < 1.0
     assert [r["distance_mm"] for r in cmp["landmarks"]] == pytest.approx([0, 0], abs=2e-3)
+
+
+def _check_biopsy_report(pdf, state, doc, rows):
+    """The biopsy section (``biopsy.pdf``): a target page and a protocol page; the target
+    table prints each point's compressed LPS position, displacement and 1-sigma (one
+    decimal), the protocol table D and the plate gap of the summary."""
+    import re
+
+    import matplotlib.pyplot as plt
+
+    from regtrack.report.biopsy import protocol_page, target_page
+    from regtrack.report.fmt import num
+    from regtrack.report.pdf import CaseReport, figure_text, render_pages
+    from regtrack.tracking.compressed import map_points
+
+    data = pdf.read_bytes()
+    assert data[:5] == b"%PDF-" and len(re.findall(rb"/Type\s*/Page\b", data)) == 2
+    fwd = map_points(state.dmap, [r["name"] for r in rows[:2]], [[float(r[f"mri_{a}"])
+                                                                for a in "xyz"] for r in rows[:2]])
+    fwd = dataclasses.replace(fwd, sigma_mm=np.array([p["sigma_mm"] for p in doc["points"][:2]]))
+    rep = CaseReport("case", extra_pages=[target_page(state, [fwd], "case"),
+                                          protocol_page(state)])
+    texts = []
+    for fig in render_pages(rep):
+        texts += figure_text(fig)
+        plt.close(fig)
+    for i in range(2):  # the same mapping as the command's: the same numbers
+        assert ", ".join(num(v, 1) for v in fwd.mapped_lps_mm[i]) in texts
+        assert {num(fwd.displacement_mm[i], 1), num(fwd.sigma_mm[i], 1)} <= set(texts)
+    assert {"26.0", num(doc["compression"]["plate_gap_mm"], 1)} <= set(texts)
+    assert "MR-guided biopsy: needle target, case case" in texts

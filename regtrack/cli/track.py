@@ -19,8 +19,9 @@ Writes ``tracking.json``, ``track_cc.png``/``track_mlo.png`` and ``tracking.pdf`
 With ``--view cc|mlo|biopsy`` the tracking stays in 3-D (no mammogram is needed): MRI points
 and landmark lists are mapped into that simulated compression, points of the compressed
 breast back to the MRI, and ``--warp`` resamples the label map (and the MR series) into it
-(:mod:`regtrack.tracking.compressed`); writes ``points_<view>.json/.csv`` and
-``labels_<view>.nii.gz`` / ``mri_<view>.nii.gz``.
+(:mod:`regtrack.tracking.compressed`); writes ``points_<view>.json/.csv``,
+``labels_<view>.nii.gz`` / ``mri_<view>.nii.gz`` and, for ``--view biopsy`` with points,
+``biopsy.pdf`` (the needle target and the protocol, :mod:`regtrack.report.biopsy`).
 """
 
 from __future__ import annotations
@@ -265,6 +266,12 @@ def _track_3d(args: argparse.Namespace, console) -> int:
                                  simulate=not args.no_simulate, progress=progress)
                 mapped[i] = dataclasses.replace(m, sigma_mm=ps.sigma_mm, sigma_terms_mm=ps.terms_mm)
         paths = write_points(out, state, mapped) if mapped else []
+        if state.view == "BIOPSY" and mapped and not args.no_pdf:
+            from regtrack.report.biopsy import write_biopsy_report
+
+            progress("report: biopsy.pdf (the needle target and the protocol)")
+            paths.append(write_biopsy_report(out / "biopsy.pdf", state, mapped,
+                                             case_id=case_id))
         if args.warp:
             paths += write_warped(out, state, progress=progress)
         if args.compare_mri or observed is not None:

@@ -10,7 +10,8 @@ Pages (:func:`render_pages`):
    step), the simulation steps, the contours before and after the rotation with their
    centroids (Figure 9 of the paper), and the real beside the virtual image on the same
    axes;
-3. the extra pages the pipeline adds (lesion tracking);
+3. the extra pages the pipeline adds (lesion tracking; the biopsy target,
+   :mod:`regtrack.report.biopsy`, which has no views and so no summary page);
 4. an appendix: the truth-vs-result table when the case has a ground truth, the model,
    the settings that differ from the defaults, and provenance (versions, inputs by hash).
 
@@ -129,18 +130,24 @@ def case_checks(report: CaseReport) -> list[Check]:
 
 
 def render_pages(report: CaseReport) -> Iterator[Any]:
-    """Yield each page of the report as an A4 matplotlib figure (closed by the caller)."""
+    """Yield each page of the report as an A4 matplotlib figure (closed by the caller).
+
+    A report without views and with extra pages (the 3-D tracking of ``regtrack track
+    --view biopsy``, :mod:`regtrack.report.biopsy`) has no summary page: it starts with
+    its own pages."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    checks = case_checks(report)
-    header = [*report.header, f"regtrack {__version__} · {_dt.date.today().isoformat()}"]
-    fig = plt.figure(figsize=P.A4)
-    head, rows = metrics_table([v.metrics for v in report.views])
-    P.summary_page(fig, report, checks, verdict_line(checks), head, rows, EXPLANATION, header)
-    yield fig
+    if report.views or not report.extra_pages:
+        checks = case_checks(report)
+        header = [*report.header, f"regtrack {__version__} · {_dt.date.today().isoformat()}"]
+        fig = plt.figure(figsize=P.A4)
+        head, rows = metrics_table([v.metrics for v in report.views])
+        P.summary_page(fig, report, checks, verdict_line(checks), head, rows, EXPLANATION,
+                       header)
+        yield fig
     for v in report.views:
         fig = plt.figure(figsize=P.A4)
         P.view_page(fig, v)

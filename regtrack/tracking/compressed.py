@@ -46,6 +46,7 @@ class CompressedState:
     model: Any = None  # BreastModel
     stage_keys: dict[str, str] = field(default_factory=dict)
     simulated_now: list[str] = field(default_factory=list)
+    sim: Any = None  # pipeline.stages.SimOutput: the step records and result.vtu (the report)
 
 
 def open_compressed(case_dir: str | Path, view: str, *, cache_dir: str | Path | None = None,
@@ -88,7 +89,7 @@ def open_compressed(case_dir: str | Path, view: str, *, cache_dir: str | Path | 
     sim = stages.simulate_stage(ctx, mesh, v)
     dmap = DeformationMap.from_model(mesh.model, sim.positions, view=v)
     return CompressedState(case, v, dmap, sim.summary, mesh.model,
-                           {"mesh": mesh.key, f"simulate_{v}": sim.key}, todo)
+                           {"mesh": mesh.key, f"simulate_{v}": sim.key}, todo, sim)
 
 
 @dataclass(frozen=True)
