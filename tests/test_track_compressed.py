@@ -108,6 +108,13 @@ def test_track_and_warp_in_the_biopsy_compression(tmp_path, capsys):
         if v0 > 1000.0:  # mm^3: every tissue class but specks
             assert v1 == pytest.approx(v0, rel=0.03), (lab, v0, v1)
     assert (out / "mri_biopsy.nii.gz").is_file()
+    # the phantom's MR series is DICOM: the warped one too, in its frame of reference
+    import pydicom
+
+    first = [pydicom.dcmread(next(f.glob("*.dcm")), stop_before_pixels=True)
+             for f in (PHANTOM / "mri" / "dicom", out / "mri_biopsy")]
+    assert first[0].FrameOfReferenceUID == first[1].FrameOfReferenceUID
+    assert first[0].SeriesInstanceUID != first[1].SeriesInstanceUID
     # the simulated skin against its own warped label map (a cached run): the floor of the
     # comparison, the model's smoothed surface against the label map's voxel boundary
     # (measured 0.58 mm RMS); the landmarks against themselves: 0

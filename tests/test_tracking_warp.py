@@ -192,3 +192,67 @@ def test_bad_landmark_files(tmp_path, name, text, match):
         read_landmarks(p)
     with pytest.raises(TrackingError, match="file not found"):
         read_landmarks(tmp_path / "missing.csv")
+
+
+@pytest.mark.parametrize("keep", [False, True])
+def test_warped_dicom_series_keeps_the_frame_of_reference(box, labels, tmp_path, keep):
+    """``--warp`` of a case whose label map and MR series are DICOM series (issue 55, item
+    3): the warped volumes are also written as DICOM series that the project's reader
+    reads back with the NIfTI output's voxels and grid, in the source's study and frame of
+    reference (new series and instance UIDs), pseudonymised unless ``keep_identifiers``.
+
+    Tolerances: labels are integers and stored as they are (exact); the warped MR values
+    (trilinear, float) are stored as 16-bit values with RescaleSlope, so they come back
+    within half a step, (max - min) / 65535 / 2; positions are written as DICOM decimal
+    strings (16 characters), 1e-4 mm."""
+    from types import SimpleNamespace
+
+    import pydicom
+
+    from regtrack.imaging.dicom_series import write_dicom_series
+    from regtrack.imaging.readers import read_image_volume, read_label_map
+    from regtrack.imaging.volume import ImageVolume
+    from regtrack.privacy import dicom_leaks
+    from regtrack.tracking.compressed import write_warped
+
+    ijk = np.stack(np.meshgrid(*[np.arange(n) for n in labels.shape], indexing="ij"), -1)
+    lps = ijk @ labels.affine[:3, :3].T + labels.affine[:3, 3]
+    mr = np.round(500.0 + 3.0 * lps[..., 0] - 2.0 * lps[..., 1] + 1.5 * lps[..., 2]
+                  + 40.0 * (labels.data == 2))  # integral, as a scanner's stored values
+    src = {"labels": tmp_path / "labels", "series": tmp_path / "series"}
+    for vol, folder in ((labels, src["labels"]), (ImageVolume(mr, labels.affine), src["series"])):
+        write_dicom_series(vol, folder, patient="JaneDoe1234", transfer_syntax="explicit",
+                           deidentify=False, uid_seed=f"test {folder.name}")
+    state = SimpleNamespace(case=SimpleNamespace(mri=SimpleNamespace(**src)), view="BIOPSY",
+                            dmap=_dmap(box, "rigid")[0])
+    out = tmp_path / "out"
+    paths = write_warped(out, state, pseudonym="anon-1", keep_identifiers=keep)
+    assert {p.parent.name for p in paths if p.suffix == ".dcm"} == {"labels_biopsy", "mri_biopsy"}
+    nii_lab = read_label_map(out / "labels_biopsy.nii.gz")
+    dcm_lab = read_label_map(out / "labels_biopsy")
+    np.testing.assert_array_equal(dcm_lab.data, nii_lab.data)
+    np.testing.assert_allclose(dcm_lab.affine, nii_lab.affine, atol=1e-4)
+    nii_mr = read_image_volume(out / "mri_biopsy.nii.gz")
+    dcm_mr = read_image_volume(out / "mri_biopsy")
+    step = float(np.ptp(nii_mr.data)) / 65535
+    np.testing.assert_allclose(dcm_mr.data, nii_mr.data, atol=step / 2 + 1e-4)
+    np.testing.assert_allclose(dcm_mr.affine, nii_mr.affine, atol=1e-4)
+    assert np.ptp(nii_mr.data) > 100  # the warped breast holds the pattern, not background
+    for name in ("labels", "series"):
+        source = pydicom.dcmread(next(src[name].glob("*.dcm")), stop_before_pixels=True)
+        files = sorted((out / f"{'labels' if name == 'labels' else 'mri'}_biopsy").glob("*.dcm"))
+        warped = [pydicom.dcmread(f, stop_before_pixels=True) for f in files]
+        for ds in warped:
+            assert ds.FrameOfReferenceUID == source.FrameOfReferenceUID
+            assert ds.StudyInstanceUID == source.StudyInstanceUID
+            assert ds.SeriesInstanceUID != source.SeriesInstanceUID
+            assert list(ds.ImageOrientationPatient) == pytest.approx(
+                list(source.ImageOrientationPatient), abs=1e-6)
+            assert list(ds.PixelSpacing) == pytest.approx(list(source.PixelSpacing))
+        assert len({ds.SOPInstanceUID for ds in warped}) == len(files)
+        assert len({ds.SeriesInstanceUID for ds in warped}) == 1
+        if keep:
+            assert str(warped[0].PatientName) == "JaneDoe1234"
+        else:
+            assert str(warped[0].PatientName) == "anon-1"
+            assert dicom_leaks(files[0], pseudonym="anon-1") == []

@@ -20,7 +20,9 @@ With ``--view cc|mlo|biopsy`` the tracking stays in 3-D (no mammogram is needed)
 and landmark lists are mapped into that simulated compression, points of the compressed
 breast back to the MRI, and ``--warp`` resamples the label map (and the MR series) into it
 (:mod:`regtrack.tracking.compressed`); writes ``points_<view>.json/.csv``,
-``labels_<view>.nii.gz`` / ``mri_<view>.nii.gz`` and, for ``--view biopsy`` with points,
+``labels_<view>.nii.gz`` / ``mri_<view>.nii.gz`` (for a DICOM input also the DICOM series
+``labels_<view>/`` / ``mri_<view>/``, same study and frame of reference, pseudonymised
+unless ``--keep-identifiers``) and, for ``--view biopsy`` with points,
 ``biopsy.pdf`` (the needle target and the protocol, :mod:`regtrack.report.biopsy`).
 """
 
@@ -78,7 +80,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "distance of each simulated landmark")
     g.add_argument("--warp", action="store_true",
                    help="write the label map (and the MR series) warped into the compression "
-                        "as NIfTI")
+                        "as NIfTI and, for a DICOM input, as a DICOM series in its frame of "
+                        "reference")
+    g.add_argument("--keep-identifiers", action="store_true",
+                   help="the warped DICOM series keeps the patient's identifiers (default: "
+                        "the DICOM PS3.15 basic profile with the case's pseudonym)")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -273,7 +279,8 @@ def _track_3d(args: argparse.Namespace, console) -> int:
             paths.append(write_biopsy_report(out / "biopsy.pdf", state, mapped,
                                              case_id=case_id))
         if args.warp:
-            paths += write_warped(out, state, progress=progress)
+            paths += write_warped(out, state, progress=progress, pseudonym=case_id,
+                                  keep_identifiers=args.keep_identifiers)
         if args.compare_mri or observed is not None:
             from regtrack.tracking.compressed import write_comparison
 

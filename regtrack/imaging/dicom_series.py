@@ -39,6 +39,15 @@ POSITION_TOL_MM = 0.01
 #: tolerance on direction cosines (orientation equality, orthogonality)
 DIRECTION_TOL = 1e-4
 
+#: attributes a derived series copies from its source (``write_dicom_series(template=)``):
+#: the patient and general-study modules, the frame of reference, and the patient position
+FROM_SOURCE = (
+    "PatientName", "PatientID", "PatientBirthDate", "PatientSex", "PatientAge",
+    "PatientWeight", "PatientSize", "StudyInstanceUID", "StudyDate", "StudyTime", "StudyID",
+    "AccessionNumber", "ReferringPhysicianName", "StudyDescription", "FrameOfReferenceUID",
+    "PositionReferenceIndicator", "PatientPosition", "BodyPartExamined",
+)
+
 TRANSFER_SYNTAXES = {
     "jpeg2000": "1.2.840.10008.1.2.4.90",  # JPEG 2000 Image Compression (Lossless Only)
     "rle": "1.2.840.10008.1.2.5",  # RLE Lossless
@@ -297,6 +306,8 @@ def write_dicom_series(
     uid_seed: str | None = None,
     study_date: datetime.date | None = None,
     progress: bool = False,
+    template=None,
+    deidentify: bool = True,
 ) -> list[Path]:
     """Write ``vol`` as an MR Image Storage series, one file per slice along axis 2.
 
@@ -316,6 +327,15 @@ def write_dicom_series(
         When given, every UID is derived from it, so the files are reproducible byte for byte.
     progress
         Show a progress bar.
+    template
+        A header (``pydicom.Dataset``) of the series this one derives from: its patient,
+        study and frame-of-reference attributes (:data:`FROM_SOURCE`: StudyInstanceUID,
+        FrameOfReferenceUID, ...) are copied, so the new series (new SeriesInstanceUID and
+        SOPInstanceUIDs) lies in the source's study and frame of reference.
+    deidentify
+        Apply the PS3.15 basic profile with ``patient`` as the pseudonym
+        (:func:`regtrack.privacy.deidentify_dataset`; the UIDs are kept).  ``False`` keeps
+        the template's identifiers (``--keep-identifiers``).
 
     Notes
     -----
@@ -341,6 +361,8 @@ def write_dicom_series(
     from regtrack.privacy import deidentify_dataset
 
     study_uid, series_uid, for_uid = (_uid(uid_seed, t) for t in ("study", "series", "for"))
+    source = {kw: template[kw].value for kw in FROM_SOURCE
+              if template is not None and kw in template}
     folder.mkdir(parents=True, exist_ok=True)
     nk = stored.shape[2]
     ts = UID(TRANSFER_SYNTAXES[transfer_syntax])
@@ -379,6 +401,8 @@ def write_dicom_series(
         ds.Rows, ds.Columns = stored.shape[1], stored.shape[0]
         ds.BitsAllocated, ds.BitsStored, ds.HighBit = 16, 16, 15
         ds.PixelRepresentation = 1 if signed else 0
+        for kw, value in source.items():
+            setattr(ds, kw, value)
         arr = np.ascontiguousarray(stored[:, :, k].T)
         ds.file_meta = FileMetaDataset()
         ds.file_meta.MediaStorageSOPClassUID = MR_IMAGE_STORAGE
@@ -387,7 +411,8 @@ def write_dicom_series(
         ds.PixelData = arr.tobytes()
         if ts != ExplicitVRLittleEndian:
             ds.compress(ts, arr, generate_instance_uid=False)
-        deidentify_dataset(ds, pseudonym=patient)  # DICOM PS3.15 basic profile
+        if deidentify:
+            deidentify_dataset(ds, pseudonym=patient)  # DICOM PS3.15 basic profile
         path = folder / f"slice_{k:04d}.dcm"
         with atomic_path(path) as tmp:
             ds.save_as(tmp, enforce_file_format=True)

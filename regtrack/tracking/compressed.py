@@ -11,7 +11,9 @@ mammogram is needed: everything stays in 3-D, in the MRI's patient frame (LPS, m
 Outputs (:func:`write_points`, :func:`write_warped`, :func:`write_comparison`):
 ``points_<view>.json`` / ``points_<view>.csv`` (one row per point: name, direction, the
 given position, the mapped position, the displacement, all LPS mm),
-``labels_<view>.nii.gz`` / ``mri_<view>.nii.gz``, and ``compare_<view>.json`` (the
+``labels_<view>.nii.gz`` / ``mri_<view>.nii.gz`` (and, for a DICOM input, the DICOM
+series ``labels_<view>/`` / ``mri_<view>/`` in the source's frame of reference), and
+``compare_<view>.json`` (the
 simulated compression against an imaged compressed MRI, :mod:`.compare`).
 """
 
@@ -162,9 +164,14 @@ def write_points(out: Path, state: CompressedState, mapped: list[MappedPoints]) 
 
 
 def write_warped(out: Path, state: CompressedState, *, series: bool = True,
-                 progress: Callable[[str], None] | None = None) -> list[Path]:
+                 progress: Callable[[str], None] | None = None, pseudonym: str | None = None,
+                 keep_identifiers: bool = False) -> list[Path]:
     """The label map (and, with ``series`` and a case that has one, the MR series) warped
-    into the compressed state, as ``labels_<view>.nii.gz`` / ``mri_<view>.nii.gz``."""
+    into the compressed state, as ``labels_<view>.nii.gz`` / ``mri_<view>.nii.gz``.
+
+    An input that is a DICOM series is also written as one, ``labels_<view>/`` /
+    ``mri_<view>/`` (:func:`write_warped_dicom`): same study and frame of reference as the
+    source, so a viewer overlays it on the MRI and on a compressed MRI of the session."""
     from regtrack.imaging.readers import (read_image_volume, read_label_map, write_image_volume,
                                           write_label_map)
     from regtrack.tracking.warp import warp_volume
@@ -172,15 +179,58 @@ def write_warped(out: Path, state: CompressedState, *, series: bool = True,
     out.mkdir(parents=True, exist_ok=True)
     v = state.view.lower()
     say = progress or (lambda _m: None)
+    pseudonym = pseudonym or f"regtrack-{v}"
     say(f"warp: label map into the {state.view} state")
-    w = warp_volume(read_label_map(state.case.mri.labels), state.dmap)
+    src = read_label_map(state.case.mri.labels)
+    w = warp_volume(src, state.dmap)
     paths = [write_label_map(w.volume, out / f"labels_{v}.nii.gz")]
-    src = getattr(state.case.mri, "series", None)
-    if series and src is not None:
+    if (src.meta or {}).get("format") == "dicom":
+        paths += write_warped_dicom(w.volume, src, out / f"labels_{v}", view=state.view,
+                                    what="label map", pseudonym=pseudonym,
+                                    keep_identifiers=keep_identifiers)
+    series_path = getattr(state.case.mri, "series", None)
+    if series and series_path is not None:
         say(f"warp: MR series into the {state.view} state")
-        w = warp_volume(read_image_volume(src), state.dmap, order=1)
+        src = read_image_volume(series_path)
+        w = warp_volume(src, state.dmap, order=1)
         paths.append(write_image_volume(w.volume, out / f"mri_{v}.nii.gz"))
+        if (src.meta or {}).get("format") == "dicom":
+            paths += write_warped_dicom(w.volume, src, out / f"mri_{v}", view=state.view,
+                                        what="MR series", pseudonym=pseudonym,
+                                        keep_identifiers=keep_identifiers)
     return paths
+
+
+def write_warped_dicom(vol, source, folder: Path, *, view: str, what: str, pseudonym: str,
+                       keep_identifiers: bool = False) -> list[Path]:
+    """``vol`` (warped from the DICOM series ``source``) as a DICOM series in ``folder``.
+
+    The new series (new SeriesInstanceUID and SOPInstanceUIDs, ImageType DERIVED) keeps
+    the source's StudyInstanceUID, FrameOfReferenceUID and patient module, and the grid's
+    orientation and spacing (the warp keeps the source's, :mod:`.warp`); the identifiers
+    follow the privacy rule: the PS3.15 basic profile with ``pseudonym`` unless
+    ``keep_identifiers`` (:mod:`regtrack.privacy`).  Uncompressed (Explicit VR Little
+    Endian), so any viewer reads it."""
+    import pydicom
+
+    from regtrack.imaging.dicom_series import write_dicom_series
+
+    files = (source.meta or {}).get("files") or []
+    if not files:
+        raise TrackingError(f"{source.path}: the DICOM reader listed no slice files; cannot "
+                            "copy the source's study and frame of reference")
+    template = pydicom.dcmread(files[0], stop_before_pixels=True)
+    if not template.get("FrameOfReferenceUID"):
+        log.warning("%s has no FrameOfReferenceUID: the warped %s gets a new frame of "
+                    "reference", Path(files[0]).name, what)
+    if folder.is_dir():  # a previous run's slices: the new series replaces them
+        for old in folder.glob("slice_*.dcm"):
+            old.unlink()
+    return write_dicom_series(vol, folder, patient=pseudonym, template=template,
+                              deidentify=not keep_identifiers, transfer_syntax="explicit",
+                              modality=str(template.get("Modality", "MR") or "MR"),
+                              series_description=f"regtrack: {what} warped into the {view} "
+                                                 "compression")
 
 
 def write_comparison(out: Path, state: CompressedState, *, labels_path: str | Path | None,
