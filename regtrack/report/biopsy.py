@@ -160,7 +160,7 @@ def draw_target_section(ax, state, targets, frame: PlateFrame, *, cut: str) -> N
     ax.set_title(f"section {what} through the target", fontsize=8.5)
 
 
-def section_legend(fig, *, y: float) -> None:
+def section_legend(fig, *, y: float, sigma: bool = True) -> None:
     """One legend, in two rows, for the two :func:`draw_target_section` panels."""
     from matplotlib.lines import Line2D
 
@@ -171,7 +171,7 @@ def section_legend(fig, *, y: float) -> None:
              (Line2D([], [], color=SKIN), "skin, compressed"),
              (Line2D([], [], color=TUMOUR), "tumour, compressed"),
              (Line2D([], [], ls="", marker="+", color=TARGET, mew=2),
-              "predicted target (circles: 1σ, 2σ)"),
+              "predicted target" + (" (circles: 1σ, 2σ)" if sigma else "")),
              (Line2D([], [], color=NEEDLE, ls=(0, (4, 2))), "needle through the lateral plate")]
     fig.legend(*zip(*items), loc="upper center", ncol=4, fontsize=7, frameon=False,
                bbox_to_anchor=(0.5, y))
@@ -259,7 +259,7 @@ def target_page(state, mapped, case_id: str) -> Callable:
             ax1 = fig.add_axes([0.57, 0.47, 0.4, 0.4])
             draw_target_section(ax0, state, targets, frame, cut="axial")
             draw_target_section(ax1, state, targets, frame, cut="coronal")
-            section_legend(fig, y=0.435)
+            section_legend(fig, y=0.435, sigma=any(t[3] is not None for t in targets))
         head, rows = target_cells(state, mapped, frame)
         fig.text(0.05, 0.365, "Targets", fontsize=10, weight="bold", va="top")
         h = 0.026 * (len(rows) + 1.5)
