@@ -15,7 +15,7 @@ import numpy as np
 from regtrack._io import atomic_path
 
 
-def _plate_outline(plate: dict, e_x: np.ndarray, n: np.ndarray, x_max: float) -> np.ndarray:
+def plate_outline(plate: dict, e_x: np.ndarray, n: np.ndarray, x_max: float) -> np.ndarray:
     """Side-view polyline (mm) of a plate face with its rounded chest-wall edge."""
     o = np.asarray(plate["origin_mm"], float)
     N = np.asarray(plate["normal"], float)
@@ -61,7 +61,7 @@ def protocol_figure(path: str | Path, points: np.ndarray, skin: np.ndarray, step
         ax.add_collection(PolyCollection(poly, facecolors="#f3c6a5", edgecolors="#b07050",
                                          linewidths=0.1, alpha=0.6))
         for name, pl in st.plates.items():
-            line = _plate_outline(pl, e_x, n, x_max)
+            line = plate_outline(pl, e_x, n, x_max)
             ax.plot(line[:, 0], line[:, 1], color="#3050a0", lw=1.5)
         lab = st.name + (f"\nD = {100 * st.D:.1f} %" if st.D is not None else "")
         ax.set_title(lab, fontsize=8)

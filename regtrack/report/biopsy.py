@@ -125,12 +125,12 @@ def draw_target_section(ax, state, targets, frame: PlateFrame, *, cut: str) -> N
                        linestyles=ls, linewidths=lw)
         _section_lines(ax, pts, tum, frame, through, normal, axes_of, colors=TUMOUR,
                        linestyles=ls, linewidths=lw * 0.8)
-    from regtrack.mechanics.pictures import _plate_outline
+    from regtrack.mechanics.pictures import plate_outline
 
     lo, hi = ax.dataLim.intervalx if ax.dataLim.width > 0 else (-50.0, 50.0)
     for name, h in frame.h.items():
         if cut == "axial":  # the plate face with its rounded chest-wall edge
-            line = _plate_outline(frame.plates[name], frame.e_x, frame.n, hi + 10)
+            line = plate_outline(frame.plates[name], frame.e_x, frame.n, hi + 10)
             line[:, 0] -= frame.origin @ frame.e_x
             line[:, 1] -= frame.origin @ frame.n
         else:  # the plates extend beyond the breast along e_down

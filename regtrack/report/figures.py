@@ -144,7 +144,7 @@ def draw_sequence(axes, points: np.ndarray, skin: np.ndarray, steps: list[dict],
     """
     from matplotlib.collections import PolyCollection
 
-    from regtrack.mechanics.pictures import _plate_outline
+    from regtrack.mechanics.pictures import plate_outline
 
     e_x = np.asarray(plate_frame["e_x"], float)
     n = np.asarray(plate_frame["normal"], float)
@@ -155,7 +155,7 @@ def draw_sequence(axes, points: np.ndarray, skin: np.ndarray, steps: list[dict],
         ax.add_collection(PolyCollection(poly, facecolors="#f3c6a5", edgecolors="#b07050",
                                          linewidths=0.1, alpha=0.6))
         for pl in (st.get("plates") or {}).values():
-            line = _plate_outline(pl, e_x, n, x_max)
+            line = plate_outline(pl, e_x, n, x_max)
             ax.plot(line[:, 0], line[:, 1], color="#3050a0", lw=1.5)
         D = st.get("D")
         ax.set_title(str(st.get("name", "")).replace("-", " ")
