@@ -3,6 +3,7 @@ save/load round trip, and a small surrogate of the coarse phantom's CC compressi
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import numpy as np
@@ -123,3 +124,21 @@ def test_bad_parameters_are_named(bad, match):
                         upper=BOX.upper)
     with pytest.raises(ValueError, match=match):
         sur.predict(bad)
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--nu", "0.49", "0.45"], r"--nu 0\.49 0\.45: LO must be below HI"),
+    (["--d-range", "0.2", "1.2"], r"--d-range 0\.2 1\.2: HI must be < 1"),
+    (["--points", "3"], r"--points 3: must be >= 5"),
+    (["--c1", "-1", "2"], r"--c1 -1 2: LO must be > 0"),
+])
+def test_bad_build_options_give_one_line_before_any_work(tmp_path, capsys, argv, message):
+    from regtrack.cli import main
+
+    out = tmp_path / "out"
+    rc = main(["-q", "surrogate", "build", str(ROOT / "sample_cases" / "phantom01"),
+               "--out", str(out), "--cache", str(tmp_path / "cache"), *argv])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2 and len(err) == 1 and err[0].startswith("regtrack surrogate: error: ")
+    assert re.search(message, err[0]), err[0]
+    assert not out.exists() and not (tmp_path / "cache").exists()

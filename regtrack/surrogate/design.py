@@ -38,7 +38,11 @@ class ParameterBox:
 
         if n < 1:
             raise ValueError(f"n = {n}: need at least one point")
-        unit = qmc.LatinHypercube(d=len(self.names), optimization="random-cd", rng=seed).random(n)
+        try:
+            lhs = qmc.LatinHypercube(d=len(self.names), optimization="random-cd", rng=seed)
+        except TypeError:  # scipy < 1.15 names the generator ``seed``
+            lhs = qmc.LatinHypercube(d=len(self.names), optimization="random-cd", seed=seed)
+        unit = lhs.random(n)
         return qmc.scale(unit, self.lower, self.upper)
 
 
