@@ -21,7 +21,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     b = sub.add_parser("build", help="simulate a design, fit and validate a surrogate",
                        description="simulate a design, fit and validate a surrogate")
     b.add_argument("case", help="case folder (holding case.toml)")
-    b.add_argument("--view", type=str.upper, default="CC", choices=["CC", "MLO"])
+    b.add_argument("--view", type=str.upper, default="CC", choices=["CC", "MLO"],
+                   help="mammographic view to simulate")
     b.add_argument("--points", type=int, default=12, help="training simulations (default 12)")
     b.add_argument("--holdout", type=int, default=4,
                    help="further simulations the surrogate is validated on (default 4)")
