@@ -14,6 +14,13 @@ from regtrack.surrogate.pca import fit_basis
 from regtrack.surrogate.validate import leave_one_out, nodal_errors
 
 ROOT = Path(__file__).resolve().parents[1]
+#: Held-out nodal error bounds (mm) of the 6-simulation phantom surrogate.  Measured: with 12
+#: simulations the held-out median / p95 were 0.17 / 0.44 mm (regtrack.surrogate.model); 15
+#: random 6-of-12 subsets gave medians 0.31 (worst 0.54) and p95s 1.08 (worst 2.20) mm.  The
+#: median bound is the issue's acceptance (1 mm), the p95 bound leaves room above the worst
+#: subset; both are far below the mean-field baseline (2.13 / 7.84 mm), so a surrogate that
+#: learnt nothing fails.
+TOL_MEDIAN_MM, TOL_P95_MM = 1.0, 3.0
 BOX = ParameterBox(("c1", "nu", "target_D"), (0.27, 0.45, 0.25), (1.08, 0.49, 0.45))
 
 
@@ -88,7 +95,7 @@ def test_numpy_posterior_mean_matches_scikit_learn():
     rng = np.random.default_rng(1)
     x = rng.uniform(size=(9, 3))
     y = np.sin(3 * x[:, :1]) + x[:, 1:2] ** 2
-    model = fit_gp(x, y)
+    model = fit_gp(x, y, kind="matern52")
     resid = (y - np.hstack([np.ones((9, 1)), x]) @ model.trend)[:, 0] / model.scale[0]
     kernel = (ConstantKernel(model.amplitude[0], "fixed")
               * Matern(model.length_scales[0], "fixed", nu=2.5)
@@ -142,3 +149,24 @@ def test_bad_build_options_give_one_line_before_any_work(tmp_path, capsys, argv,
     assert rc == 2 and len(err) == 1 and err[0].startswith("regtrack surrogate: error: ")
     assert re.search(message, err[0]), err[0]
     assert not out.exists() and not (tmp_path / "cache").exists()
+
+
+@pytest.mark.slow
+def test_phantom_cc_surrogate_predicts_held_out_simulations(tmp_path):
+    """Six CC simulations of the coarse phantom (1,825 nodes) over c1 in [0.27, 1.08] kPa,
+    nu in [0.45, 0.49], D in [0.25, 0.45], and two held-out ones: the surrogate's nodal
+    error stays within TOL_MEDIAN_MM / TOL_P95_MM (see the constants for the measurement
+    they come from)."""
+    from regtrack.case import load_case
+    from regtrack.surrogate.design import default_box
+    from regtrack.surrogate.training import build_surrogate
+
+    case = load_case(ROOT / "sample_cases" / "phantom01", deep=False)
+    sur, report = build_surrogate(case, "CC", box=default_box(0.54), n_points=6, n_holdout=2,
+                                  cache_dir=tmp_path / "cache")
+    assert report["n_train"] == 6 and not report["failed"]
+    pooled = report["held_out"]["pooled"]
+    assert pooled["median_mm"] <= TOL_MEDIAN_MM
+    assert pooled["p95_mm"] <= TOL_P95_MM
+    sur.save(tmp_path / "s")
+    assert Surrogate.load(tmp_path / "s").meta["validation"]["n_train"] == 6
