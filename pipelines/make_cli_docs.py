@@ -113,6 +113,13 @@ def format_cli_reference() -> str:
     for verb, p in sub.choices.items():
         lines += ["", f"## regtrack {verb}", "", _cell(p.description or ""), "", "```text",
                   _usage(f"regtrack {verb}", p), "```", ""] + _table(p)
+        # a verb with actions (``regtrack surrogate build``): one section per action
+        for a in p._actions:
+            if isinstance(a, argparse._SubParsersAction):
+                for action, q in a.choices.items():
+                    lines += ["", f"### regtrack {verb} {action}", "", _cell(q.description or ""),
+                              "", "```text", _usage(f"regtrack {verb} {action}", q), "```",
+                              ""] + _table(q)
     return "\n".join(lines) + "\n"
 
 

@@ -28,6 +28,7 @@ COMMANDS: dict[str, str] = {
     "mammogram": "regtrack.cli.mammogram",
     "simulate": "regtrack.cli.simulate",
     "track": "regtrack.cli.track",
+    "surrogate": "regtrack.cli.surrogate",
 }
 
 

@@ -1,0 +1,172 @@
+"""The per-patient surrogate (regtrack.surrogate): known answers on synthetic fields, the
+save/load round trip, and a small surrogate of the coarse phantom's CC compression."""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from regtrack.surrogate import ParameterBox, Surrogate, fit_surrogate
+from regtrack.surrogate.pca import fit_basis
+from regtrack.surrogate.validate import leave_one_out, nodal_errors
+
+ROOT = Path(__file__).resolve().parents[1]
+#: Held-out nodal error bounds (mm) of the 6-simulation phantom surrogate.  Measured: with 12
+#: simulations the held-out median / p95 were 0.17 / 0.44 mm (regtrack.surrogate.model); 15
+#: random 6-of-12 subsets gave medians 0.31 (worst 0.54) and p95s 1.08 (worst 2.20) mm.  The
+#: median bound is the issue's acceptance (1 mm), the p95 bound leaves room above the worst
+#: subset; both are far below the mean-field baseline (2.13 / 7.84 mm), so a surrogate that
+#: learnt nothing fails.
+TOL_MEDIAN_MM, TOL_P95_MM = 1.0, 3.0
+BOX = ParameterBox(("c1", "nu", "target_D"), (0.27, 0.45, 0.25), (1.08, 0.49, 0.45))
+
+
+def _shapes(n_nodes: int = 300, seed: int = 3) -> np.ndarray:
+    """A fixed shape and one field per parameter, ``(4, N, 3)`` mm."""
+    return np.random.default_rng(seed).normal(size=(4, n_nodes, 3)) * [[[5.0]], [[2.0]], [[1.0]], [[8.0]]]
+
+
+def _linear_field(params: np.ndarray, shapes: np.ndarray) -> np.ndarray:
+    """u(p) = s0 + sum_j p_j s_j: exactly linear in the parameters plus a fixed shape."""
+    return shapes[0] + np.einsum("nd,dkc->nkc", np.atleast_2d(params), shapes[1:])
+
+
+def _smooth_field(params: np.ndarray, shapes: np.ndarray) -> np.ndarray:
+    """A smooth nonlinear field (a 1/c1 sag and a D^2 bulge) for the round trip and LOO."""
+    p = np.atleast_2d(params)
+    return (shapes[0] + (0.3 / p[:, 0])[:, None, None] * shapes[1]
+            + (p[:, 2] ** 2)[:, None, None] * shapes[3] + (p[:, 1] * p[:, 2])[:, None, None] * shapes[2])
+
+
+@pytest.mark.parametrize("regressor_kernel", ["matern52", "rbf"])
+def test_a_field_linear_in_the_parameters_is_reproduced_exactly(regressor_kernel):
+    """The GP's linear trend is exact for u = s0 + sum p_j s_j: at 10 new points the
+    prediction matches to 1e-6 relative (rounding of the SVD and least squares is ~1e-13)."""
+    shapes = _shapes()
+    train, test = BOX.sample(10, seed=0), BOX.sample(10, seed=7)
+    sur = fit_surrogate(train, _linear_field(train, shapes), names=BOX.names, lower=BOX.lower,
+                        upper=BOX.upper, kernel=regressor_kernel)
+    truth = _linear_field(test, shapes)
+    # three parameters span three directions around the mean: three modes, not n - 1
+    assert sur.basis.n_modes == 3
+    rel = np.abs(sur.predict(test) - truth).max() / np.abs(truth).max()
+    assert rel <= 1e-6
+
+
+def test_pca_keeps_the_modes_that_explain_the_variance():
+    """Two modes with variances 1 and 1e-6: tol 1e-4 keeps one, tol 1e-8 keeps both."""
+    rng = np.random.default_rng(0)
+    a, b = np.linalg.qr(rng.normal(size=(50, 2)))[0].T
+    x = rng.normal(size=(8, 1)) * a + 1e-3 * rng.normal(size=(8, 1)) * b
+    assert fit_basis(x, tol=1e-4).n_modes == 1
+    assert fit_basis(x, tol=1e-8).n_modes == 2
+    assert fit_basis(x[:2], tol=1e-12).n_modes == 1  # at most n - 1
+
+
+@pytest.mark.parametrize("regressor", ["gp", "trees"])
+def test_save_and_load_give_identical_predictions(tmp_path, regressor):
+    shapes = _shapes(n_nodes=120)
+    train = BOX.sample(12, seed=0)
+    sur = fit_surrogate(train, _smooth_field(train, shapes), names=BOX.names, lower=BOX.lower,
+                        upper=BOX.upper, regressor=regressor, meta={"case": "synthetic"})
+    sur.save(tmp_path / "s")
+    back = Surrogate.load(tmp_path / "s")
+    test = BOX.sample(5, seed=9)
+    np.testing.assert_array_equal(back.predict(test), sur.predict(test))
+    point = dict(zip(BOX.names, test[0]))
+    assert back.predict(point).shape == (120, 3)
+    np.testing.assert_array_equal(back.predict(point), sur.predict(point))
+    # one point alone and within a batch differ only by the BLAS's summation order
+    np.testing.assert_allclose(sur.predict(point), sur.predict(test)[0], rtol=0, atol=1e-12)
+    assert back.meta == {"case": "synthetic"} and back.names == BOX.names
+
+
+def test_numpy_posterior_mean_matches_scikit_learn():
+    """The stored-array prediction of the GP equals GaussianProcessRegressor.predict on the
+    same residuals (same kernel, same hyperparameters) to rounding."""
+    from sklearn.gaussian_process import GaussianProcessRegressor
+    from sklearn.gaussian_process.kernels import ConstantKernel, Matern, WhiteKernel
+
+    from regtrack.surrogate.regression import fit_gp
+
+    rng = np.random.default_rng(1)
+    x = rng.uniform(size=(9, 3))
+    y = np.sin(3 * x[:, :1]) + x[:, 1:2] ** 2
+    model = fit_gp(x, y, kind="matern52")
+    resid = (y - np.hstack([np.ones((9, 1)), x]) @ model.trend)[:, 0] / model.scale[0]
+    kernel = (ConstantKernel(model.amplitude[0], "fixed")
+              * Matern(model.length_scales[0], "fixed", nu=2.5)
+              + WhiteKernel(1e-4, "fixed"))
+    xt = rng.uniform(size=(4, 3))
+    gp = GaussianProcessRegressor(kernel=kernel, optimizer=None).fit(x, resid)
+    # alpha depends on the fitted noise; refit ours' alpha through sklearn's solve
+    model.alpha[:, 0] = gp.alpha_
+    expected = np.hstack([np.ones((4, 1)), xt]) @ model.trend[:, 0] + model.scale[0] * gp.predict(xt)
+    np.testing.assert_allclose(model.predict(xt)[:, 0], expected, rtol=1e-10, atol=1e-12)
+
+
+def test_leave_one_out_of_a_linear_field_is_exact_and_names_each_point():
+    """Any 9 of 10 points of a field linear in the parameters fix the trend, so every
+    left-out field is predicted to rounding (1e-6 of the field's size)."""
+    shapes = _shapes(n_nodes=80)
+    p = BOX.sample(10, seed=0)
+    fields = _linear_field(p, shapes)
+    out = leave_one_out(lambda a, b: fit_surrogate(a, b, names=BOX.names, lower=BOX.lower,
+                                                   upper=BOX.upper), p, fields)
+    assert len(out["points"]) == 10
+    assert out["pooled"]["max_mm"] <= 1e-6 * np.abs(fields).max()
+
+
+@pytest.mark.parametrize("bad, match", [
+    ({"c1": 0.5, "nu": 0.47}, r"params: missing target_D"),
+    ([0.5, 0.47], r"params: expected 3 values"),
+])
+def test_bad_parameters_are_named(bad, match):
+    shapes = _shapes(n_nodes=20)
+    p = BOX.sample(6, seed=0)
+    sur = fit_surrogate(p, _linear_field(p, shapes), names=BOX.names, lower=BOX.lower,
+                        upper=BOX.upper)
+    with pytest.raises(ValueError, match=match):
+        sur.predict(bad)
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--nu", "0.49", "0.45"], r"--nu 0\.49 0\.45: LO must be below HI"),
+    (["--d-range", "0.2", "1.2"], r"--d-range 0\.2 1\.2: HI must be < 1"),
+    (["--points", "3"], r"--points 3: must be >= 5"),
+    (["--c1", "-1", "2"], r"--c1 -1 2: LO must be > 0"),
+])
+def test_bad_build_options_give_one_line_before_any_work(tmp_path, capsys, argv, message):
+    from regtrack.cli import main
+
+    out = tmp_path / "out"
+    rc = main(["-q", "surrogate", "build", str(ROOT / "sample_cases" / "phantom01"),
+               "--out", str(out), "--cache", str(tmp_path / "cache"), *argv])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2 and len(err) == 1 and err[0].startswith("regtrack surrogate: error: ")
+    assert re.search(message, err[0]), err[0]
+    assert not out.exists() and not (tmp_path / "cache").exists()
+
+
+@pytest.mark.slow
+def test_phantom_cc_surrogate_predicts_held_out_simulations(tmp_path):
+    """Six CC simulations of the coarse phantom (1,825 nodes) over c1 in [0.27, 1.08] kPa,
+    nu in [0.45, 0.49], D in [0.25, 0.45], and two held-out ones: the surrogate's nodal
+    error stays within TOL_MEDIAN_MM / TOL_P95_MM (see the constants for the measurement
+    they come from)."""
+    from regtrack.case import load_case
+    from regtrack.surrogate.design import default_box
+    from regtrack.surrogate.training import build_surrogate
+
+    case = load_case(ROOT / "sample_cases" / "phantom01", deep=False)
+    sur, report = build_surrogate(case, "CC", box=default_box(0.54), n_points=6, n_holdout=2,
+                                  cache_dir=tmp_path / "cache")
+    assert report["n_train"] == 6 and not report["failed"]
+    pooled = report["held_out"]["pooled"]
+    assert pooled["median_mm"] <= TOL_MEDIAN_MM
+    assert pooled["p95_mm"] <= TOL_P95_MM
+    sur.save(tmp_path / "s")
+    assert Surrogate.load(tmp_path / "s").meta["validation"]["n_train"] == 6
