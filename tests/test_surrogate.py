@@ -14,13 +14,6 @@ from regtrack.surrogate.pca import fit_basis
 from regtrack.surrogate.validate import leave_one_out, nodal_errors
 
 ROOT = Path(__file__).resolve().parents[1]
-#: Held-out nodal error bounds (mm) of the 6-simulation phantom surrogate.  Measured: with 12
-#: simulations the held-out median / p95 were 0.17 / 0.44 mm (regtrack.surrogate.model); 15
-#: random 6-of-12 subsets gave medians 0.31 (worst 0.54) and p95s 1.08 (worst 2.20) mm.  The
-#: median bound is the issue's acceptance (1 mm), the p95 bound leaves room above the worst
-#: subset; both are far below the mean-field baseline (2.13 / 7.84 mm), so a surrogate that
-#: learnt nothing fails.
-TOL_MEDIAN_MM, TOL_P95_MM = 1.0, 3.0
 BOX = ParameterBox(("c1", "nu", "target_D"), (0.27, 0.45, 0.25), (1.08, 0.49, 0.45))
 
 
@@ -151,22 +144,44 @@ def test_bad_build_options_give_one_line_before_any_work(tmp_path, capsys, argv,
     assert not out.exists() and not (tmp_path / "cache").exists()
 
 
-@pytest.mark.slow
-def test_phantom_cc_surrogate_predicts_held_out_simulations(tmp_path):
-    """Six CC simulations of the coarse phantom (1,825 nodes) over c1 in [0.27, 1.08] kPa,
-    nu in [0.45, 0.49], D in [0.25, 0.45], and two held-out ones: the surrogate's nodal
-    error stays within TOL_MEDIAN_MM / TOL_P95_MM (see the constants for the measurement
-    they come from)."""
+def test_build_passes_each_design_point_to_its_simulation(tmp_path, monkeypatch):
+    """The whole build on the phantom's real mesh with the simulation stage replaced by a
+    field that is linear in the case's c1 (kPa), nu and D, read back from each run's
+    resolved configs: the surrogate then reproduces the held-out fields to 1e-6 mm only if
+    every design point reached its simulation's settings (c1 -> [mechanics], nu, D -> the
+    view's protocol).  The accuracy on real simulations is a benchmark (docs/performance.md:
+    phantom CC, 12 + 4 simulations, held-out median / p95 0.17 / 0.44 mm), not a test: it
+    takes a dozen simulations."""
+    from types import SimpleNamespace
+
     from regtrack.case import load_case
+    from regtrack.pipeline import stages
     from regtrack.surrogate.design import default_box
     from regtrack.surrogate.training import build_surrogate
 
+    seen, nodes = [], {}
+
+    def field(X, c1, nu, D):
+        c = X - X.mean(axis=0)
+        return D * c * np.array([0.2, 0.1, -1.0]) + c1 * np.roll(c, 1, axis=1) + 10.0 * nu * np.sin(c / 20.0)
+
+    def linear_field(ctx, mesh, view):
+        cfg = ctx.configs
+        D = [s.target_D for s in cfg.protocols[view].steps if s.to == "degree"][-1]
+        point = (cfg.mechanics.tissue_c1_kpa, cfg.mechanics.nu, D)
+        seen.append(point)
+        nodes["X"] = X = mesh.model.points
+        return SimpleNamespace(positions=X + field(X, *point))
+
+    monkeypatch.setattr(stages, "simulate_stage", linear_field)
     case = load_case(ROOT / "sample_cases" / "phantom01", deep=False)
-    sur, report = build_surrogate(case, "CC", box=default_box(0.54), n_points=6, n_holdout=2,
+    sur, report = build_surrogate(case, "CC", box=default_box(0.54), n_points=6, n_holdout=3,
                                   cache_dir=tmp_path / "cache")
     assert report["n_train"] == 6 and not report["failed"]
-    pooled = report["held_out"]["pooled"]
-    assert pooled["median_mm"] <= TOL_MEDIAN_MM
-    assert pooled["p95_mm"] <= TOL_P95_MM
+    np.testing.assert_allclose(np.array(seen[:6]), report["train_points"], rtol=1e-9)
+    assert len(seen) == 9 and len({p[0] for p in seen}) == 9  # every c1 distinct
+    assert report["held_out"]["pooled"]["max_mm"] <= 1e-6
+    p = (0.7, 0.47, 0.33)
+    np.testing.assert_allclose(sur.predict(np.array(p)), field(nodes["X"], *p), atol=1e-6)
     sur.save(tmp_path / "s")
     assert Surrogate.load(tmp_path / "s").meta["validation"]["n_train"] == 6
