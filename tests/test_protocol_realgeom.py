@@ -17,7 +17,6 @@ force.
 
 from __future__ import annotations
 
-import dataclasses
 from pathlib import Path
 
 import numpy as np
@@ -33,14 +32,9 @@ CASE = Path(__file__).resolve().parents[1] / "sample_cases" / "pelicano_exam03"
 
 @pytest.fixture(scope="module")
 def model():
-    from regtrack.case import load_case
-    from regtrack.imaging.readers import read_label_map
-    from regtrack.model.build import build_model
+    from tests._models import coarse_model
 
-    case = load_case(CASE, deep=False)
-    cfg = dataclasses.replace(case.config("model"), target_nodes=1500)
-    return build_model(read_label_map(case.mri.labels), scheme=case.mri.scheme, config=cfg,
-                       side=case.mri.side)
+    return coarse_model(CASE)  # ~1.6k nodes, built once per test process (tests/_models.py)
 
 
 def _balance(model, rec):

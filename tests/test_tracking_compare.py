@@ -84,16 +84,15 @@ def test_comparison_recovers_a_known_stiffness_mismatch():
     from regtrack.mechanics.meshes import boundary_faces
     from regtrack.mechanics.protocol import shipped_protocol
     from regtrack.mechanics.run_view import run_protocol_on_model
-    from regtrack.model.build import build_model
     from regtrack.tracking.compare import skin_distance
     from regtrack.tracking.deformation import DeformationMap
     from regtrack.tracking.warp import warp_volume
+    from tests._models import coarse_model
 
     case = load_case(Path(__file__).resolve().parents[1] / "sample_cases" / "phantom01",
                      deep=False)
     labels = read_label_map(case.mri.labels)
-    model = build_model(labels, scheme=case.mri.scheme, side=case.mri.side,
-                        config=dataclasses.replace(case.config("model"), target_nodes=1500))
+    model = coarse_model("phantom01")  # ~1.8k nodes, shared with test_biopsy_protocol
     mech = dataclasses.replace(case.config("mechanics"), tissue_model="homogeneous")
     x = {}
     for name, nu in (("A", 0.49), ("B", 0.40)):
