@@ -13,17 +13,19 @@ from __future__ import annotations
 
 import csv
 import json
-import os
 from pathlib import Path
 
 import numpy as np
 import pytest
 
+from tests.conftest import PIPELINE_CACHE
+
 PHANTOM = Path(__file__).resolve().parents[1] / "sample_cases" / "phantom01"
 #: The stage cache shared with the other phantom tests (test_registration_phantom,
-#: test_mammogram_geometry): the phantom's mesh is the pipeline's at the case's settings,
-#: built once for all of them; the biopsy simulations are this test's own.
-CACHE = Path(os.environ.get("REGTRACK_CACHE", PHANTOM.parents[1] / ".regtrack-cache"))
+#: test_mammogram_geometry, test_tracking_compare): the phantom's mesh is the pipeline's at
+#: the case's settings, built once for all of them; the biopsy simulation at the defaults
+#: serves test_tracking_compare too.
+CACHE = PIPELINE_CACHE
 
 
 @pytest.mark.parametrize("extra, message", [
