@@ -16,6 +16,9 @@ import pytest
 REPO = Path(__file__).resolve().parents[1]
 SHARED_DATA = Path(os.environ.get("REGTRACK_SHARED_DATA", REPO.parent / "shared" / "data"))
 SAMPLE_CASES = REPO / "sample_cases"
+#: The pipeline's stage cache shared by the tests that run the pipeline on the bundled
+#: phantom (meshes and simulations computed once for all of them).
+PIPELINE_CACHE = Path(os.environ.get("REGTRACK_CACHE", REPO / ".regtrack-cache"))
 
 
 def shared_data(*parts: str) -> Path:

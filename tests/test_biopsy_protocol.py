@@ -16,7 +16,6 @@ breast of ``sample_cases/pelicano_exam03`` (1.6k nodes; measured: balance 3.5e-5
 
 from __future__ import annotations
 
-import dataclasses
 from pathlib import Path
 
 import numpy as np
@@ -24,6 +23,7 @@ import pytest
 
 from regtrack.mechanics.protocol import (ProtocolOverrides, apply_overrides, protocol_for_view,
                                          shipped_protocol)
+from tests._models import coarse_model
 
 PHANTOM = Path(__file__).resolve().parents[1] / "sample_cases" / "phantom01"
 EXAM03 = Path(__file__).resolve().parents[1] / "sample_cases" / "pelicano_exam03"
@@ -70,23 +70,6 @@ def test_biopsy_override_in_case_toml(tmp_path):
     assert configs.protocols["BIOPSY"].steps[-1].target_D == 0.32
 
 
-_MODELS: dict = {}
-
-
-def _model(case_dir):
-    """The case's model at ~1,500 nodes (built once per module)."""
-    from regtrack.case import load_case
-    from regtrack.imaging.readers import read_label_map
-    from regtrack.model.build import build_model
-
-    if case_dir not in _MODELS:
-        case = load_case(case_dir, deep=False)
-        cfg = dataclasses.replace(case.config("model"), target_nodes=1500)
-        _MODELS[case_dir] = build_model(read_label_map(case.mri.labels), scheme=case.mri.scheme,
-                                        config=cfg, side=case.mri.side)
-    return _MODELS[case_dir]
-
-
 @pytest.mark.slow
 @pytest.mark.parametrize("case_dir, target", [(PHANTOM, 0.12), (PHANTOM, 0.32), (EXAM03, 0.32)],
                          ids=["phantom01-12", "phantom01-32", "pelicano_exam03-32"])
@@ -99,7 +82,8 @@ def test_biopsy_compression(case_dir, target):
 
     case = load_case(case_dir, deep=False)
     proto = apply_overrides(shipped_protocol("biopsy"), ProtocolOverrides(target_D=target))
-    res, timing = run_protocol_on_model(_model(case_dir), proto, mechanics=case.config("mechanics"),
+    res, timing = run_protocol_on_model(coarse_model(case_dir), proto,
+                                        mechanics=case.config("mechanics"),
                                         contact=case.config("contact"))
     assert res.complete
     sm = summarise(res, timing)

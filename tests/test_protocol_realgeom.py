@@ -17,7 +17,6 @@ force.
 
 from __future__ import annotations
 
-import dataclasses
 from pathlib import Path
 
 import numpy as np
@@ -33,14 +32,21 @@ CASE = Path(__file__).resolve().parents[1] / "sample_cases" / "pelicano_exam03"
 
 @pytest.fixture(scope="module")
 def model():
-    from regtrack.case import load_case
-    from regtrack.imaging.readers import read_label_map
-    from regtrack.model.build import build_model
+    from tests._models import coarse_model
 
-    case = load_case(CASE, deep=False)
-    cfg = dataclasses.replace(case.config("model"), target_nodes=1500)
-    return build_model(read_label_map(case.mri.labels), scheme=case.mri.scheme, config=cfg,
-                       side=case.mri.side)
+    return coarse_model(CASE)  # ~1.6k nodes, built once per test process (tests/_models.py)
+
+
+_RUNS: dict = {}
+
+
+def _shipped(model, view):
+    """The shipped ``view`` protocol at the defaults on ``model``, run once per module (the
+    chest-wall test checks the same CC run as the shipped-protocol test)."""
+    if view not in _RUNS:
+        _RUNS[view] = run_protocol_on_model(model, shipped_protocol(view),
+                                            mechanics=MechanicsConfig())
+    return _RUNS[view]
 
 
 def _balance(model, rec):
@@ -52,7 +58,7 @@ def _balance(model, rec):
 @pytest.mark.slow
 @pytest.mark.parametrize("view, target", [("cc", 0.38), ("mlo", 0.28)])
 def test_shipped_protocol_on_real_breast(model, view, target):
-    res, timing = run_protocol_on_model(model, shipped_protocol(view), mechanics=MechanicsConfig())
+    res, timing = _shipped(model, view)
     assert res.complete
     sm = summarise(res, timing)
     assert sm["D"] == pytest.approx(target, abs=1e-9)
@@ -100,7 +106,7 @@ def test_chest_wall_keeps_the_tissue_in_front_of_the_chest_wall(model):
     completes at D = 38 %, no node ends more than the 0.1 mm penetration bound behind the
     chest-wall plane (without the wall, tissue is squeezed past the plane: measured 7.1 mm
     on this mesh), the wall carries a force, and the force balance closes with it."""
-    res, timing = run_protocol_on_model(model, shipped_protocol("cc"), mechanics=MechanicsConfig())
+    res, timing = _shipped(model, "cc")
     assert res.complete
     sm = summarise(res, timing)
     assert sm["D"] == pytest.approx(0.38, abs=1e-9)

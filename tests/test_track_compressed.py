@@ -19,7 +19,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from tests.conftest import PIPELINE_CACHE
+
 PHANTOM = Path(__file__).resolve().parents[1] / "sample_cases" / "phantom01"
+#: The stage cache shared with the other phantom tests (test_registration_phantom,
+#: test_mammogram_geometry, test_tracking_compare): the phantom's mesh is the pipeline's at
+#: the case's settings, built once for all of them; the biopsy simulation at the defaults
+#: serves test_tracking_compare too.
+CACHE = PIPELINE_CACHE
 
 
 @pytest.mark.parametrize("extra, message", [
@@ -64,7 +71,7 @@ def test_track_and_warp_in_the_biopsy_compression(tmp_path, capsys):
     from regtrack.tracking.deformation import DeformationMap
     from regtrack.tracking.warp import warp_volume
 
-    cache, out = tmp_path / "cache", tmp_path / "out"
+    cache, out = CACHE, tmp_path / "out"
     lm = tmp_path / "points.csv"
     lm.write_text("name,x,y,z\ntumour,-109.7,0.3,10.3\nfat,-100,-20,0\n")
     rc = main(["track", str(PHANTOM), "--view", "biopsy", "--landmarks", str(lm),

@@ -74,33 +74,31 @@ def test_comparison_recovers_a_known_stiffness_mismatch():
     label map warped through B: the breast voxels are exactly B's deformed mesh).  The
     distance of A's skin to that image must recover the true distance of A's skin to B's
     deformed surface (sampled densely on B's boundary triangles): RMS within 0.3 mm, about
-    half the 0.66 x 0.66 x 1.4 mm voxel (measured: 0.81 mm from the image, 0.93 mm true);
-    B against its own image gives the resolution floor, below 0.5 mm (measured 0.28 mm)."""
-    import dataclasses
-    from pathlib import Path
+    half the 0.66 x 0.66 x 1.4 mm voxel (measured: 0.82 mm from the image, 0.94 mm
+    true); B against its own image gives the resolution floor, below 0.5 mm (measured
+    0.28 mm).
 
-    from regtrack.case import load_case
+    Both are the pipeline's biopsy simulation of the case as bundled (its mesh, its
+    composition c1; B with the nu override), taken from the stage cache shared with
+    ``test_track_compressed``, whose tracking simulates A: without gravity, under a
+    prescribed plate travel, c1 barely changes the shape, so the mismatch is nu's."""
     from regtrack.imaging.readers import read_label_map
     from regtrack.mechanics.meshes import boundary_faces
-    from regtrack.mechanics.protocol import shipped_protocol
-    from regtrack.mechanics.run_view import run_protocol_on_model
-    from regtrack.model.build import build_model
     from regtrack.tracking.compare import skin_distance
+    from regtrack.tracking.compressed import open_compressed
     from regtrack.tracking.deformation import DeformationMap
     from regtrack.tracking.warp import warp_volume
+    from tests.conftest import PIPELINE_CACHE, SAMPLE_CASES
 
-    case = load_case(Path(__file__).resolve().parents[1] / "sample_cases" / "phantom01",
-                     deep=False)
+    x, model, case = {}, None, None
+    for name, nu in (("A", None), ("B", 0.40)):
+        state = open_compressed(SAMPLE_CASES / "phantom01", "biopsy", cache_dir=PIPELINE_CACHE,
+                                overrides=None if nu is None else {"mechanics": {"nu": nu}})
+        assert state.summary["complete"]
+        model, case = state.model, state.case
+        x[name] = state.dmap.deformed
+    assert case.config("mechanics").nu == 0.49  # the default: A is the stiffer bulk
     labels = read_label_map(case.mri.labels)
-    model = build_model(labels, scheme=case.mri.scheme, side=case.mri.side,
-                        config=dataclasses.replace(case.config("model"), target_nodes=1500))
-    mech = dataclasses.replace(case.config("mechanics"), tissue_model="homogeneous")
-    x = {}
-    for name, nu in (("A", 0.49), ("B", 0.40)):
-        res, _ = run_protocol_on_model(model, shipped_protocol("biopsy"),
-                                       mechanics=dataclasses.replace(mech, nu=nu))
-        assert res.complete
-        x[name] = model.points + res.u
     tissue = case.mri.scheme.tissue[0]
     const = LabelVolume(data=np.full(labels.data.shape, tissue, labels.data.dtype),
                         affine=labels.affine)
