@@ -162,8 +162,12 @@ def test_command_mentioned_in_text_exists(where, mention):
         return
     verb = rest[0]
     assert verb in verbs, f"{where}: `{mention}`: no command {verb!r}"
-    options = {o for a in verbs[verb]._actions for o in a.option_strings}
-    for w in rest[1:]:
+    parser, args = verbs[verb], rest[1:]
+    actions = parser._subparsers._group_actions[0].choices if parser._subparsers else {}
+    if args and args[0] in actions:  # a verb with actions: `regtrack surrogate build ...`
+        parser, verb, args = actions[args[0]], f"{verb} {args[0]}", args[1:]
+    options = {o for a in parser._actions for o in a.option_strings}
+    for w in args:
         if w.startswith("-"):
             opt = w.split("=", 1)[0]
             assert opt in options, f"{where}: `{mention}`: regtrack {verb} has no option {opt}"
