@@ -241,14 +241,14 @@ def test_biopsy_section_cuts_a_tetrahedron_exactly():
     from regtrack.report.biopsy import plane_section, tumour_surface
 
     pts = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1], [1, 1, 1]], float)
-    one = SimpleNamespace(tets=np.array([[0, 1, 2, 3]]), region=np.array([2]))
+    one = SimpleNamespace(points=pts, tets=np.array([[0, 1, 2, 3]]), region=np.array([2]))
     faces = tumour_surface(one)
     assert len(faces) == 4
     seg = plane_section(pts, faces, np.array([0, 0, 0.5]), np.array([0, 0, 1.0]))
     assert seg.shape == (3, 2, 3)
     ends = {tuple(np.round(p, 12)) for p in seg.reshape(-1, 3)}
     assert ends == {(0, 0, 0.5), (0.5, 0, 0.5), (0, 0.5, 0.5)}
-    two = SimpleNamespace(tets=np.array([[0, 1, 2, 3], [1, 2, 3, 4], [0, 1, 2, 4]]),
+    two = SimpleNamespace(points=pts, tets=np.array([[0, 1, 2, 3], [1, 2, 3, 4], [0, 1, 2, 4]]),
                           region=np.array([2, 2, 1]))  # the tissue tet is not tumour
     assert len(tumour_surface(two)) == 6
     assert plane_section(pts, faces, np.array([0, 0, 5.0]), np.array([0, 0, 1.0])).shape == (0, 2, 3)

@@ -62,14 +62,9 @@ def plane_section(points: np.ndarray, tris: np.ndarray, origin: np.ndarray,
 
 def tumour_surface(model) -> np.ndarray:
     """(F, 3) boundary triangles of the tumour tetrahedra (faces used by one tumour tet)."""
-    tets = np.asarray(model.tets)[np.asarray(model.region) == 2]
-    if not len(tets):
-        return np.zeros((0, 3), np.int64)
-    faces = np.concatenate([tets[:, [0, 1, 2]], tets[:, [0, 1, 3]], tets[:, [0, 2, 3]],
-                            tets[:, [1, 2, 3]]])
-    _, idx, count = np.unique(np.sort(faces, axis=1), axis=0, return_index=True,
-                              return_counts=True)
-    return faces[idx[count == 1]]
+    from regtrack.virtual.surface import boundary_faces
+
+    return boundary_faces(np.asarray(model.tets)[np.asarray(model.region) == 2], model.points)
 
 
 class PlateFrame:
