@@ -147,6 +147,7 @@ def _check_biopsy_report(pdf, state, doc, rows):
     import matplotlib.pyplot as plt
 
     from regtrack.report.biopsy import protocol_page, target_page
+    from regtrack.pipeline.outputs import step_states
     from regtrack.report.fmt import num
     from regtrack.report.pdf import CaseReport, figure_text, render_pages
     from regtrack.tracking.compressed import map_points
@@ -157,7 +158,7 @@ def _check_biopsy_report(pdf, state, doc, rows):
                                                                 for a in "xyz"] for r in rows[:2]])
     fwd = dataclasses.replace(fwd, sigma_mm=np.array([p["sigma_mm"] for p in doc["points"][:2]]))
     rep = CaseReport("case", extra_pages=[target_page(state, [fwd], "case"),
-                                          protocol_page(state)])
+                                          protocol_page(state, step_states(state.sim))])
     texts = []
     for fig in render_pages(rep):
         texts += figure_text(fig)

@@ -273,11 +273,12 @@ def _track_3d(args: argparse.Namespace, console) -> int:
                 mapped[i] = dataclasses.replace(m, sigma_mm=ps.sigma_mm, sigma_terms_mm=ps.terms_mm)
         paths = write_points(out, state, mapped) if mapped else []
         if state.view == "BIOPSY" and mapped and not args.no_pdf:
+            from regtrack.pipeline.outputs import step_states
             from regtrack.report.biopsy import write_biopsy_report
 
             progress("report: biopsy.pdf (the needle target and the protocol)")
-            paths.append(write_biopsy_report(out / "biopsy.pdf", state, mapped,
-                                             case_id=case_id))
+            paths.append(write_biopsy_report(out / "biopsy.pdf", state, mapped, case_id=case_id,
+                                             states=step_states(state.sim)))
         if args.warp:
             paths += write_warped(out, state, progress=progress, pseudonym=case_id,
                                   keep_identifiers=args.keep_identifiers)

@@ -272,13 +272,12 @@ def target_page(state, mapped, case_id: str) -> Callable:
     return draw
 
 
-def protocol_page(state) -> Callable:
-    """The drawing function of the protocol page: sequence panels and the steps table."""
-    from regtrack.pipeline.outputs import step_states
+def protocol_page(state, states: list[tuple[str, np.ndarray]]) -> Callable:
+    """The drawing function of the protocol page: sequence panels (``states``: step name and
+    displacement (N, 3) mm after each step) and the steps table."""
     from regtrack.report import figures as F
 
     frame_doc, steps = _frame_of(state)
-    states = step_states(state.sim)
     model = state.model
 
     def draw(fig) -> None:
@@ -314,10 +313,12 @@ def protocol_page(state) -> Callable:
     return draw
 
 
-def write_biopsy_report(path: str | Path, state, mapped, *, case_id: str) -> Path:
-    """``biopsy.pdf``: the target page and the protocol page (:mod:`regtrack.report.pdf`)."""
+def write_biopsy_report(path: str | Path, state, mapped, *, case_id: str,
+                        states: list[tuple[str, np.ndarray]]) -> Path:
+    """``biopsy.pdf``: the target page and the protocol page (:mod:`regtrack.report.pdf`);
+    ``states`` as for :func:`protocol_page`."""
     from regtrack.report.pdf import CaseReport, write_pdf
 
     rep = CaseReport(case_id, extra_pages=[target_page(state, mapped, case_id),
-                                           protocol_page(state)])
+                                           protocol_page(state, states)])
     return write_pdf(rep, path)
