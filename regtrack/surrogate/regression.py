@@ -16,8 +16,9 @@ Two regressors, compared by leave-one-out error on the phantom (:mod:`.validate`
   Matérn's (:mod:`.model` has the numbers).  The hyperparameters are
   fitted by scikit-learn's :class:`~sklearn.gaussian_process.GaussianProcessRegressor`
   (maximum marginal likelihood, Rasmussen & Williams 2006, ch. 5); the prediction is the
-  posterior mean :math:`\\beta_{k0} + \\beta_k^T x + s_k\\, k(x, X)\\,\\alpha_k`, evaluated here
-  in numpy from stored arrays, so the saved surrogate holds no pickled objects.  The trend
+  posterior mean :math:`\\beta_{k0} + \\beta_k^T x + s_k\\, k(x, X)\\,\\alpha_k`, evaluated
+  from stored arrays (the kernel rebuilt from its fitted length scales), so the saved
+  surrogate holds no pickled objects.  The trend
   makes a field that is linear in the parameters exact, and the displacement is close to
   linear in the compression degree D.
 * :class:`TreeCoefficients` -- an extremely randomised tree ensemble
@@ -39,21 +40,18 @@ KERNELS = ("rbf", "matern52")
 
 
 def correlation(kind: str, x: np.ndarray, y: np.ndarray, length_scales: np.ndarray) -> np.ndarray:
-    """Correlation matrix ``(len(x), len(y))`` of the anisotropic ``kind`` kernel.
+    """Correlation matrix ``(len(x), len(y))`` of the anisotropic ``kind`` kernel:
+    scikit-learn's ``RBF`` (``exp(-d^2/2)``) or ``Matern(nu=2.5)``, with ``d = |(x - y) / l|``,
+    rebuilt from the stored length scales ``l``."""
+    from sklearn.gaussian_process.kernels import RBF, Matern
 
-    ``rbf``: :math:`\\exp(-d^2/2)`; ``matern52``: :math:`(1 + \\sqrt5 d + 5d^2/3)
-    \\exp(-\\sqrt5 d)`, with :math:`d = \\lVert (x - y)/\\ell \\rVert` (scikit-learn's
-    ``RBF`` and ``Matern(nu=2.5)``).
-    """
-    a = np.asarray(x, float) / length_scales
-    b = np.asarray(y, float) / length_scales
-    d2 = np.maximum((a**2).sum(1)[:, None] + (b**2).sum(1)[None, :] - 2.0 * a @ b.T, 0.0)
     if kind == "rbf":
-        return np.exp(-0.5 * d2)
-    if kind == "matern52":
-        d = np.sqrt(5.0 * d2)
-        return (1.0 + d + d**2 / 3.0) * np.exp(-d)
-    raise ValueError(f"kernel '{kind}': use one of {', '.join(KERNELS)}")
+        kernel = RBF(length_scale=length_scales)
+    elif kind == "matern52":
+        kernel = Matern(length_scale=length_scales, nu=2.5)
+    else:
+        raise ValueError(f"kernel '{kind}': use one of {', '.join(KERNELS)}")
+    return kernel(np.asarray(x, float), np.asarray(y, float))
 
 
 def _trend_matrix(x: np.ndarray) -> np.ndarray:
