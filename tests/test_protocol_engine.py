@@ -298,7 +298,7 @@ def test_force_balance_is_the_residual_resultant_over_the_free_nodes():
     from regtrack.mechanics.protocol_run import force_balance
 
     fixed = np.array([True, False, False, False])
-    problem = SimpleNamespace(model=SimpleNamespace(fixed=fixed),
+    problem = SimpleNamespace(model=SimpleNamespace(fixed=fixed), fixed_dofs=np.arange(3), support=None, n_dofs=12,
                               body_weight=np.full(4, 0.05 / 9.81))  # 0.2 N at 1 g
     r = np.array([[0.0, 3.0, 0.0], [0.1, 0.0, 0.0], [0.2, 0.0, 0.0], [0.0, 0.4, 0.0]])
     plate = SimpleNamespace(nodal_forces=lambda u: (np.array([[0.0, -6.0, 0.0],

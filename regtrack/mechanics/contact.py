@@ -79,10 +79,19 @@ class ContactConfig:
         "result no longer changes below 2.5 mm", ge=0.0)
     chest_wall_contact: bool = param(True, "", "protocols: no free node may pass behind the "
                                      "chest-wall plane (a frictionless rigid wall at the model's "
-                                     "most posterior x: the torso).  Off gives the paper's model, "
-                                     "in which the tissue pinched between a plate's rounded edge "
-                                     "and the fixed chest wall is squeezed 5 to 12 mm behind that "
-                                     "plane (Pelicano exams 03 and 10): inside the torso")
+                                     "most posterior x: the torso).  Off, with a clamped wall "
+                                     "(chest_wall_layer_mm = 0), gives the paper's model, in which "
+                                     "the tissue pinched between a plate's rounded edge and the "
+                                     "wall is squeezed 5 to 12 mm behind that plane (Pelicano "
+                                     "exams 03 and 10): inside the torso")
+    chest_wall_layer_mm: float = param(5.0, "mm", "protocols: the breast base slides on the "
+                                       "chest wall over a layer of its tissue this thick (the "
+                                       "retromammary fat): the chest-wall nodes are held normal "
+                                       "to the wall and tangentially by the layer's shear "
+                                       "stiffness 2 c1 / h per unit area (regtrack.mechanics."
+                                       "support).  0 clamps them (the paper's model), which "
+                                       "pinches the tissue between the plates' edges and the "
+                                       "wall", ge=0.0, le=100.0)
     behind_wall_warn_mm: float = param(10.0, "mm", "reports: warn (log and the step's "
                                        "'warnings') when a node ends a protocol step deeper "
                                        "than this behind the chest-wall plane (the torso is "
@@ -92,7 +101,7 @@ class ContactConfig:
                                 "that lay (reference configuration) within this distance in "
                                 "front of the plate's chest-wall edge, or behind it, is "
                                 "reported apart as edge_normal_force_N: the tissue attached "
-                                "near the fixed chest wall", ge=0.0)
+                                "near the chest wall", ge=0.0)
     penalty_growth: float = param(4.0, "-", "a node whose violation "
                                   "fell by less than slow_uzawa_ratio in one multiplier update "
                                   "gets its penalty multiplied by this (1: never)", ge=1.0, le=100.0)

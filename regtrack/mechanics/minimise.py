@@ -67,7 +67,8 @@ import scipy.sparse as sp
 from regtrack.errors import ContactDidNotConvergeError, SolverDidNotConvergeError
 from regtrack.mechanics.linsolve import LinearSolveError, LinearSolver, serial_openblas
 from regtrack.mechanics.potential import PlateEval, PlatePotential
-from regtrack.mechanics.problem import Problem, body_force, dof_nodes, evaluate, scatter_add, system_matrix
+from regtrack.mechanics.problem import (Problem, body_force, chest_wall_reaction, dof_nodes, evaluate, scatter_add,
+                                        system_matrix)
 from regtrack.mechanics.types import StepStats
 
 log = logging.getLogger(__name__)
@@ -135,7 +136,7 @@ class Minimiser:
             fc = max(fc, float(np.linalg.norm(e.grad.reshape(-1, 3).sum(axis=0))))
         self.stats.t_assembly += time.perf_counter() - t0
         weight = float(np.linalg.norm(fext.reshape(-1, 3).sum(axis=0)))
-        reaction = float(np.linalg.norm(R.reshape(-1, 3)[self.p.model.fixed].sum(axis=0)))
+        reaction = float(np.linalg.norm(chest_wall_reaction(self.p, ue, R)))
         f_ref = max(weight, fc, reaction, float(np.linalg.norm(ev.f)) / np.sqrt(len(ev.f)),
                     self.o.force_floor_n)
         return _State(ue.reshape(-1, 3), energy, R, pe, ev, f_ref)
@@ -469,7 +470,7 @@ def minimiser_from_problem(problem: Problem, *, options=None, progress: Progress
         out = st.to_dict()
         fixed = problem.model.fixed
         if fixed.any():
-            out["chest_wall_reaction_N"] = r[fixed].sum(axis=0).tolist()
+            out["chest_wall_reaction_N"] = chest_wall_reaction(problem, u, r).tolist()
             fb = force_balance(problem, u, r, g1, contribs, o.stall_force_tol)
             out["force_balance"] = fb
             if not fb["ok"]:

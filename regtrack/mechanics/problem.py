@@ -34,6 +34,7 @@ from numba import njit
 
 from regtrack.errors import ConfigError, InputFileError
 from regtrack.mechanics import assembly, membrane, p2, parallel, tissue
+from regtrack.mechanics.support import WallSupport, wall_support
 from regtrack.mechanics.config import MechanicsConfig
 from regtrack.mechanics.materials import (G_SCALE, ElementMaterials, SkinMaterial, TissueStiffness,
                                           element_materials, skin_material, tissue_stiffness)
@@ -67,6 +68,8 @@ class Problem:
     t_setup: float = 0.0
     tissue_c1: TissueStiffness | None = None  # c1 of the tissue elements (tissue_model), summary
     parts: list[parallel.Part] | None = None  # the element kernel's threads (P1, P1-ANP)
+    support: WallSupport | None = None  # the sliding chest wall's layer (None: clamped)
+    support_pos: np.ndarray | None = None  # its dofs' diagonal positions in the pattern
 
     @property
     def n_nodes(self) -> int:
@@ -136,8 +139,13 @@ def scatter_add(data, pos, vals):
         data[pos[i]] += vals[i]
 
 
-def build_problem(model: BreastModel, config: MechanicsConfig | None = None) -> Problem:
+def build_problem(model: BreastModel, config: MechanicsConfig | None = None, *,
+                  wall_layer_mm: float = 0.0) -> Problem:
     """Precompute geometry, per-element materials and the fixed tangent pattern.
+
+    ``wall_layer_mm``: the chest-wall nodes slide on the wall over a layer that thick
+    (:mod:`.support`: held in ``x`` only, tangentially by the layer's shear stiffness);
+    0 clamps them.
 
     Raises :class:`InputFileError` for inverted/degenerate tetrahedra and
     :class:`ConfigError` for an unknown formulation.
@@ -183,11 +191,14 @@ def build_problem(model: BreastModel, config: MechanicsConfig | None = None) -> 
         w = np.bincount(tets.reshape(-1), weights=wa.reshape(-1), minlength=len(X)) * G_SCALE
     else:
         w = np.bincount(tets.reshape(-1), weights=np.repeat(mats.rho * V / 4.0, 4), minlength=len(X)) * G_SCALE
-    fixed_dofs = (3 * np.flatnonzero(model.fixed)[:, None] + np.arange(3)).reshape(-1)
+    support = wall_support(X, tets, model.fixed, c1_mpa=tissue_k.mean_kpa * 1e-3, layer_mm=wall_layer_mm)
+    held = np.arange(1) if support is not None else np.arange(3)  # x only when the wall slides
+    fixed_dofs = (3 * np.flatnonzero(model.fixed)[:, None] + held).reshape(-1)
     layout = assembly.system_layout(pattern, tets, groups)
     prob = Problem(model, config, X, tets, G, V if W is None else W, mats, skin, sG, sA,
                    skin_material(config) if use_skin else None, pattern, tet_base, skin_pos, groups, w,
-                   fixed_dofs, layout)
+                   fixed_dofs, layout, support=support,
+                   support_pos=None if support is None else pattern.diagonal_positions()[support.dofs])
     if not quadratic:
         threads = parallel.thread_count(config.solver.assembly_threads)
         prob.parts = parallel.node_partition(len(X), tets, threads)
@@ -256,9 +267,32 @@ class Evaluation:
 
 
 def evaluate(problem: Problem, u: np.ndarray, *, want_k: bool = True, project: bool = False) -> Evaluation:
-    """Tissue + skin internal force and (optionally) tangent at displacement ``u``: the
-    consistent tangent, or with ``project`` each tetrahedron's projected onto the positive
-    semi-definite cone (:func:`.tissue.tet_kernel`; P1 and ANP only)."""
+    """Tissue + skin (+ the chest-wall layer, :mod:`.support`) internal force and
+    (optionally) tangent at displacement ``u``: the consistent tangent, or with
+    ``project`` each tetrahedron's projected onto the positive semi-definite cone
+    (:func:`.tissue.tet_kernel`; P1 and ANP only)."""
+    ev = _evaluate_body(problem, u, want_k, project)
+    s = problem.support
+    if s is not None and np.isfinite(ev.energy):
+        ev.f += s.gradient(u)
+        ev.energy += s.energy(u)
+        if ev.data is not None and want_k:
+            ev.data[problem.support_pos] += s.k
+    return ev
+
+
+def chest_wall_reaction(problem: Problem, u: np.ndarray, R: np.ndarray) -> np.ndarray:
+    """The force (3,) N the chest wall exerts on the body, from the residual ``R``
+    (N, 3) at ``u``: the residual of the held dofs (the support reactions) plus the
+    layer's spring forces ``-k u`` (:mod:`.support`)."""
+    f = np.zeros(problem.n_dofs)
+    f[problem.fixed_dofs] = np.asarray(R, float).reshape(-1)[problem.fixed_dofs]
+    if problem.support is not None:
+        f -= problem.support.gradient(u)
+    return f.reshape(-1, 3).sum(axis=0)
+
+
+def _evaluate_body(problem: Problem, u: np.ndarray, want_k: bool, project: bool) -> Evaluation:
     x = problem.X + np.asarray(u, float).reshape(-1, 3)
     m = problem.mats
     if problem.formulation == "p2":

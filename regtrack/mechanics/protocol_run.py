@@ -19,13 +19,15 @@ are unbounded elsewhere.  The lower plate faces ``+n``, the upper one ``-n``; bo
 (rounded edge included: a thick chest-wall base behind the edge would otherwise start
 inside the plate, 6.5 mm deep on the phantom's MLO with ``posterior_edge_mm = 10``).
 
-Chest wall: the chest-wall nodes are fixed, and the plates' rounded edges reach to within
-``posterior_edge_mm`` of them, so the tissue next to the wall is pinched between a plate
-and the fixed nodes.  Without a wall (the paper's model) that tissue is squeezed 5 to 12 mm
-behind the chest-wall plane, into the torso, and carries a mesh-dependent share of the
-plate force.  ``[contact] chest_wall_contact`` (on by default) adds a frictionless rigid
-wall at that plane (:func:`chest_wall`).  The force carried by the skin near the wall is
-reported apart (``edge_band_mm``; ``upper_body_force_N`` in
+Chest wall: the chest-wall nodes slide on the wall over a soft layer (``[contact]
+chest_wall_layer_mm``, :mod:`.support`): held normal to it, tangentially by the layer's
+shear stiffness.  Clamped (layer 0, the paper's model), they cannot follow the plates,
+whose rounded edges reach to within ``posterior_edge_mm`` of them: the fixed section is
+taller than the final plate gap on every exam, and the tissue between a plate's edge and
+the clamped nodes is squeezed without limit (docs/performance.md).  ``[contact]
+chest_wall_contact`` (on by default) adds a frictionless rigid wall at the chest-wall
+plane (:func:`chest_wall`): no node passes behind it into the torso.  The force carried by
+the skin near the wall is reported apart (``edge_band_mm``; ``upper_body_force_N`` in
 :func:`regtrack.mechanics.run_view.summarise`).
 
 Targets of an upper-plate move: the plate is first brought to touch the breast (no
@@ -99,6 +101,9 @@ class BodySetup:
     side : {"L", "R"}
     young_mpa : float
         Small-strain Young modulus of the tissue (MPa), for the automatic penalty.
+    clamped : bool
+        The chest-wall nodes are held in every direction (else they slide on the wall,
+        :mod:`.support`, and are plate contact candidates like the skin's).
     """
 
     points: np.ndarray
@@ -107,6 +112,7 @@ class BodySetup:
     fixed: np.ndarray
     side: str
     young_mpa: float
+    clamped: bool = True
 
 
 @dataclass
@@ -215,7 +221,8 @@ def _skin_contact(body: BodySetup, config: ContactConfig) -> tuple[np.ndarray, n
     (mm^2) and the automatic normal penalty (MPa/mm)."""
     X = body.points
     nodes = np.unique(body.skin)
-    nodes = nodes[~body.fixed[nodes]]
+    if body.clamped:
+        nodes = nodes[~body.fixed[nodes]]
     if len(nodes) == 0:
         raise ConfigError("model has no free skin node: contact needs skin triangles")
     eps = automatic_penalty(config, young_mpa=body.young_mpa, h_mm=mean_edge_length(X, body.skin))
@@ -481,16 +488,19 @@ class ProtocolRunner:
 def force_balance(problem: Any, u: np.ndarray, r: np.ndarray, g_ms2: np.ndarray,
                   contribs: list, tol: float) -> dict:
     """The global force balance of a converged state: the resultant of the residual over
-    the free nodes, ``|sum_free R|`` (N), which equals the sum of the chest-wall reaction,
+    the free dofs, ``|sum_free R|`` (N), which equals the sum of the chest-wall reaction,
     the plate forces and the weight, against the largest of those loads (N).
 
     The convergence test bounds ``||R||_2`` over the free dofs, which bounds the resultant
     only to ``sqrt(free nodes)`` times it, since many small nodal errors of one sign add
     up; this is the check of the sum itself.  ``ok`` is False when the relative imbalance
     exceeds ``tol`` (the caller passes ``stall_force_tol``)."""
-    fixed = problem.model.fixed
-    imbalance = float(np.linalg.norm(r[~fixed].sum(axis=0)))
-    loads = [float(np.linalg.norm(r[fixed].sum(axis=0))),
+    from regtrack.mechanics.problem import chest_wall_reaction
+
+    held = np.zeros(np.size(r), bool)
+    held[problem.fixed_dofs] = True
+    imbalance = float(np.linalg.norm(np.where(held.reshape(-1, 3), 0.0, r).sum(axis=0)))
+    loads = [float(np.linalg.norm(chest_wall_reaction(problem, u, r))),
              float(np.linalg.norm(problem.body_weight.sum() * np.asarray(g_ms2, float)))]
     for c in contribs:
         loads.append(float(np.linalg.norm(c.nodal_forces(u)[0].sum(axis=0))))

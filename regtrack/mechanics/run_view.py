@@ -45,11 +45,18 @@ class ViewResult:
     summary: dict = field(default_factory=dict)
 
 
-def body_from_model(model: BreastModel, young_mpa: float) -> BodySetup:
+def body_from_model(model: BreastModel, young_mpa: float, *, sliding: bool = False) -> BodySetup:
     """:class:`BodySetup` of a model whose tissue has the small-strain Young's modulus
-    ``young_mpa`` (MPa; :attr:`.materials.ElementMaterials.tissue_young_mpa`)."""
-    return BodySetup(points=model.points, tets=model.tets, skin=model.skin, fixed=model.fixed,
-                     side=model.frame.side, young_mpa=young_mpa)
+    ``young_mpa`` (MPa; :attr:`.materials.ElementMaterials.tissue_young_mpa`).  With a
+    ``sliding`` chest wall (:mod:`.support`) its nodes move along the wall, so the
+    chest-wall face joins the skin as a plate contact surface."""
+    skin = model.skin
+    if sliding:
+        from regtrack.mechanics.support import wall_face
+
+        skin = np.concatenate([skin, wall_face(model.points, model.tets, model.fixed)])
+    return BodySetup(points=model.points, tets=model.tets, skin=skin, fixed=model.fixed,
+                     side=model.frame.side, young_mpa=young_mpa, clamped=not sliding)
 
 
 def run_protocol_on_model(model: BreastModel, protocol: Protocol, *, mechanics: Any = None,
@@ -61,13 +68,13 @@ def run_protocol_on_model(model: BreastModel, protocol: Protocol, *, mechanics: 
     from regtrack.mechanics.problem import build_problem
 
     mechanics = mechanics or MechanicsConfig()
-    t0 = time.perf_counter()
-    problem = build_problem(model, mechanics)
-    t1 = time.perf_counter()
     contact = contact or ContactConfig()
+    t0 = time.perf_counter()
+    problem = build_problem(model, mechanics, wall_layer_mm=contact.chest_wall_layer_mm)
+    t1 = time.perf_counter()
     step_solver = minimiser_from_problem(problem, progress=progress)
-    runner = ProtocolRunner(body_from_model(model, problem.mats.tissue_young_mpa), protocol,
-                            step_solver, config=contact)
+    body = body_from_model(model, problem.mats.tissue_young_mpa, sliding=problem.support is not None)
+    runner = ProtocolRunner(body, protocol, step_solver, config=contact)
     result = runner.run()
     result.materials = problem.tissue_c1.info
     t2 = time.perf_counter()

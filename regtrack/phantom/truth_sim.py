@@ -135,8 +135,9 @@ def simulate_view(model: BreastModel, view: str, p: MammoTruthParams, *, progres
     protocol = protocol_for_view(view, {"target_D": p.target_D(view)}, where="phantom truth")
     runner = ProtocolRunner(body_from_model(model, problem.mats.tissue_young_mpa), protocol,
                             minimiser_from_problem(problem, progress=progress),
-                            # the paper's model: no chest-wall contact
-                            config=ContactConfig(friction=p.friction, chest_wall_contact=False))
+                            # the paper's model: clamped chest wall, no chest-wall contact
+                            config=ContactConfig(friction=p.friction, chest_wall_contact=False,
+                                                 chest_wall_layer_mm=0.0))
     result = runner.run()
     t1 = time.perf_counter()
     summary = summarise(result, {"total_s": t1 - t0})
