@@ -198,7 +198,7 @@ class _solver_progress:
         self._task = self._bar.add_task("truth simulation", total=1.0)
         return self
 
-    def __call__(self, step_name: str, t: float) -> None:
+    def __call__(self, step_name: str, t: float, **info) -> None:  # info: plate force, D
         self._bar.update(self._task, completed=float(t), description=f"truth: {step_name}")
 
     def __exit__(self, *exc):

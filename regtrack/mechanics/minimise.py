@@ -75,6 +75,9 @@ log = logging.getLogger(__name__)
 
 #: Armijo's sufficient-decrease constant.
 ARMIJO_C = 1e-4
+#: A full Newton step lowering the potential by more than this times the quadratic
+#: model's prediction is extended (:meth:`Minimiser.line_search`).
+EXPAND_RATIO = 1.5
 
 
 @dataclass
@@ -220,17 +223,40 @@ class Minimiser:
     def line_search(self, s: _State, du: np.ndarray, fext: np.ndarray,
                     plates: Sequence[PlatePotential]) -> _State | None:
         """Backtracking (halving) on ``Pi`` from the full step; None when no trial of 40
-        lowers it."""
+        lowers it.
+
+        A full step that lowers ``Pi`` by more than ``EXPAND_RATIO`` times what the
+        quadratic model predicts (``-R . du / 2``) has met less curvature than the
+        Hessian holds: the projection onto the positive semi-definite cone clamps the
+        negative curvature of a path that snaps (a region slipping on a plate, the skin
+        turning over a plate's edge), and full steps then creep along it by hundredths of a
+        millimetre.  The step is doubled while ``Pi`` keeps falling (at most ``2^6``); the
+        lowest trial is taken."""
         slope = float(s.R[self.free] @ du[self.free])
         scale = 1e-12 * (abs(s.energy) + float(np.abs(fext) @ np.abs(s.u.reshape(-1))) + 1e-12)
         a = 1.0
-        for _ in range(40):
+        for k in range(40):
             self.stats.line_search_trials += 1
             trial = self.state(s.u + a * du.reshape(-1, 3), fext, plates, hessian=False)
             if trial is not None and trial.energy <= s.energy + ARMIJO_C * a * slope + scale:
+                if k == 0 and trial.energy - s.energy < EXPAND_RATIO * 0.5 * slope:
+                    trial = self._expand(s, trial, du, fext, plates)
                 return trial
             a *= 0.5
         return None
+
+    def _expand(self, s: _State, best: _State, du: np.ndarray, fext: np.ndarray,
+                plates: Sequence[PlatePotential]) -> _State:
+        """The lowest of ``Pi(u + 2^k du)``, k = 1..6, while it keeps falling (``best``: k = 0)."""
+        a = 1.0
+        for _ in range(6):
+            a *= 2.0
+            self.stats.line_search_trials += 1
+            trial = self.state(s.u + a * du.reshape(-1, 3), fext, plates, hessian=False)
+            if trial is None or trial.energy >= best.energy:
+                break
+            best = trial
+        return best
 
     def solve(self, u: np.ndarray, fext: np.ndarray, plates: Sequence[PlatePotential]) -> _State:
         """Minimise ``Pi`` from ``u`` (N, 3) at fixed loads and lags; raises

@@ -60,7 +60,7 @@ def mismatch_statement(p: MammoTruthParams, sim: TruthSimulation) -> dict:
         "detector": (f"quantum noise (I0 = {p.quanta_per_pixel:g} quanta/pixel), fat/gland texture, "
                      f"skin line, {p.bits_stored}-bit, JPEG 2000 "
                      + ("lossless" if p.compression_ratio is None else f"lossy (target {p.compression_ratio:g}:1)")),
-        "same_as_pipeline": "tumour c1 5.44 kPa, skin membrane, protocol steps and plate geometry, "
+        "same_as_pipeline": "tumour c1 5.44 kPa, skin membrane, chest-wall layer 5 mm, protocol steps and plate geometry, "
                             "target D (CC 0.38, MLO 0.28), MLO plate angle 45 deg, orthogonal projection",
     }
 

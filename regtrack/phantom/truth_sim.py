@@ -129,15 +129,14 @@ def simulate_view(model: BreastModel, view: str, p: MammoTruthParams, *, progres
                           solver=SolverOptions(force_tol=p.force_tol,
                                                initial_increment=p.initial_increment))
     t0 = time.perf_counter()
-    problem = build_problem(model, cfg)
+    problem = build_problem(model, cfg, wall_layer_mm=p.chest_wall_layer_mm)
     # heterogeneous deviatoric stiffness; K (hence the ANP groups) stays that of the mean c1
     problem.mats = dataclasses.replace(problem.mats, c1=c1 * KPA)
     protocol = protocol_for_view(view, {"target_D": p.target_D(view)}, where="phantom truth")
-    runner = ProtocolRunner(body_from_model(model, problem.mats.tissue_young_mpa), protocol,
-                            minimiser_from_problem(problem, progress=progress),
-                            # the paper's model: clamped chest wall, no chest-wall contact
+    body = body_from_model(model, problem.mats.tissue_young_mpa, sliding=problem.support is not None)
+    runner = ProtocolRunner(body, protocol, minimiser_from_problem(problem, progress=progress),
                             config=ContactConfig(friction=p.friction, chest_wall_contact=False,
-                                                 chest_wall_layer_mm=0.0))
+                                                 chest_wall_layer_mm=p.chest_wall_layer_mm))
     result = runner.run()
     t1 = time.perf_counter()
     summary = summarise(result, {"total_s": t1 - t0})
