@@ -63,7 +63,8 @@ def one(lc: float, formulation: str, with_step: bool = True, model_path: str = "
     from regtrack.mechanics.config import MechanicsConfig, SolverOptions
     from regtrack.mechanics.linsolve import LinearSolver
     from regtrack.mechanics.meshes import hemisphere_model
-    from regtrack.mechanics.minimise import constraint_positions, minimise_step
+    from regtrack.mechanics.minimise import minimise_step
+    from regtrack.mechanics.problem import constraint_positions
 
     if model_path:
         from regtrack.model.io import load_model

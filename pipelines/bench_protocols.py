@@ -62,7 +62,7 @@ def reference_iteration(model, repeats: int = 5) -> float:
 
     from regtrack.mechanics import problem as P
     from regtrack.mechanics.linsolve import LinearSolver
-    from regtrack.mechanics.minimise import constraint_positions
+    from regtrack.mechanics.problem import constraint_positions
 
     pr = P.build_problem(model, MechanicsConfig())
     o = pr.config.solver

@@ -18,7 +18,8 @@ from regtrack.mechanics import problem as P
 from regtrack.mechanics.config import MechanicsConfig, SolverOptions
 from regtrack.mechanics.linsolve import LinearSolveError, LinearSolver, right_gmres
 from regtrack.mechanics.meshes import box_model
-from regtrack.mechanics.minimise import constraint_positions, minimise_step
+from regtrack.mechanics.minimise import minimise_step
+from regtrack.mechanics.problem import constraint_positions
 
 pardiso = pytest.importorskip("pypardiso")
 

@@ -295,7 +295,7 @@ def test_force_balance_is_the_residual_resultant_over_the_free_nodes():
     force, so the relative imbalance is 0.05: over a tolerance of 0.01, under 0.1."""
     from types import SimpleNamespace
 
-    from regtrack.mechanics.protocol_run import force_balance
+    from regtrack.mechanics.problem import force_balance
 
     fixed = np.array([True, False, False, False])
     problem = SimpleNamespace(model=SimpleNamespace(fixed=fixed), fixed_dofs=np.arange(3), support=None, n_dofs=12,

@@ -122,6 +122,7 @@ def test_track_and_warp_in_the_biopsy_compression(tmp_path, capsys):
              for f in (PHANTOM / "mri" / "dicom", out / "mri_biopsy")]
     assert first[0].FrameOfReferenceUID == first[1].FrameOfReferenceUID
     assert first[0].SeriesInstanceUID != first[1].SeriesInstanceUID
+    assert int(first[1].SeriesNumber) == int(first[0].SeriesNumber) + 1000
     # the simulated skin against its own warped label map (a cached run): the floor of the
     # comparison, the model's smoothed surface against the label map's voxel boundary
     # (measured 0.58 mm RMS); the landmarks against themselves: 0

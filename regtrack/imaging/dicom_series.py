@@ -331,7 +331,8 @@ def write_dicom_series(
         A header (``pydicom.Dataset``) of the series this one derives from: its patient,
         study and frame-of-reference attributes (:data:`FROM_SOURCE`: StudyInstanceUID,
         FrameOfReferenceUID, ...) are copied, so the new series (new SeriesInstanceUID and
-        SOPInstanceUIDs) lies in the source's study and frame of reference.
+        SOPInstanceUIDs) lies in the source's study and frame of reference, numbered
+        the source's SeriesNumber + 1000.
     deidentify
         Apply the PS3.15 basic profile with ``patient`` as the pseudonym
         (:func:`regtrack.privacy.deidentify_dataset`; the UIDs are kept).  ``False`` keeps
@@ -363,6 +364,8 @@ def write_dicom_series(
     study_uid, series_uid, for_uid = (_uid(uid_seed, t) for t in ("study", "series", "for"))
     source = {kw: template[kw].value for kw in FROM_SOURCE
               if template is not None and kw in template}
+    # a series derived in the source's study is numbered apart from it (source + 1000)
+    series_number = int(template.SeriesNumber) + 1000 if "SeriesNumber" in (template or {}) else 1
     folder.mkdir(parents=True, exist_ok=True)
     nk = stored.shape[2]
     ts = UID(TRANSFER_SYNTAXES[transfer_syntax])
@@ -384,7 +387,7 @@ def write_dicom_series(
         ds.StudyDate = ds.SeriesDate = ds.ContentDate = date
         ds.StudyTime = ds.SeriesTime = ds.ContentTime = "120000"
         ds.StudyID, ds.AccessionNumber, ds.ReferringPhysicianName = "1", "", ""
-        ds.SeriesNumber, ds.InstanceNumber = 1, k + 1
+        ds.SeriesNumber, ds.InstanceNumber = series_number, k + 1
         ds.SeriesDescription = series_description
         ds.Manufacturer = "regtrack"
         ds.ScanningSequence, ds.SequenceVariant, ds.ScanOptions = "GR", "SP", ""

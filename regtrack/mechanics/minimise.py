@@ -67,8 +67,8 @@ import scipy.sparse as sp
 from regtrack.errors import ContactDidNotConvergeError, SolverDidNotConvergeError
 from regtrack.mechanics.linsolve import LinearSolveError, LinearSolver, serial_openblas
 from regtrack.mechanics.potential import PlateEval, PlatePotential
-from regtrack.mechanics.problem import (Problem, body_force, chest_wall_reaction, dof_nodes, evaluate, scatter_add,
-                                        system_matrix)
+from regtrack.mechanics.problem import (Problem, body_force, chest_wall_reaction, constraint_positions, dof_nodes,
+                                        evaluate, force_balance, scatter_add, system_matrix)
 from regtrack.mechanics.types import StepStats
 
 log = logging.getLogger(__name__)
@@ -304,19 +304,6 @@ class Minimiser:
         return text
 
 
-def constraint_positions(problem: Problem, dofs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Value positions of the system matrix (fixed layout) zeroed (the rows and columns of
-    the constrained ``dofs``) and set to one (their diagonal): ``M.data[zero] = 0;
-    M.data[diag] = 1`` replaces them by the identity without a new sparsity analysis."""
-    lay = problem.layout
-    smask = np.zeros(lay.n, bool)
-    smask[dofs] = True
-    rows = np.repeat(smask, np.diff(lay.indptr))
-    zero = rows | smask[lay.indices]
-    diag = problem.pattern.dof_positions(dofs, dofs)
-    return zero, (diag if lay.k_pos is None else lay.k_pos[diag])
-
-
 def _linear_solver(problem: Problem, o) -> LinearSolver:
     """The problem's linear solver (the symbolic analysis of its fixed pattern is kept)."""
     ls = getattr(problem, "_minimiser_solver", None)
@@ -476,8 +463,6 @@ def minimiser_from_problem(problem: Problem, *, options=None, progress: Progress
     gravity change in ``1 / initial_increment`` increments.  The stats carry the chest-wall
     reaction (N) and the force balance; a state whose balance misses ``stall_force_tol``
     (0.5 % by default) is never returned."""
-    from regtrack.mechanics.protocol_run import force_balance
-
     o = options or problem.config.solver
 
     def solve(u0, g0, g1, contribs, name, control):

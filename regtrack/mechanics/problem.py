@@ -27,6 +27,7 @@ from __future__ import annotations
 import logging
 import time
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import scipy.sparse as sp
@@ -34,10 +35,10 @@ from numba import njit
 
 from regtrack.errors import ConfigError, InputFileError
 from regtrack.mechanics import assembly, membrane, p2, parallel, tissue
-from regtrack.mechanics.support import WallSupport, wall_support
 from regtrack.mechanics.config import MechanicsConfig
 from regtrack.mechanics.materials import (G_SCALE, ElementMaterials, SkinMaterial, TissueStiffness,
                                           element_materials, skin_material, tissue_stiffness)
+from regtrack.mechanics.support import WallSupport, wall_support
 from regtrack.model.types import BreastModel
 
 log = logging.getLogger(__name__)
@@ -290,6 +291,42 @@ def chest_wall_reaction(problem: Problem, u: np.ndarray, R: np.ndarray) -> np.nd
     if problem.support is not None:
         f -= problem.support.gradient(u)
     return f.reshape(-1, 3).sum(axis=0)
+
+
+def force_balance(problem: Any, u: np.ndarray, r: np.ndarray, g_ms2: np.ndarray,
+                  contribs: list, tol: float) -> dict:
+    """The global force balance of a converged state: the resultant of the residual over
+    the free dofs, ``|sum_free R|`` (N), which equals the sum of the chest-wall reaction,
+    the plate forces and the weight, against the largest of those loads (N).
+
+    The convergence test bounds ``||R||_2`` over the free dofs, which bounds the resultant
+    only to ``sqrt(free nodes)`` times it, since many small nodal errors of one sign add
+    up; this is the check of the sum itself.  ``ok`` is False when the relative imbalance
+    exceeds ``tol`` (the caller passes ``stall_force_tol``)."""
+    held = np.zeros(np.size(r), bool)
+    held[problem.fixed_dofs] = True
+    imbalance = float(np.linalg.norm(np.where(held.reshape(-1, 3), 0.0, r).sum(axis=0)))
+    loads = [float(np.linalg.norm(chest_wall_reaction(problem, u, r))),
+             float(np.linalg.norm(problem.body_weight.sum() * np.asarray(g_ms2, float)))]
+    for c in contribs:
+        loads.append(float(np.linalg.norm(c.nodal_forces(u)[0].sum(axis=0))))
+    load = max(loads)
+    rel = imbalance / load if load > 0 else 0.0
+    return {"imbalance_N": imbalance, "load_N": load, "relative": rel, "tol": float(tol),
+            "ok": bool(rel <= tol)}
+
+
+def constraint_positions(problem: Problem, dofs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Value positions of the system matrix (fixed layout) zeroed (the rows and columns of
+    the constrained ``dofs``) and set to one (their diagonal): ``M.data[zero] = 0;
+    M.data[diag] = 1`` replaces them by the identity without a new sparsity analysis."""
+    lay = problem.layout
+    smask = np.zeros(lay.n, bool)
+    smask[dofs] = True
+    rows = np.repeat(smask, np.diff(lay.indptr))
+    zero = rows | smask[lay.indices]
+    diag = problem.pattern.dof_positions(dofs, dofs)
+    return zero, (diag if lay.k_pos is None else lay.k_pos[diag])
 
 
 def _evaluate_body(problem: Problem, u: np.ndarray, want_k: bool, project: bool) -> Evaluation:

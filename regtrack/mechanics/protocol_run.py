@@ -37,7 +37,7 @@ plate force reaches the target within ``force_tol`` (force: marching + secant, e
 solved from the last accepted state).  After every step the penetration guard rail
 rejects a state with a node deeper than ``max_penetration_mm`` in a plate.
 
-Force balance: every step reports ``solver.force_balance`` (:func:`force_balance`), the
+Force balance: every step reports ``solver.force_balance`` (:func:`.problem.force_balance`), the
 resultant of the residual over the free nodes (the sum of chest-wall reaction, plate
 forces and weight) against the largest of those loads; the step solver refuses a state
 whose imbalance exceeds ``[mechanics.solver] stall_force_tol``.
@@ -483,28 +483,3 @@ class ProtocolRunner:
                      None if rec.D is None else round(rec.D, 4), rec.max_penetration_mm,
                      {k: round(v["normal_force_N"], 4) for k, v in rec.contact.items()})
         return result
-
-
-def force_balance(problem: Any, u: np.ndarray, r: np.ndarray, g_ms2: np.ndarray,
-                  contribs: list, tol: float) -> dict:
-    """The global force balance of a converged state: the resultant of the residual over
-    the free dofs, ``|sum_free R|`` (N), which equals the sum of the chest-wall reaction,
-    the plate forces and the weight, against the largest of those loads (N).
-
-    The convergence test bounds ``||R||_2`` over the free dofs, which bounds the resultant
-    only to ``sqrt(free nodes)`` times it, since many small nodal errors of one sign add
-    up; this is the check of the sum itself.  ``ok`` is False when the relative imbalance
-    exceeds ``tol`` (the caller passes ``stall_force_tol``)."""
-    from regtrack.mechanics.problem import chest_wall_reaction
-
-    held = np.zeros(np.size(r), bool)
-    held[problem.fixed_dofs] = True
-    imbalance = float(np.linalg.norm(np.where(held.reshape(-1, 3), 0.0, r).sum(axis=0)))
-    loads = [float(np.linalg.norm(chest_wall_reaction(problem, u, r))),
-             float(np.linalg.norm(problem.body_weight.sum() * np.asarray(g_ms2, float)))]
-    for c in contribs:
-        loads.append(float(np.linalg.norm(c.nodal_forces(u)[0].sum(axis=0))))
-    load = max(loads)
-    rel = imbalance / load if load > 0 else 0.0
-    return {"imbalance_N": imbalance, "load_N": load, "relative": rel, "tol": float(tol),
-            "ok": bool(rel <= tol)}

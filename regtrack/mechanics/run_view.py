@@ -155,7 +155,7 @@ def summarise(result: ProtocolResult, timing: dict | None = None) -> dict:
     warnings (``[contact] behind_wall_warn_mm``).
     ``force_imbalance_rel``: the largest over the steps of the global force imbalance
     (the residual's resultant over the free nodes) relative to the step's largest load
-    (:func:`regtrack.mechanics.protocol_run.force_balance`; a step above ``[mechanics.solver]
+    (:func:`regtrack.mechanics.problem.force_balance`; a step above ``[mechanics.solver]
     stall_force_tol`` is refused), None without fixed nodes."""
     behind = [s.behind_chest_wall_mm for s in result.steps if s.behind_chest_wall_mm is not None]
     balance = [s.solver["force_balance"]["relative"] for s in result.steps

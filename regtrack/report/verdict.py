@@ -15,7 +15,7 @@ so that a poor fit is never read as a good one.  The thresholds:
   centroids after alignment (the demo: 5.7 and 4.5 mm).
 * **Force balance <= [mechanics.solver] stall_force_tol** (0.005 by default): the resultant
   of the residual over the free nodes relative to the largest load of any step
-  (:func:`regtrack.mechanics.protocol_run.force_balance`); converged states give about 1e-7.
+  (:func:`regtrack.mechanics.problem.force_balance`); converged states give about 1e-7.
 * **Nipple confidence >= 0.5** (:data:`NIPPLE_CONFIDENCE_MIN`): ``1 / (1 + (u / 10 mm)^2)``
   with ``u`` the tangential uncertainty of the detected nipple
   (:mod:`regtrack.imaging.mammogram.nipple`), so 0.5 means +-10 mm along the contour; a
