@@ -78,6 +78,7 @@ ARMIJO_C = 1e-4
 #: A full Newton step lowering the potential by more than this times the quadratic
 #: model's prediction is extended (:meth:`Minimiser.line_search`).
 EXPAND_RATIO = 1.5
+PREDICT_MULTIPLIERS = True
 
 
 @dataclass
@@ -350,6 +351,7 @@ def minimise_step(problem: Problem, u0: np.ndarray, *, gravity: Callable[[float]
     plates = [PlatePotential(c, u) for c in contacts]
     R = np.zeros(u.size)
     previous: tuple[np.ndarray, float] | None = None  # the last increment's start and length
+    lagged: list = []  # each plate's multipliers and bound pressures at that start
     t, dt = 0.0, 1.0 / max(int(n_increments), 1)
     base, min_dt = dt, dt / 64.0
     with serial_openblas():
@@ -359,6 +361,8 @@ def minimise_step(problem: Problem, u0: np.ndarray, *, gravity: Callable[[float]
                 starts = [u]
                 if previous is not None:  # the path so far, extrapolated linearly
                     starts.append(u + (t_new - t) / previous[1] * (u - previous[0]))
+                    if PREDICT_MULTIPLIERS:
+                        _predict(plates, lagged, (t_new - t) / previous[1])
                 if dirichlet is not None:
                     dofs, vals = dirichlet(t_new)
                     for k, v in enumerate(starts):
@@ -385,12 +389,24 @@ def minimise_step(problem: Problem, u0: np.ndarray, *, gravity: Callable[[float]
             u, t, R = s.u, t_new, s.R
             dt = min(2.0 * dt, base)
             m.stats.increments += 1
+            lagged = [(pl.c.get_state()["lam"], pl.c.get_state()["pconv"]) for pl in plates]
             for pl in plates:
                 pl.commit(u)
             if progress is not None:
                 progress(step_name, t, **_progress_info(plates, s, T0_mm))
     m.stats.t_total = time.perf_counter() - t_start
     return u, m.stats, R.reshape(-1, 3)
+
+
+def _predict(plates: Sequence[PlatePotential], lagged: list, ratio: float) -> None:
+    """Start each plate's multipliers and friction-bound pressures on the path of the last
+    increment, extrapolated by ``ratio`` of its length (clipped at 0), as the start
+    displacement is: the multiplier updates then begin near the increment's contact
+    pressures instead of the last one's.  A start changes the updates, not the converged
+    state."""
+    for pl, (lam0, p0) in zip(plates, lagged):
+        pl.lam = np.maximum(pl.lam + ratio * (pl.lam - lam0), 0.0)
+        pl.pbar = np.maximum(pl.pbar + ratio * (pl.pbar - p0), 0.0)
 
 
 def _external(problem: Problem, gravity, forces) -> Callable[[float], np.ndarray]:
