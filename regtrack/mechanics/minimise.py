@@ -43,7 +43,8 @@ point: no merit-function switching, no acceptance of a stalled iterate.
 Increments: a plate move is split into increments of at most ``max_plate_increment_mm`` of
 travel (friction is path dependent), a gravity change into ``1 / initial_increment``.  Each
 increment starts from the last state or the path extrapolated linearly from the last two,
-whichever has the lower potential (a start changes the iterations, not the minimiser).  The
+whichever has the lower potential, and its multipliers and friction-bound pressures from
+theirs extrapolated the same way (a start changes the iterations, not the minimiser).  The
 augmented-Lagrangian multipliers and the friction lag of every increment are iterated
 until the penetration is below ``penetration_tol_mm`` and the lagged slip bound agrees
 with the current pressure within ``friction_tol`` of the plate's normal force (or of the
