@@ -79,7 +79,6 @@ ARMIJO_C = 1e-4
 #: A full Newton step lowering the potential by more than this times the quadratic
 #: model's prediction is extended (:meth:`Minimiser.line_search`).
 EXPAND_RATIO = 1.5
-PREDICT_MULTIPLIERS = True
 
 
 @dataclass
@@ -362,8 +361,7 @@ def minimise_step(problem: Problem, u0: np.ndarray, *, gravity: Callable[[float]
                 starts = [u]
                 if previous is not None:  # the path so far, extrapolated linearly
                     starts.append(u + (t_new - t) / previous[1] * (u - previous[0]))
-                    if PREDICT_MULTIPLIERS:
-                        _predict(plates, lagged, (t_new - t) / previous[1])
+                    _predict(plates, lagged, (t_new - t) / previous[1])
                 if dirichlet is not None:
                     dofs, vals = dirichlet(t_new)
                     for k, v in enumerate(starts):
@@ -390,7 +388,7 @@ def minimise_step(problem: Problem, u0: np.ndarray, *, gravity: Callable[[float]
             u, t, R = s.u, t_new, s.R
             dt = min(2.0 * dt, base)
             m.stats.increments += 1
-            lagged = [(pl.c.get_state()["lam"], pl.c.get_state()["pconv"]) for pl in plates]
+            lagged = [(st["lam"], st["pconv"]) for st in (pl.c.get_state() for pl in plates)]
             for pl in plates:
                 pl.commit(u)
             if progress is not None:

@@ -135,8 +135,7 @@ def simulate_view(model: BreastModel, view: str, p: MammoTruthParams, *, progres
     protocol = protocol_for_view(view, {"target_D": p.target_D(view)}, where="phantom truth")
     body = body_from_model(model, problem.mats.tissue_young_mpa, sliding=problem.support is not None)
     runner = ProtocolRunner(body, protocol, minimiser_from_problem(problem, progress=progress),
-                            config=ContactConfig(friction=p.friction, chest_wall_contact=False,
-                                                 chest_wall_layer_mm=p.chest_wall_layer_mm))
+                            config=ContactConfig(friction=p.friction, chest_wall_contact=False))
     result = runner.run()
     t1 = time.perf_counter()
     summary = summarise(result, {"total_s": t1 - t0})
