@@ -68,8 +68,8 @@ def reference_iteration(model, repeats: int = 5) -> float:
     o = pr.config.solver
     zero, diag = constraint_positions(pr, pr.fixed_dofs)
     u = np.zeros_like(pr.X)
-    ls = LinearSolver(o.linear_solver, reuse_factorisation=False, precision=o.precision,
-                      ordering=o.ordering, dof_nodes=P.dof_nodes(pr), decoupled=pr.fixed_dofs)
+    ls = LinearSolver(o.linear_solver, reuse_factorisation=False, dof_nodes=P.dof_nodes(pr),
+                      decoupled=pr.fixed_dofs)
 
     def system():
         A = P.system_matrix(pr, P.evaluate(pr, u))

@@ -23,11 +23,13 @@ class SolverOptions:
 
     An increment has converged when the residual on the free dofs meets ``||R||_2 <=
     force_tol * F_ref`` (``F_ref``: the largest of the weight, the contact force, the
-    chest-wall reaction and ``||f_int||_2 / sqrt(ndof)``, at least ``force_floor_n``), its
-    resultant is below ``balance_tol * F_ref``, and the Newton correction from there moves
-    no node by more than ``disp_abs_tol_mm``.  A step's result is accepted only when its
-    global force balance is within ``stall_force_tol`` of the largest load.  The other
-    options set the linear solver (:mod:`.linsolve`) and the element kernel's threads.
+    chest-wall reaction and ``||f_int||_2 / sqrt(ndof)``), its resultant is below
+    ``balance_tol * F_ref``, and the Newton correction from there moves no node by more
+    than ``disp_abs_tol_mm``.  A step's result is accepted only when its global force
+    balance is within ``stall_force_tol`` of the largest load.  The other options choose
+    the sparse solver and the element kernel's threads; the linear solver's internal
+    settings (float32 factors, node ordering, factorisation re-use) are fixed in
+    :mod:`.linsolve`, where their measurements are.
     """
 
     balance_tol: float = param(1e-3, "-", "an increment has converged only when the resultant of "
@@ -41,7 +43,6 @@ class SolverOptions:
                                    "correction from its state moves no node by more than this (a "
                                    "tenth of a 0.1 mm mammogram pixel): a small residual alone leaves "
                                    "soft modes undetermined", gt=0)
-    force_floor_n: float = param(1e-9, "N", "absolute force floor of the residual reference", gt=0)
     max_iterations: int = param(15, "-", "an increment not converged after 4 x this many Newton "
                                 "iterations is halved", ge=2, le=200)
     stall_force_tol: float = param(5e-3, "-", "a step's result is accepted only when its global force "
@@ -58,29 +59,6 @@ class SolverOptions:
                                   "CPUs this process may use, at most 4, and at most a study worker's "
                                   "share of the cores).  Results are bit-identical for any count "
                                   "(see regtrack/mechanics/parallel.py)", ge=0, le=64)
-    ordering: str = param("nodes", "", "fill-reducing ordering of the direct solver: 'nodes' (METIS nested "
-                          "dissection of the node graph, a node's unknowns together: ~20 % faster "
-                          "factorisations at 10k nodes) or 'pardiso' (PARDISO's METIS on the dof graph)",
-                          choices=("nodes", "pardiso"))
-    reuse_factorisation: bool = param(True, "", "re-use the last factorisation as the preconditioner of "
-                                      "GMRES while that is cheaper than refactorising (inexact Newton; "
-                                      "linsolve.py); false: factorise at every iteration (exact Newton)")
-    precision: str = param("mixed", "", "PARDISO factorisation precision: 'mixed' (float32 factors as the "
-                           "preconditioner of float64 GMRES: ~1.7x faster, half the memory; falls back to "
-                           "'double' by itself on ill-conditioned systems) or 'double'",
-                           choices=("mixed", "double"))
-    forcing_max: float = param(1e-2, "-", "largest relative linear-solve tolerance of inexact Newton "
-                               "(Eisenstat-Walker forcing term cap)", gt=0, lt=1)
-    krylov_rtol: float = param(1e-10, "-", "smallest relative linear-solve tolerance of a re-used "
-                               "factorisation", gt=0, lt=1e-3)
-    reuse_budget: float = param(0.5, "-", "GMRES budget of a solve on a re-used factorisation "
-                                "before it is refactorised, as a fraction of the estimated cost "
-                                "ratio rho of a factorisation to a GMRES iteration: k_max = "
-                                "clip(reuse_budget * rho, 4, krylov_max) (linsolve.py)",
-                                gt=0.0, le=10.0)
-    krylov_max: int = param(60, "-", "cap of the GMRES iterations on a re-used factorisation before "
-                            "refactorising (the actual limit follows the estimated cost ratio and "
-                            "reuse_budget)", ge=1, le=500)
 
 
 @dataclass(frozen=True)

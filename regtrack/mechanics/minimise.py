@@ -79,6 +79,11 @@ ARMIJO_C = 1e-4
 #: A full Newton step lowering the potential by more than this times the quadratic
 #: model's prediction is extended (:meth:`Minimiser.line_search`).
 EXPAND_RATIO = 1.5
+#: Relative tolerance of a Newton correction solved on an earlier factorisation (inexact
+#: Newton: GMRES stops at 1 % of the residual; a fresh factorisation solves to 1e-10).
+FORCING = 1e-2
+#: Absolute floor (N) of the force reference, so that an unloaded state still has one.
+FORCE_FLOOR_N = 1e-9
 
 
 @dataclass
@@ -142,7 +147,7 @@ class Minimiser:
         weight = float(np.linalg.norm(fext.reshape(-1, 3).sum(axis=0)))
         reaction = float(np.linalg.norm(chest_wall_reaction(self.p, ue, R)))
         f_ref = max(weight, fc, reaction, float(np.linalg.norm(ev.f)) / np.sqrt(len(ev.f)),
-                    self.o.force_floor_n)
+                    FORCE_FLOOR_N)
         return _State(ue.reshape(-1, 3), energy, R, pe, ev, f_ref)
 
     def converged(self, s: _State) -> bool:
@@ -192,7 +197,7 @@ class Minimiser:
             M = self.matrix(s, ev, tau * dscale)
             nf = self.ls.n_factorisations
             try:
-                x = self.ls.solve(M, b, refactor=refactor, rtol=self.o.forcing_max)
+                x = self.ls.solve(M, b, refactor=refactor, rtol=FORCING)
             except LinearSolveError:
                 x = None
             self.stats.t_solve += time.perf_counter() - t0
@@ -309,10 +314,7 @@ def _linear_solver(problem: Problem, o) -> LinearSolver:
     """The problem's linear solver (the symbolic analysis of its fixed pattern is kept)."""
     ls = getattr(problem, "_minimiser_solver", None)
     if ls is None:
-        ls = LinearSolver(o.linear_solver, reuse_factorisation=o.reuse_factorisation,
-                          precision=o.precision, krylov_rtol=o.krylov_rtol, krylov_max=o.krylov_max,
-                          reuse_budget=o.reuse_budget, ordering=o.ordering,
-                          dof_nodes=dof_nodes(problem), decoupled=problem.fixed_dofs)
+        ls = LinearSolver(o.linear_solver, dof_nodes=dof_nodes(problem), decoupled=problem.fixed_dofs)
         problem._minimiser_solver = ls  # type: ignore[attr-defined]
     return ls
 
