@@ -165,3 +165,23 @@ def test_small_tumour_meshed_volume_matches_its_voxels():
     (t,) = m.meta["quality"]["tumours"]
     assert t["voxel_volume_mm3"] == pytest.approx(81.0)
     assert abs(t["volume_error"]) < 0.01
+
+
+def test_cut_faces_are_the_outer_faces_neither_skin_nor_chest_wall():
+    """A 2 x 2 x 2 box whose x = 0 face is the chest wall (fixed nodes) and whose skin is the
+    y = 2 face only: the cut faces are the other four sides, 8 triangles each (Kuhn split:
+    two per square)."""
+    from regtrack.mechanics.meshes import box_model
+    from regtrack.model.checks import boundary_faces, cut_faces
+
+    m = box_model((2.0, 2.0, 2.0), (2, 2, 2))
+    P = m.points
+    faces, _ = boundary_faces(m.tets)
+    skin = faces[np.all(P[faces][:, :, 1] > 2 - 1e-9, axis=1)]
+    fixed = P[:, 0] < 1e-9
+    cut = cut_faces(m.tets, skin, fixed)
+    c = P[cut].mean(axis=1)
+    assert len(skin) == 8 and len(cut) == 32
+    on = np.isclose(c[:, 0], 2) | np.isclose(c[:, 1], 0) | np.isclose(P[cut][:, :, 2], 0).all(1) \
+        | np.isclose(P[cut][:, :, 2], 2).all(1)
+    assert on.all() and not np.any(np.all(fixed[cut], axis=1))

@@ -31,9 +31,55 @@ def plate_outline(plate: dict, e_x: np.ndarray, n: np.ndarray, x_max: float) -> 
     return np.column_stack([x, h])
 
 
+#: fill colours of the sequence panels: skin, and the faces where the MRI's field of view
+#: cut the breast (no skin there)
+SKIN_FILL, CUT_FILL = "#f3c6a5", "#c8c8c8"
+
+
+def draw_sequence(axes, points: np.ndarray, skin: np.ndarray, steps: list[dict],
+                  states: list[np.ndarray], plate_frame: dict, cut: np.ndarray | None = None) -> None:
+    """The breast between the plates after each step, one panel per step: the outer surface
+    projected on the plane of the plate's posterior->anterior axis ``e_x`` and its normal
+    ``n`` (a side view of the plates, as Figure 4 of Lapuebla-Ferri et al.), with the plate
+    faces and their rounded chest-wall edges at their positions.
+
+    ``steps``: per step a dict with ``name``, ``D`` and ``plates`` (the plate records of the
+    result JSON); ``states``: the displacement (N, 3) mm of each step, model frame;
+    ``cut``: the outer faces cut by the MRI's field of view (:func:`regtrack.model.checks.
+    cut_faces`), drawn grey, else they would show as holes in a view across them.
+    """
+    from matplotlib.collections import PolyCollection
+
+    e_x = np.asarray(plate_frame["e_x"], float)
+    n = np.asarray(plate_frame["normal"], float)
+    x_max = max(float(((points + u) @ e_x).max()) for u in states) + 10
+    layers = [(skin, SKIN_FILL)] + ([] if cut is None or not len(cut) else [(cut, CUT_FILL)])
+    for ax, st, u in zip(axes, steps, states):
+        x = points + u
+        for tris, colour in layers:
+            poly = np.stack([x[tris] @ e_x, x[tris] @ n], axis=-1)
+            ax.add_collection(PolyCollection(poly, facecolors=colour, edgecolors="#b07050",
+                                             linewidths=0.1, alpha=0.6))
+        for pl in (st.get("plates") or {}).values():
+            line = plate_outline(pl, e_x, n, x_max)
+            ax.plot(line[:, 0], line[:, 1], color="#3050a0", lw=1.5)
+        D = st.get("D")
+        ax.set_title(str(st.get("name", "")).replace("-", " ")
+                     + ("" if D is None else f"\nD = {100 * D:.1f} %"), fontsize=8)
+        ax.set_aspect("equal")
+        ax.autoscale_view()
+        ax.tick_params(labelsize=6.5)
+        ax.set_xlabel("chest wall → nipple (mm)", fontsize=7)
+    axes[0].set_ylabel("along the plate normal (mm)", fontsize=7)
+    if len(layers) > 1:
+        axes[-1].annotate("grey: cut by the MRI's field of view (no skin)", (1.0, 0.0),
+                          xycoords="axes fraction", xytext=(0, -24), textcoords="offset points",
+                          fontsize=6, ha="right", va="top", color="0.35")
+
+
 def protocol_figure(path: str | Path, points: np.ndarray, skin: np.ndarray, steps: list,
-                    plate_frame: dict, *, title: str = "") -> Path:
-    """Write the step sequence PNG.
+                    plate_frame: dict, *, title: str = "", cut: np.ndarray | None = None) -> Path:
+    """Write the step sequence PNG (:func:`draw_sequence`).
 
     Parameters
     ----------
@@ -42,34 +88,17 @@ def protocol_figure(path: str | Path, points: np.ndarray, skin: np.ndarray, step
     skin : (S, 3) skin triangles.
     steps : list of :class:`~regtrack.mechanics.protocol_run.StepRecord`.
     plate_frame : ``PlateFrame.to_dict()`` of the view.
+    cut : outer faces cut by the MRI's field of view (drawn grey).
     """
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    from matplotlib.collections import PolyCollection
 
-    e_x = np.asarray(plate_frame["e_x"], float)
-    n = np.asarray(plate_frame["normal"], float)
     k = len(steps)
     fig, axes = plt.subplots(1, k, figsize=(3.2 * k, 3.6), squeeze=False, sharex=True, sharey=True)
-    xs = [(points + s.u) @ e_x for s in steps]
-    x_max = max(float(x.max()) for x in xs) + 10
-    for ax, st in zip(axes[0], steps):
-        x = points + st.u
-        poly = np.stack([x[skin] @ e_x, x[skin] @ n], axis=-1)
-        ax.add_collection(PolyCollection(poly, facecolors="#f3c6a5", edgecolors="#b07050",
-                                         linewidths=0.1, alpha=0.6))
-        for name, pl in st.plates.items():
-            line = plate_outline(pl, e_x, n, x_max)
-            ax.plot(line[:, 0], line[:, 1], color="#3050a0", lw=1.5)
-        lab = st.name + (f"\nD = {100 * st.D:.1f} %" if st.D is not None else "")
-        ax.set_title(lab, fontsize=8)
-        ax.set_aspect("equal")
-        ax.autoscale_view()
-        ax.set_xlabel("posterior -> anterior (mm)", fontsize=7)
-        ax.tick_params(labelsize=6)
-    axes[0][0].set_ylabel("along plate normal (mm)", fontsize=7)
+    draw_sequence(list(axes[0]), points, skin, [{"name": s.name, "D": s.D, "plates": s.plates} for s in steps],
+                  [s.u for s in steps], plate_frame, cut)
     if title:
         fig.suptitle(title, fontsize=9)
     fig.tight_layout()

@@ -186,6 +186,7 @@ def write_outputs(result: ProtocolResult, model: BreastModel, out_dir: Path, *, 
     import meshio
 
     from regtrack.mechanics.pictures import protocol_figure
+    from regtrack.model.checks import cut_faces
 
     out_dir.mkdir(parents=True, exist_ok=True)
     pdata: dict[str, np.ndarray] = {"fixed": model.fixed.astype(np.int8)}
@@ -203,5 +204,6 @@ def write_outputs(result: ProtocolResult, model: BreastModel, out_dir: Path, *, 
            "config": configs or {}, "error": result.error}
     js = write_json(out_dir / f"{stem}.json", doc)
     png = protocol_figure(out_dir / f"{stem}_steps.png", model.points, model.skin, result.steps,
-                          result.plate_frame, title=f"{stem}: {result.protocol.name}")
+                          result.plate_frame, title=f"{stem}: {result.protocol.name}",
+                          cut=cut_faces(model.tets, model.skin, model.fixed))
     return {"vtu": vtu, "json": js, "png": png}

@@ -72,6 +72,17 @@ def boundary_faces(tets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return faces[once], owner[once]
 
 
+def cut_faces(tets: np.ndarray, skin: np.ndarray, fixed: np.ndarray) -> np.ndarray:
+    """Outer faces (K, 3) that are neither skin nor chest wall (a face of three ``fixed``
+    nodes): where the MRI's field of view cut the breast.  The mesh ends there without a
+    skin membrane; pictures draw these faces apart so that the cut is not read as a hole."""
+    faces, _ = boundary_faces(tets)
+    skin_keys = {tuple(f) for f in np.sort(np.asarray(skin, np.int64).reshape(-1, 3), axis=1)}
+    keep = [k for k, f in enumerate(np.sort(faces, axis=1))
+            if tuple(f) not in skin_keys and not np.all(fixed[f])]
+    return faces[keep]
+
+
 def interface_faces(tets: np.ndarray, tumour_id: np.ndarray) -> np.ndarray:
     """Faces shared by a tumour tet and a tet of another region (tumour surfaces)."""
     faces = tets[:, TET_FACES].reshape(-1, 3)

@@ -115,6 +115,7 @@ def header_lines(ctx, model, results: list, prov: dict) -> list[str]:
 
 def write_report(ctx, mesh, results: list, out: Path, prov: dict) -> Path:
     """Per-view JSON and figures, the 3-D outputs, the tracking, then the PDF report."""
+    from regtrack.model.checks import cut_faces
     from regtrack.report import figures as F
     from regtrack.report.export3d import write_3d_outputs
     from regtrack.report.pdf import CaseReport, Sequence, ViewReport, write_pdf
@@ -144,7 +145,7 @@ def write_report(ctx, mesh, results: list, out: Path, prov: dict) -> Path:
         frame = json.loads((r.sim.folder / "result.json").read_text()).get("plate_frame")
         seq = None if frame is None or not states[r.view] else Sequence(
             model.points, model.skin, r.sim.steps[:len(states[r.view])],
-            [u for _, u in states[r.view]], frame)
+            [u for _, u in states[r.view]], frame, cut_faces(model.tets, model.skin, model.fixed))
         views.append(ViewReport(r.view, r.row, r.real, r.virtual.view, r.alignment,
                                 _steps_rows(r.sim.steps), [vdir / "compression.png"],
                                 {"summary": r.sim.summary, "steps": r.sim.steps}, seq))

@@ -275,7 +275,8 @@ def target_page(state, mapped, case_id: str) -> Callable:
 def protocol_page(state, states: list[tuple[str, np.ndarray]]) -> Callable:
     """The drawing function of the protocol page: sequence panels (``states``: step name and
     displacement (N, 3) mm after each step) and the steps table."""
-    from regtrack.report import figures as F
+    from regtrack.mechanics.pictures import draw_sequence
+    from regtrack.model.checks import cut_faces
 
     frame_doc, steps = _frame_of(state)
     model = state.model
@@ -286,8 +287,8 @@ def protocol_page(state, states: list[tuple[str, np.ndarray]]) -> Callable:
         if k:
             w = 0.9 / k
             axes = [fig.add_axes([0.07 + j * w, 0.6, w - 0.04, 0.3]) for j in range(k)]
-            F.draw_sequence(axes, model.points, model.skin, steps[:k], [u for _, u in states],
-                            frame_doc)
+            draw_sequence(axes, model.points, model.skin, steps[:k], [u for _, u in states],
+                          frame_doc, cut_faces(model.tets, model.skin, model.fixed))
             P.same_limits(axes)
             for a in axes:
                 a.set_xlabel("chest wall → nipple (mm)", fontsize=7)

@@ -134,40 +134,6 @@ def draw_images(ax_real, ax_virtual, real: MammogramView, virtual: MammogramView
         ax.set_ylim(max(ys), min(ys))  # y down
 
 
-def draw_sequence(axes, points: np.ndarray, skin: np.ndarray, steps: list[dict],
-                  states: list[np.ndarray], plate_frame: dict) -> None:
-    """The compressed breast between the plates after each step, one panel per step (a side
-    view of the plates, as Figure 4 of Lapuebla-Ferri et al.).
-
-    ``steps``: the step records of the result JSON (``name``, ``D``, ``plates``);
-    ``states``: the displacement (N, 3) mm of each step, model frame.
-    """
-    from matplotlib.collections import PolyCollection
-
-    from regtrack.mechanics.pictures import plate_outline
-
-    e_x = np.asarray(plate_frame["e_x"], float)
-    n = np.asarray(plate_frame["normal"], float)
-    x_max = max(float(((points + u) @ e_x).max()) for u in states) + 10
-    for ax, st, u in zip(axes, steps, states):
-        x = points + u
-        poly = np.stack([x[skin] @ e_x, x[skin] @ n], axis=-1)
-        ax.add_collection(PolyCollection(poly, facecolors="#f3c6a5", edgecolors="#b07050",
-                                         linewidths=0.1, alpha=0.6))
-        for pl in (st.get("plates") or {}).values():
-            line = plate_outline(pl, e_x, n, x_max)
-            ax.plot(line[:, 0], line[:, 1], color="#3050a0", lw=1.5)
-        D = st.get("D")
-        ax.set_title(str(st.get("name", "")).replace("-", " ")
-                     + ("" if D is None else f"\nD = {100 * D:.1f} %"),
-                     fontsize=8)
-        ax.set_aspect("equal")
-        ax.autoscale_view()
-        ax.tick_params(labelsize=6.5)
-        ax.set_xlabel("chest wall → nipple (mm)", fontsize=7)
-    axes[0].set_ylabel("along the plate normal (mm)", fontsize=7)
-
-
 def overlay_figure(real: MammogramView, virtual: MammogramView, alignment: Alignment):
     """Two panels: superimposed at the nipple (theta = 0) and after rotation by theta_p."""
     plt = _plt()

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import textwrap
 
+from regtrack.mechanics.pictures import draw_sequence
 from regtrack.report import figures as F
 from regtrack.report.fmt import drop_empty_columns, num
 
@@ -177,7 +178,7 @@ def view_page(fig, v) -> None:
         k = len(seq.steps)
         w = 0.9 / k
         axes = [fig.add_axes([0.07 + j * w, 0.745, w - 0.025, 0.18]) for j in range(k)]
-        F.draw_sequence(axes, seq.points, seq.skin, seq.steps, seq.states, seq.plate_frame)
+        draw_sequence(axes, seq.points, seq.skin, seq.steps, seq.states, seq.plate_frame, seq.cut)
         same_limits(axes)
         for a in axes[1:]:  # same limits: the first panel's scale serves all
             a.set_ylabel("")

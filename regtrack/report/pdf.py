@@ -69,6 +69,7 @@ class Sequence:
     steps: list[dict]
     states: list[np.ndarray]
     plate_frame: dict
+    cut: np.ndarray | None = None  # outer faces cut by the MRI's field of view
 
 
 @dataclass
