@@ -382,3 +382,70 @@ def test_friction_error_of_a_barely_touching_plate_is_measured_against_the_load_
         ev = SimpleNamespace(pressure=pressure)
         assert pl.friction_error(ev, 1.0) == pytest.approx(err, rel=1e-12)
         assert pl.friction_error(ev) == pytest.approx(1.0, rel=1e-12)
+
+
+def _material_tangent(F, H, mu_e, I1, cvol, cgeo, A):
+    """``A[3 i + J, 3 k + L] = A_iJkL`` of the module docstring of
+    :mod:`regtrack.mechanics.tissue` (MPa), written out as the reference."""
+    for i in range(3):
+        for J in range(3):
+            for k in range(3):
+                for L in range(3):
+                    v = (mu_e * (-2.0 / 3.0 * (F[i, J] * H[k, L] + H[i, J] * F[k, L])
+                                 + 2.0 / 9.0 * I1 * H[i, J] * H[k, L])
+                         + cvol * H[i, J] * H[k, L] + cgeo * H[k, J] * H[i, L])
+                    if i == k and J == L:
+                        v += mu_e
+                    A[3 * i + J, 3 * k + L] = v
+
+
+def _tangent_from_material(G, e, A, Ve, Ke):
+    """``K^e[3 a + i, 3 b + k] = V_e sum_JL G_aJ A[3 i + J, 3 k + L] G_bL`` (N/mm)."""
+    for a in range(4):
+        for b in range(4):
+            for i in range(3):
+                for k in range(3):
+                    v = 0.0
+                    for J in range(3):
+                        gaJ = G[e, a, J]
+                        for L in range(3):
+                            v += gaJ * A[3 * i + J, 3 * k + L] * G[e, b, L]
+                    Ke[3 * a + i, 3 * b + k] = Ve * v
+
+
+@pytest.mark.parametrize("stretch, p", [((1.1, 1.3, 0.55), -2e-3), ((0.7, 0.7, 1.9), 1e-3),
+                                         ((1.0, 1.0, 1.0), 0.0)])
+def test_closed_form_projection_equals_the_eigendecomposition_of_the_material_tangent(stretch, p):
+    """The 9x9 material tangent ``A`` (module docstring of :mod:`regtrack.mechanics.tissue`)
+    mapped through the shape-function gradients is the element tangent (1e-12 relative: the
+    same formula summed in another order); its projection onto the positive semi-definite
+    cone by LAPACK's eigendecomposition, mapped the same way, equals the closed-form
+    projection of ``_projected_tangent`` (1e-9 of the largest entry), which reports False
+    exactly when ``A`` has no eigenvalue below -1e-12 of its largest (at rest: PSD, with
+    zero eigenvalues for rotations and volume change)."""
+    from regtrack.mechanics import tissue as T
+
+    rng = np.random.default_rng(3)
+    pts = np.array([[0, 0, 0], [1.2, 0.1, 0], [0.2, 0.9, 0.1], [0.1, 0.2, 1.1]], float)
+    G, V = T.reference_geometry(pts, np.array([[0, 1, 2, 3]]))
+    F = np.diag(stretch) + (0.2 * rng.standard_normal((3, 3)) if p else 0.0)
+    J = float(np.linalg.det(F))
+    H, fa, ha = np.empty((3, 3)), np.empty((4, 3)), np.empty((4, 3))
+    c1 = 0.5e-3
+    I1, _, mu_e = T.point_state(F, J, c1, G[0], H, fa, ha)
+    cvol, cgeo = p * J, mu_e * I1 / 3.0 - p * J
+    Ke, Km, A = np.empty((12, 12)), np.empty((12, 12)), np.empty((9, 9))
+    T._element_tangent(G, 0, fa, ha, mu_e, I1, cvol, cgeo, V[0], Ke)
+    _material_tangent(F, H, mu_e, I1, cvol, cgeo, A)
+    _tangent_from_material(G, 0, A, V[0], Km)
+    np.testing.assert_allclose(Km, Ke, atol=1e-12 * np.abs(Ke).max())
+    w, Q = np.linalg.eigh(A)
+    Ap = (Q * np.maximum(w, 0.0)) @ Q.T
+    Kp_ref = np.empty((12, 12))
+    _tangent_from_material(G, 0, Ap, V[0], Kp_ref)
+    Kp = np.full((12, 12), np.nan)
+    projected = T._projected_tangent(G, 0, F, J, I1, mu_e, p * J, cvol, V[0], Kp, np.empty((7, 3, 3)))
+    assert projected == bool(w.min() < -1e-12 * w.max())
+    if projected:
+        np.testing.assert_allclose(Kp, Kp_ref, atol=1e-9 * np.abs(Kp_ref).max())
+        assert np.linalg.eigvalsh(Kp).min() >= -1e-12 * np.abs(Kp).max()

@@ -21,10 +21,11 @@ Newton's method with a guaranteed descent (Nocedal & Wright, *Numerical Optimiza
   *inertia correction*: the LDL^T factorisation reports its inertia, which for the ANP
   saddle-point system ``[[K, B^T], [B, -D]]`` must show exactly one negative eigenvalue
   per pressure group (Haynsworth: the condensed ``K + B^T D^-1 B`` is then positive
-  definite); otherwise each tetrahedron's 12x12 tangent is projected onto the positive
-  semi-definite cone (its negative eigenvalues clamped to zero; Teran et al. 2005, as in
-  IPC), which gives that inertia by construction and corrects only the elements that
-  are indefinite (a shift ``tau I`` remains for a singular projected Hessian);
+  definite); otherwise each tetrahedron's material tangent ``dP/dF`` (9x9) is projected
+  onto the positive semi-definite cone (its negative eigenvalues clamped to zero, in
+  closed form; Teran et al. 2005, Smith et al. 2019, as in IPC), which gives that inertia
+  by construction and corrects only the elements that are indefinite (a shift ``tau I``
+  remains for a singular projected Hessian);
 * a correction computed on an earlier (positive definite) factorisation is accepted only
   if it is a descent direction, ``R . du < 0``;
 * the step length is chosen by backtracking on the potential itself (Armijo: ``Pi(u + a

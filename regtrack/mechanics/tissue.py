@@ -109,9 +109,13 @@ def tet_kernel(x, tets, G, V, c1, p, dp, want_k, project, f, data, base, rowstri
     p, dp : (E,) pressure (MPa) and dp/dJ (MPa) per element (see module docstring).
     want_k : assemble the tangent into ``data`` (CSR values) at
         ``base[e, a, b] + i * rowstride[tets[e, a]] + k``.
-    project : assemble each element's 12x12 tangent projected onto the positive
-        semi-definite cone (its negative eigenvalues set to zero; Teran et al. 2005), so
-        that the assembled tangent is positive semi-definite whatever the deformation.
+    project : assemble each element's tangent with its material tangent ``A`` (9x9,
+        module docstring) projected onto the positive semi-definite cone (its negative
+        eigenvalues set to zero, as Teran et al. 2005), so that the assembled tangent is
+        positive semi-definite whatever the deformation: ``K^e = V_e B^T A^+ B`` with
+        ``B`` the map from nodal displacements to ``dF`` (:func:`_projected_tangent`:
+        ``A``'s eigensystem in closed form).  An element whose ``A`` has no negative
+        eigenvalue keeps its consistent tangent.
     f : (N, 3) forces (N), accumulated in place.
     dv : (E, 4, 3) output: derivative of the current element volume wrt node positions
         (mm^2), used by the ANP rank term.
@@ -126,6 +130,7 @@ def tet_kernel(x, tets, G, V, c1, p, dp, want_k, project, f, data, base, rowstri
     fa = np.empty((4, 3))
     ha = np.empty((4, 3))
     Ke = np.empty((12, 12))
+    work = np.empty((7, 3, 3))
     bad = 0
     for e in elems:
         counts = owned[tets[e, 0]]
@@ -151,15 +156,8 @@ def tet_kernel(x, tets, G, V, c1, p, dp, want_k, project, f, data, base, rowstri
             continue
         cvol = (dp[e] * J + pe) * J
         cgeo = mu_e * I1 / 3.0 - pe * J
-        _element_tangent(G, e, fa, ha, mu_e, I1, cvol, cgeo, V[e], Ke)
-        if project:
-            w, Q = np.linalg.eigh(Ke)
-            Ke[:, :] = 0.0
-            for m in range(12):
-                if w[m] > 0.0:
-                    for r in range(12):
-                        for q in range(12):
-                            Ke[r, q] += w[m] * Q[r, m] * Q[q, m]
+        if not (project and _projected_tangent(G, e, F, J, I1, mu_e, pe * J, cvol, V[e], Ke, work)):
+            _element_tangent(G, e, fa, ha, mu_e, I1, cvol, cgeo, V[e], Ke)
         for a in range(4):
             na = tets[e, a]
             if owned[na]:
@@ -233,6 +231,165 @@ def _element_tangent(G, e, fa, ha, mu_e, I1, cvol, cgeo, Ve, Ke):
                 for k in range(3):
                     Ke[3 * a + i, 3 * b + k] = Ve * tangent_entry(fa, ha, a, b, i, k, mu_e, I1,
                                                                   cvol, cgeo, gg)
+
+
+@njit(cache=True)
+def _eigh3(C, w, Q):
+    """Eigenvalues ``w`` (3,) and orthonormal eigenvectors (the columns of ``Q``) of the
+    symmetric 3x3 ``C`` by cyclic Jacobi rotations (to round-off; ``C`` is overwritten)."""
+    for i in range(3):
+        for j in range(3):
+            Q[i, j] = 1.0 if i == j else 0.0
+    for _ in range(30):
+        off = C[0, 1] ** 2 + C[0, 2] ** 2 + C[1, 2] ** 2
+        if off <= 1e-36 * (C[0, 0] ** 2 + C[1, 1] ** 2 + C[2, 2] ** 2) or off == 0.0:
+            break
+        for p, q in ((0, 1), (0, 2), (1, 2)):
+            if C[p, q] == 0.0:
+                continue
+            theta = (C[q, q] - C[p, p]) / (2.0 * C[p, q])
+            t = (1.0 if theta >= 0.0 else -1.0) / (abs(theta) + np.sqrt(theta * theta + 1.0))
+            c = 1.0 / np.sqrt(t * t + 1.0)
+            s = t * c
+            for k in range(3):  # C <- C R
+                a, b = C[k, p], C[k, q]
+                C[k, p], C[k, q] = c * a - s * b, s * a + c * b
+            for k in range(3):  # C <- R^T C
+                a, b = C[p, k], C[q, k]
+                C[p, k], C[q, k] = c * a - s * b, s * a + c * b
+            for k in range(3):
+                a, b = Q[k, p], Q[k, q]
+                Q[k, p], Q[k, q] = c * a - s * b, s * a + c * b
+    for i in range(3):
+        w[i] = C[i, i]
+
+
+@njit(cache=True)
+def _projected_tangent(G, e, F, J, I1, mu_e, pJ, cvol, Ve, Ke, work):
+    r"""The element tangent with its material tangent projected onto the positive
+    semi-definite cone, from ``A``'s eigensystem in closed form; False (``Ke`` untouched)
+    when ``A`` has no negative eigenvalue.
+
+    The energy at fixed pressure is isotropic, a function of the singular values ``s_i``
+    of ``F = U diag(s) V^T``: ``Psi = c1 (J^{-2/3} I1 - 3) + U_p(J)``.  Its Hessian in
+    ``F`` has the nine eigenpairs of Smith, de Goes & Kim (2019, *ACM TOG* 38(2) 12): per
+    pair ``(i, j)`` a twist ``U (e_i e_j^T - e_j e_i^T) V^T / sqrt 2`` and a flip
+    ``U (e_i e_j^T + e_j e_i^T) V^T / sqrt 2`` with
+
+    .. math::
+        \lambda_{twist} = \frac{\psi_i + \psi_j}{s_i + s_j}
+            = \mu_e \Big(1 - \frac{I_1}{3 s_i s_j}\Big) + \frac{pJ}{s_i s_j},\quad
+        \lambda_{flip} = \frac{\psi_i - \psi_j}{s_i - s_j}
+            = \mu_e \Big(1 + \frac{I_1}{3 s_i s_j}\Big) - \frac{pJ}{s_i s_j}
+
+    (``psi_i = dPsi/ds_i``, ``mu_e = 2 c1 J^{-2/3}``), and three scaling modes ``U diag(q)
+    V^T`` with ``q`` the eigenvectors of the 3x3 Hessian in ``s``
+
+    .. math::
+        h_{ij} = \mu_e\Big[\delta_{ij}\big(1 + \tfrac{I_1}{3 s_i^2}\big)
+            - \tfrac23\big(\tfrac{s_i}{s_j} + \tfrac{s_j}{s_i}\big)
+            + \tfrac29 \tfrac{I_1}{s_i s_j}\Big] + \frac{c_{vol}}{s_i s_j}
+            - \delta_{ij}\frac{pJ}{s_i^2}
+
+    (``c_vol = (p' J + p) J``).  ``K^e = V_e sum_m max(lambda_m, 0) w_m w_m^T`` with
+    ``w_m[3 a + i] = (M_m G_a)_i``.  ``work``: (7, 3, 3) scratch.
+    """
+    C, Vm, Um, hq, tmp = work[0], work[1], work[2], work[3], work[4]
+    sv, lam_h = work[5, 0], work[5, 1]
+    for i in range(3):  # C = F^T F
+        for j in range(3):
+            v = 0.0
+            for k in range(3):
+                v += F[k, i] * F[k, j]
+            C[i, j] = v
+    _eigh3(C, sv, Vm)
+    for i in range(3):
+        sv[i] = np.sqrt(max(sv[i], 0.0))
+    if sv[0] * sv[1] * sv[2] <= 0.0:
+        return False
+    # V right-handed (a valid eigenvector basis still), then U = F V / s, orthonormalised
+    Vm[0, 2] = Vm[1, 0] * Vm[2, 1] - Vm[2, 0] * Vm[1, 1]
+    Vm[1, 2] = Vm[2, 0] * Vm[0, 1] - Vm[0, 0] * Vm[2, 1]
+    Vm[2, 2] = Vm[0, 0] * Vm[1, 1] - Vm[1, 0] * Vm[0, 1]
+    for m in range(3):
+        for i in range(3):
+            v = 0.0
+            for k in range(3):
+                v += F[i, k] * Vm[k, m]
+            Um[i, m] = v
+    n0 = np.sqrt(Um[0, 0] ** 2 + Um[1, 0] ** 2 + Um[2, 0] ** 2)
+    for i in range(3):
+        Um[i, 0] /= n0
+    d = Um[0, 0] * Um[0, 1] + Um[1, 0] * Um[1, 1] + Um[2, 0] * Um[2, 1]
+    for i in range(3):
+        Um[i, 1] -= d * Um[i, 0]
+    n1 = np.sqrt(Um[0, 1] ** 2 + Um[1, 1] ** 2 + Um[2, 1] ** 2)
+    for i in range(3):
+        Um[i, 1] /= n1
+    Um[0, 2] = Um[1, 0] * Um[2, 1] - Um[2, 0] * Um[1, 1]
+    Um[1, 2] = Um[2, 0] * Um[0, 1] - Um[0, 0] * Um[2, 1]
+    Um[2, 2] = Um[0, 0] * Um[1, 1] - Um[1, 0] * Um[0, 1]
+    # the eigenvalues
+    negative = False
+    pairs = ((0, 1), (0, 2), (1, 2))
+    lam_tf = work[6]  # row 0: twist, row 1: flip of pair k
+    for k in range(3):
+        i, j = pairs[k]
+        r = 1.0 / (sv[i] * sv[j])
+        lam_tf[0, k] = mu_e * (1.0 - I1 / 3.0 * r) + pJ * r
+        lam_tf[1, k] = mu_e * (1.0 + I1 / 3.0 * r) - pJ * r
+        negative = negative or lam_tf[0, k] < 0.0 or lam_tf[1, k] < 0.0
+    for i in range(3):
+        for j in range(3):
+            v = mu_e * (-2.0 / 3.0 * (sv[i] / sv[j] + sv[j] / sv[i]) + 2.0 / 9.0 * I1 / (sv[i] * sv[j])) \
+                + cvol / (sv[i] * sv[j])
+            if i == j:
+                v += mu_e * (1.0 + I1 / (3.0 * sv[i] * sv[i])) - pJ / (sv[i] * sv[i])
+            tmp[i, j] = v
+    _eigh3(tmp, lam_h, hq)
+    for m in range(3):
+        negative = negative or lam_h[m] < 0.0
+    if not negative:
+        return False
+    # K^e = V_e sum_m max(lambda_m, 0) w_m w_m^T
+    for r in range(12):
+        for q in range(12):
+            Ke[r, q] = 0.0
+    w = np.empty(12)
+    ga = np.empty((4, 3))  # V^T G_a
+    for a in range(4):
+        for m in range(3):
+            v = 0.0
+            for L in range(3):
+                v += Vm[L, m] * G[e, a, L]
+            ga[a, m] = v
+    c = 1.0 / np.sqrt(2.0)
+    for mode in range(9):
+        if mode < 3:
+            lam = lam_h[mode]
+        elif mode < 6:
+            lam = lam_tf[0, mode - 3]
+        else:
+            lam = lam_tf[1, mode - 6]
+        if lam <= 0.0:
+            continue
+        for a in range(4):
+            for ii in range(3):
+                if mode < 3:
+                    v = 0.0
+                    for k in range(3):
+                        v += Um[ii, k] * hq[k, mode] * ga[a, k]
+                else:
+                    i, j = pairs[(mode - 3) % 3]
+                    sgn = -1.0 if mode < 6 else 1.0
+                    v = c * (Um[ii, i] * ga[a, j] + sgn * Um[ii, j] * ga[a, i])
+                w[3 * a + ii] = v
+        lv = Ve * lam
+        for r in range(12):
+            wr = lv * w[r]
+            for q in range(12):
+                Ke[r, q] += wr * w[q]
+    return True
 
 
 @njit(cache=True)
