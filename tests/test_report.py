@@ -252,3 +252,36 @@ def test_biopsy_section_cuts_a_tetrahedron_exactly():
                           region=np.array([2, 2, 1]))  # the tissue tet is not tumour
     assert len(tumour_surface(two)) == 6
     assert plane_section(pts, faces, np.array([0, 0, 5.0]), np.array([0, 0, 1.0])).shape == (0, 2, 3)
+
+
+def test_sequence_panels_draw_the_cut_faces_only_when_seen_across():
+    """A 2 mm box whose y = 0 face is 'cut by the field of view': a side view looking along
+    y draws it as a second (grey) layer with its note; one looking along z sees it edge-on
+    and draws the skin alone."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.collections import PolyCollection
+
+    from regtrack.mechanics.meshes import box_model
+    from regtrack.mechanics.pictures import CUT_FILL, draw_sequence
+    from regtrack.model.checks import boundary_faces
+
+    m = box_model((2.0, 2.0, 2.0), (2, 2, 2))
+    faces, _ = boundary_faces(m.tets)
+    on_cut = np.all(np.isclose(m.points[faces][:, :, 1], 0.0), axis=1)
+    plate = {"origin_mm": [0.0, 0.0, -1.0], "normal": [0.0, 0.0, 1.0], "edge_radius_mm": 1.0,
+             "s_range_mm": [0.0, 10.0]}
+    u = np.zeros_like(m.points)
+    for normal, drawn in (([0.0, 0.0, 1.0], True), ([0.0, 1.0, 0.0], False)):
+        fig, ax = plt.subplots()
+        frame = {"e_x": [1.0, 0.0, 0.0], "normal": normal}
+        draw_sequence([ax], m.points, faces[~on_cut], [{"name": "s", "D": None, "plates": {"p": plate}}],
+                      [u], frame, faces[on_cut])
+        layers = [c for c in ax.collections if isinstance(c, PolyCollection)]
+        grey = matplotlib.colors.to_rgba(CUT_FILL, 0.6)
+        assert len(layers) == (2 if drawn else 1)
+        assert any(np.allclose(c.get_facecolor()[0], grey) for c in layers) == drawn
+        assert any("field of view" in t.get_text() for t in ax.texts) == drawn
+        plt.close(fig)

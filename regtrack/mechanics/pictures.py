@@ -46,14 +46,17 @@ def draw_sequence(axes, points: np.ndarray, skin: np.ndarray, steps: list[dict],
     ``steps``: per step a dict with ``name``, ``D`` and ``plates`` (the plate records of the
     result JSON); ``states``: the displacement (N, 3) mm of each step, model frame;
     ``cut``: the outer faces cut by the MRI's field of view (:func:`regtrack.model.checks.
-    cut_faces`), drawn grey, else they would show as holes in a view across them.
+    cut_faces`), drawn grey when the view looks across them (their projected area is more
+    than 1 % of the skin's), else they would show as holes.
     """
     from matplotlib.collections import PolyCollection
 
     e_x = np.asarray(plate_frame["e_x"], float)
     n = np.asarray(plate_frame["normal"], float)
     x_max = max(float(((points + u) @ e_x).max()) for u in states) + 10
-    layers = [(skin, SKIN_FILL)] + ([] if cut is None or not len(cut) else [(cut, CUT_FILL)])
+    layers = [(skin, SKIN_FILL)]
+    if cut is not None and len(cut) and _area(points, cut, e_x, n) > 0.01 * _area(points, skin, e_x, n):
+        layers.append((cut, CUT_FILL))  # seen across, not edge-on
     for ax, st, u in zip(axes, steps, states):
         x = points + u
         for tris, colour in layers:
@@ -75,6 +78,13 @@ def draw_sequence(axes, points: np.ndarray, skin: np.ndarray, steps: list[dict],
         axes[-1].annotate("grey: cut by the MRI's field of view (no skin)", (1.0, 0.0),
                           xycoords="axes fraction", xytext=(0, -24), textcoords="offset points",
                           fontsize=6, ha="right", va="top", color="0.35")
+
+
+def _area(points: np.ndarray, tris: np.ndarray, e_x: np.ndarray, n: np.ndarray) -> float:
+    """Summed area (mm^2) of the triangles projected on the plane of ``e_x`` and ``n``."""
+    x, y = points[tris] @ e_x, points[tris] @ n
+    return float(0.5 * np.abs((x[:, 1] - x[:, 0]) * (y[:, 2] - y[:, 0])
+                              - (x[:, 2] - x[:, 0]) * (y[:, 1] - y[:, 0])).sum())
 
 
 def protocol_figure(path: str | Path, points: np.ndarray, skin: np.ndarray, steps: list,
