@@ -268,7 +268,10 @@ def _eigh3(C, w, Q):
 def _projected_tangent(G, e, F, J, I1, mu_e, pJ, cvol, Ve, Ke, work):
     r"""The element tangent with its material tangent projected onto the positive
     semi-definite cone, from ``A``'s eigensystem in closed form; False (``Ke`` untouched)
-    when ``A`` has no negative eigenvalue.
+    when ``A`` has no negative eigenvalue, or when a singular value of ``F`` rounds to
+    zero (a degenerate element: the caller's consistent tangent, and the minimiser's shift
+    if the Hessian stays indefinite).  The eigenvalues need only the singular values, so
+    ``U`` is formed only for an element that is projected.
 
     The energy at fixed pressure is isotropic, a function of the singular values ``s_i``
     of ``F = U diag(s) V^T``: ``Psi = c1 (J^{-2/3} I1 - 3) + U_p(J)``.  Its Hessian in
@@ -307,28 +310,6 @@ def _projected_tangent(G, e, F, J, I1, mu_e, pJ, cvol, Ve, Ke, work):
         sv[i] = np.sqrt(max(sv[i], 0.0))
     if sv[0] * sv[1] * sv[2] <= 0.0:
         return False
-    # V right-handed (a valid eigenvector basis still), then U = F V / s, orthonormalised
-    Vm[0, 2] = Vm[1, 0] * Vm[2, 1] - Vm[2, 0] * Vm[1, 1]
-    Vm[1, 2] = Vm[2, 0] * Vm[0, 1] - Vm[0, 0] * Vm[2, 1]
-    Vm[2, 2] = Vm[0, 0] * Vm[1, 1] - Vm[1, 0] * Vm[0, 1]
-    for m in range(3):
-        for i in range(3):
-            v = 0.0
-            for k in range(3):
-                v += F[i, k] * Vm[k, m]
-            Um[i, m] = v
-    n0 = np.sqrt(Um[0, 0] ** 2 + Um[1, 0] ** 2 + Um[2, 0] ** 2)
-    for i in range(3):
-        Um[i, 0] /= n0
-    d = Um[0, 0] * Um[0, 1] + Um[1, 0] * Um[1, 1] + Um[2, 0] * Um[2, 1]
-    for i in range(3):
-        Um[i, 1] -= d * Um[i, 0]
-    n1 = np.sqrt(Um[0, 1] ** 2 + Um[1, 1] ** 2 + Um[2, 1] ** 2)
-    for i in range(3):
-        Um[i, 1] /= n1
-    Um[0, 2] = Um[1, 0] * Um[2, 1] - Um[2, 0] * Um[1, 1]
-    Um[1, 2] = Um[2, 0] * Um[0, 1] - Um[0, 0] * Um[2, 1]
-    Um[2, 2] = Um[0, 0] * Um[1, 1] - Um[1, 0] * Um[0, 1]
     # the eigenvalues
     negative = False
     pairs = ((0, 1), (0, 2), (1, 2))
@@ -351,6 +332,28 @@ def _projected_tangent(G, e, F, J, I1, mu_e, pJ, cvol, Ve, Ke, work):
         negative = negative or lam_h[m] < 0.0
     if not negative:
         return False
+    # V right-handed (a valid eigenvector basis still), then U = F V / s, orthonormalised
+    Vm[0, 2] = Vm[1, 0] * Vm[2, 1] - Vm[2, 0] * Vm[1, 1]
+    Vm[1, 2] = Vm[2, 0] * Vm[0, 1] - Vm[0, 0] * Vm[2, 1]
+    Vm[2, 2] = Vm[0, 0] * Vm[1, 1] - Vm[1, 0] * Vm[0, 1]
+    for m in range(3):
+        for i in range(3):
+            v = 0.0
+            for k in range(3):
+                v += F[i, k] * Vm[k, m]
+            Um[i, m] = v
+    n0 = np.sqrt(Um[0, 0] ** 2 + Um[1, 0] ** 2 + Um[2, 0] ** 2)
+    for i in range(3):
+        Um[i, 0] /= n0
+    d = Um[0, 0] * Um[0, 1] + Um[1, 0] * Um[1, 1] + Um[2, 0] * Um[2, 1]
+    for i in range(3):
+        Um[i, 1] -= d * Um[i, 0]
+    n1 = np.sqrt(Um[0, 1] ** 2 + Um[1, 1] ** 2 + Um[2, 1] ** 2)
+    for i in range(3):
+        Um[i, 1] /= n1
+    Um[0, 2] = Um[1, 0] * Um[2, 1] - Um[2, 0] * Um[1, 1]
+    Um[1, 2] = Um[2, 0] * Um[0, 1] - Um[0, 0] * Um[2, 1]
+    Um[2, 2] = Um[0, 0] * Um[1, 1] - Um[1, 0] * Um[0, 1]
     # K^e = V_e sum_m max(lambda_m, 0) w_m w_m^T
     for r in range(12):
         for q in range(12):
