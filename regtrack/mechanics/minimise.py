@@ -47,8 +47,8 @@ increment starts from the last state or the path extrapolated linearly from the 
 whichever has the lower potential, and its multipliers and friction-bound pressures from
 theirs extrapolated the same way (a start changes the iterations, not the minimiser).  The
 augmented-Lagrangian multipliers and the friction lag of every increment are iterated
-until the penetration is below ``penetration_tol_mm`` and the lagged slip bound agrees
-with the current pressure within ``friction_tol`` of the plate's normal force (or of the
+(averaged updates, :meth:`.potential.PlatePotential.update`) until the penetration is
+below ``penetration_tol_mm`` and the lagged slip bound agrees with the current pressure within ``friction_tol`` of the plate's normal force (or of the
 load scale ``F_ref`` when that is larger: a plate that barely touches): each increment
 is a backward-Euler step of Coulomb's law at its own pressure, so the frictional path
 does not carry a lag from one increment into the next.  An increment that does not

@@ -26,7 +26,7 @@ positive semi-definite; the gradient stays exact.
 **Friction**, lagged (Simo & Laursen 1992; Li et al. 2020, *Incremental Potential
 Contact*, section 5): with the stick point ``a_i`` (committed at the end of the last
 increment and carried with the plate), the lagged normal ``nbar_i`` and slip bound
-``B_i = mu pbar_i`` (the pressure of the last multiplier update), the tangential slip
+``B_i = mu pbar_i`` (``pbar``: the lagged pressure, see :meth:`PlatePotential.update`), the tangential slip
 ``s_i = |T_i (x_i - a_i)|``, ``T_i = I - nbar_i nbar_i^T``, enters a C2 friction
 potential (the cubic mollifier of IPC's ``f_1``, scaled so that sliding starts at the slip
 ``delta_i = B_i / eps_T``; ``r = s / delta``)
@@ -58,6 +58,9 @@ from typing import Any
 
 import numpy as np
 import scipy.sparse as sp
+
+#: Averaging weight of the multiplier and friction-lag updates (:meth:`PlatePotential.update`).
+OMEGA = 0.5
 
 
 def normal_terms(gap: np.ndarray, normal: np.ndarray, lam: np.ndarray, eps: np.ndarray,
@@ -200,17 +203,31 @@ class PlatePotential:
 
     def update(self, ev: PlateEval, *, growth: float, slow_ratio: float, eps_max: float,
                previous: np.ndarray | None) -> np.ndarray:
-        """Multiplier update (Uzawa: ``lam <- p``), lag update (``pbar <- p``, ``nbar <- n``)
-        and penalty growth: a node whose violation fell by less than ``slow_ratio`` since
-        the last update gets ``eps <- min(growth eps, eps_max)`` (the method of
-        multipliers' rule for a constraint that converges slowly).  Returns the violations
-        ``max(0, -g)`` (M,) before the update."""
+        """Averaged multiplier and lag update, and penalty growth.
+
+        With ``T`` the plain update (Uzawa's ``lam <- p`` and the lag's ``pbar <- p``), the
+        multipliers and bound pressures move half-way, ``lam <- lam + OMEGA (p - lam)``
+        (:data:`OMEGA`), and ``nbar <- n``.  That is the Krasnosel'skii-Mann iteration of
+        ``T``: it has the fixed points of ``T`` (``lam = pbar = p``: the constraint and
+        Coulomb's law at the current pressure) and converges whenever ``T`` is
+        nonexpansive (Bauschke & Combettes, *Convex Analysis and Monotone Operator Theory
+        in Hilbert Spaces*, 2nd ed., theorem 5.15), where ``T`` itself may cycle.  The
+        method of multipliers is firmly nonexpansive for convex problems and never
+        overshoots, but the plates' rounded edges (the space outside a convex plate is
+        not convex) and the friction lag are not: on a breast compressed to D = 50 % the
+        plain update sends the nodes pinched on the upper plate's chest-wall edge into a
+        2-cycle of lift-off and penetration that does not damp out.
+
+        A node whose violation fell by less than ``slow_ratio`` since the last update gets
+        ``eps <- min(growth eps, eps_max)`` (the method of multipliers' rule for a
+        constraint that converges slowly).  Returns the violations ``max(0, -g)`` (M,)
+        before the update."""
         viol = np.where(ev.pressure > 0, np.maximum(-ev.gap, 0.0), 0.0)
         if previous is not None and growth > 1:
             slow = (viol > 0) & (viol > slow_ratio * previous)
             self.eps = np.where(slow, np.minimum(self.eps * growth, eps_max), self.eps)
-        self.lam = ev.pressure.copy()
-        self.pbar = ev.pressure.copy()
+        self.lam = self.lam + OMEGA * (ev.pressure - self.lam)
+        self.pbar = self.pbar + OMEGA * (ev.pressure - self.pbar)
         self.nbar = ev.normal.copy()
         return viol
 
