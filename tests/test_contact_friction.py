@@ -3,7 +3,8 @@
 * tributary areas and the automatic penalty rule; bad ``[contact]`` settings are named;
 * the reported contact forces are those of the potential the solver minimises (its
   negative gradient) at the committed state, to round-off;
-* node-wise penalty growth of the multiplier updates (:meth:`.potential.PlatePotential.update`).
+* node-wise penalty growth of the multiplier updates (:meth:`.potential.PlatePotential.update`);
+* the relaxed multiplier update keeps Uzawa's fixed point and damps its overshoot.
 """
 
 from __future__ import annotations
@@ -100,3 +101,45 @@ def test_slow_uzawa_nodes_get_a_larger_penalty():
     for _ in range(10):
         v = update(u, v)
     assert pl.eps[0] == pytest.approx(2.0 * 256)  # capped
+
+
+def test_relaxed_update_keeps_the_fixed_point_and_damps_an_overshooting_response():
+    """:meth:`PlatePotential.update`: the first update of an increment is Uzawa's ``lam =
+    pbar = p``, and a state with ``p = lam = pbar`` (constraint and Coulomb's law
+    consistent) is left unchanged.  A mock response whose gap grows with the multiplier,
+    ``g = g0 + c lam`` with ``eps c = 2.5`` (a solve that overshoots, as a node snapping
+    around a plate's edge does), makes the plain update oscillate with growing amplitude
+    (factor ``1 - eps c = -1.5`` per update); Aitken's relaxation estimates ``omega = 1 /
+    (1 - mu) = 0.4`` from two updates, which for this linear map lands on the fixed point
+    ``lam* = -g0 / c`` (gap closed) at the next update, to round-off."""
+    X = np.array([[10.0, 0.0, -0.1]])
+    c = _contact(X, mu=0.3, eps=2.0)
+    u = np.zeros_like(X)
+    pl = PlatePotential(c, u)
+    pl.lam[:] = pl.pbar[:] = 0.2  # p = lam - eps g = 0.2 + 2 * 0.1 = 0.4
+    v = pl.update(pl.evaluate(u, hessian=False), growth=1.0, slow_ratio=0.3, eps_max=2.0, previous=None)
+    assert pl.lam[0] == pytest.approx(0.4, rel=1e-12) and pl.pbar[0] == pytest.approx(0.4, rel=1e-12)
+    u1 = u.copy()
+    u1[0, 2] = 0.1  # gap closed: p = lam, a fixed point
+    pl.update(pl.evaluate(u1, hessian=False), growth=1.0, slow_ratio=0.3, eps_max=2.0, previous=v)
+    np.testing.assert_allclose([pl.lam[0], pl.pbar[0]], [0.4, 0.4], rtol=1e-14)
+
+    g0, slope = -0.5, 1.25  # gap g = g0 + slope * lam (mm, MPa); eps * slope = 2.5
+    star = -g0 / slope
+
+    def mock_solve(lam):  # the displacement that gives the mock gap
+        u2 = u.copy()
+        u2[0, 2] = 0.1 + g0 + slope * lam
+        return pl.evaluate(u2, hessian=False)
+
+    pl = PlatePotential(c, u)
+    plain = [0.3]
+    for _ in range(6):
+        plain.append(max(0.0, float(mock_solve(plain[-1]).pressure[0])))
+    assert abs(plain[-1] - star) > abs(plain[1] - star)  # Uzawa: growing oscillation
+    pl.lam[:] = pl.pbar[:] = 0.3
+    v = None
+    for _ in range(3):
+        v = pl.update(mock_solve(pl.lam[0]), growth=1.0, slow_ratio=0.3, eps_max=2.0, previous=v)
+    assert pl.lam[0] == pytest.approx(star, rel=1e-12)
+    assert pl.pbar[0] == pytest.approx(star, rel=1e-12)

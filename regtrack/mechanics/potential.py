@@ -59,8 +59,8 @@ from typing import Any
 import numpy as np
 import scipy.sparse as sp
 
-#: Averaging weight of the multiplier and friction-lag updates (:meth:`PlatePotential.update`).
-OMEGA = 0.5
+#: Smallest relaxation of the multiplier and friction-lag updates (:meth:`PlatePotential.update`).
+OMEGA_MIN = 0.05
 
 
 def normal_terms(gap: np.ndarray, normal: np.ndarray, lam: np.ndarray, eps: np.ndarray,
@@ -156,6 +156,7 @@ class PlatePotential:
         self.eps = np.asarray(st.get("eps", self.c.eps_node), float).copy()
         self.anchor_local = st["anchor"].copy()
         self.nbar = self.c.plate.query(self.positions(u)).normal
+        self._step: tuple[np.ndarray, float] | None = None  # the last update's r and omega
 
     def positions(self, u: np.ndarray) -> np.ndarray:
         return self.c.X[self.c.nodes] + np.asarray(u, float).reshape(-1, 3)[self.c.nodes]
@@ -203,20 +204,30 @@ class PlatePotential:
 
     def update(self, ev: PlateEval, *, growth: float, slow_ratio: float, eps_max: float,
                previous: np.ndarray | None) -> np.ndarray:
-        """Averaged multiplier and lag update, and penalty growth.
+        """Relaxed multiplier and lag update, and penalty growth.
 
-        With ``T`` the plain update (Uzawa's ``lam <- p`` and the lag's ``pbar <- p``), the
-        multipliers and bound pressures move half-way, ``lam <- lam + OMEGA (p - lam)``
-        (:data:`OMEGA`), and ``nbar <- n``.  That is the Krasnosel'skii-Mann iteration of
-        ``T``: it has the fixed points of ``T`` (``lam = pbar = p``: the constraint and
-        Coulomb's law at the current pressure) and converges whenever ``T`` is
-        nonexpansive (Bauschke & Combettes, *Convex Analysis and Monotone Operator Theory
-        in Hilbert Spaces*, 2nd ed., theorem 5.15), where ``T`` itself may cycle.  The
-        method of multipliers is firmly nonexpansive for convex problems and never
-        overshoots, but the plates' rounded edges (the space outside a convex plate is
-        not convex) and the friction lag are not: on a breast compressed to D = 50 % the
-        plain update sends the nodes pinched on the upper plate's chest-wall edge into a
-        2-cycle of lift-off and penetration that does not damp out.
+        With ``r = p - lam`` the step of the plain update ``T`` (Uzawa's ``lam <- p``; the
+        lag's ``pbar <- p``), the multipliers and the bound pressures move by ``omega r``
+        and ``nbar <- n``.  ``omega`` is Aitken's dynamic relaxation (Irons & Tuck 1969;
+        Kuettler & Wall 2008, *Comput. Mech.* 43:61), from the last two steps of the
+        increment in the area-weighted inner product,
+
+        .. math::
+
+            \\omega_k = -\\omega_{k-1} \\frac{(r_{k-1}, r_k - r_{k-1})}{(r_k - r_{k-1},
+            r_k - r_{k-1})},
+
+        the secant estimate ``1 / (1 - mu)`` of the relaxation that cancels the
+        iteration's dominant eigenvalue ``mu``, clipped to ``[OMEGA_MIN, 1]`` (1 at the
+        first update of an increment, ``previous is None``): the update only ever damps
+        ``T``, half-way for a 2-cycle (``mu = -1``), and a plain update that converges is
+        left as it is.  Every such iteration has the fixed points of ``T`` (``lam = pbar =
+        p``: the constraint and Coulomb's law at the current pressure).  The method of
+        multipliers is firmly nonexpansive for convex problems and never overshoots, but
+        the plates' rounded edges (the space outside a convex plate is not convex) and the
+        friction lag are not: on a breast compressed to D = 50 % the plain update sends
+        the nodes pinched on the upper plate's chest-wall edge into a 2-cycle of lift-off
+        and penetration that does not damp out.
 
         A node whose violation fell by less than ``slow_ratio`` since the last update gets
         ``eps <- min(growth eps, eps_max)`` (the method of multipliers' rule for a
@@ -226,8 +237,18 @@ class PlatePotential:
         if previous is not None and growth > 1:
             slow = (viol > 0) & (viol > slow_ratio * previous)
             self.eps = np.where(slow, np.minimum(self.eps * growth, eps_max), self.eps)
-        self.lam = self.lam + OMEGA * (ev.pressure - self.lam)
-        self.pbar = self.pbar + OMEGA * (ev.pressure - self.pbar)
+        r = ev.pressure - self.lam
+        omega = 1.0
+        if previous is not None and self._step is not None:
+            r0, w0 = self._step
+            dr = r - r0
+            den = float(np.sum(self.c.areas * dr * dr))
+            if den > 0:
+                omega = -w0 * float(np.sum(self.c.areas * r0 * dr)) / den
+            omega = min(max(omega, OMEGA_MIN), 1.0)
+        self._step = (r, omega)
+        self.lam = np.maximum(self.lam + omega * r, 0.0)
+        self.pbar = np.maximum(self.pbar + omega * (ev.pressure - self.pbar), 0.0)
         self.nbar = ev.normal.copy()
         return viol
 
