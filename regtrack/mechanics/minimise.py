@@ -42,18 +42,18 @@ gravity is linear, contact is non-negative), so the iterates converge to a stati
 point: no merit-function switching, no acceptance of a stalled iterate.
 
 Increments: a plate move is split into increments of at most ``max_plate_increment_mm`` of
-travel (friction is path dependent), a gravity change into ``1 / initial_increment``.  Each
+travel (friction is path dependent), a gravity change into ``1 / initial_increment``. Each
 increment starts from the last state or the path extrapolated linearly from the last two,
 whichever has the lower potential, and its multipliers and friction-bound pressures from
-theirs extrapolated the same way (a start changes the iterations, not the minimiser).  The
+theirs extrapolated the same way (a start changes the iterations, not the minimiser). The
 augmented-Lagrangian multipliers and the friction lag of every increment are iterated
-(averaged updates, :meth:`.potential.PlatePotential.update`) until the penetration is
-below ``penetration_tol_mm`` and the lagged slip bound agrees with the current pressure within ``friction_tol`` of the plate's normal force (or of the
-load scale ``F_ref`` when that is larger: a plate that barely touches): each increment
-is a backward-Euler step of Coulomb's law at its own pressure, so the frictional path
-does not carry a lag from one increment into the next.  An increment that does not
-converge in ``4 max_iterations`` is halved (a shorter path to the same state: no
-tolerance is relaxed).
+(relaxed updates, :meth:`.potential.PlatePotential.update`) until the penetration is below
+``penetration_tol_mm`` and the lagged slip bound agrees with the current pressure within
+``friction_tol`` of the plate's normal force (or of the load scale ``F_ref`` when that is
+larger: a plate that barely touches): each increment is a backward-Euler step of Coulomb's
+law at its own pressure, so the frictional path does not carry a lag from one increment
+into the next. An increment that does not converge in ``4 max_iterations`` is halved (a
+shorter path to the same state: no tolerance is relaxed).
 """
 
 from __future__ import annotations

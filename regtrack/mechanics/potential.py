@@ -25,9 +25,9 @@ positive semi-definite; the gradient stays exact.
 
 **Friction**, lagged (Simo & Laursen 1992; Li et al. 2020, *Incremental Potential
 Contact*, section 5): with the stick point ``a_i`` (committed at the end of the last
-increment and carried with the plate), the lagged normal ``nbar_i`` and slip bound
-``B_i = mu pbar_i`` (``pbar``: the lagged pressure, see :meth:`PlatePotential.update`), the tangential slip
-``s_i = |T_i (x_i - a_i)|``, ``T_i = I - nbar_i nbar_i^T``, enters a C2 friction
+increment and carried with the plate), the lagged normal ``nbar_i`` and slip bound ``B_i =
+mu pbar_i`` (``pbar``: the lagged pressure, :meth:`PlatePotential.update`), the tangential
+slip ``s_i = |T_i (x_i - a_i)|``, ``T_i = I - nbar_i nbar_i^T``, enters a C2 friction
 potential (the cubic mollifier of IPC's ``f_1``, scaled so that sliding starts at the slip
 ``delta_i = B_i / eps_T``; ``r = s / delta``)
 
