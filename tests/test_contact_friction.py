@@ -127,19 +127,21 @@ def test_relaxed_update_keeps_the_fixed_point_and_damps_an_overshooting_response
     g0, slope = -0.5, 1.25  # gap g = g0 + slope * lam (mm, MPa); eps * slope = 2.5
     star = -g0 / slope
 
-    def mock_solve(lam):  # the displacement that gives the mock gap
+    def mock_solve(lam):  # the state at multiplier lam: the mock gap, p = lam - eps g
+        pl.lam[:] = lam
         u2 = u.copy()
         u2[0, 2] = 0.1 + g0 + slope * lam
         return pl.evaluate(u2, hessian=False)
 
     pl = PlatePotential(c, u)
     plain = [0.3]
-    for _ in range(6):
-        plain.append(max(0.0, float(mock_solve(plain[-1]).pressure[0])))
+    for _ in range(6):  # lam <- p = 1 - 1.5 lam: 0.55, 0.175, 0.74, then a 0 <-> 1 cycle
+        plain.append(float(mock_solve(plain[-1]).pressure[0]))
     assert abs(plain[-1] - star) > abs(plain[1] - star)  # Uzawa: growing oscillation
+    assert plain[-2:] == [pytest.approx(1.0), 0.0]
     pl.lam[:] = pl.pbar[:] = 0.3
     v = None
     for _ in range(3):
-        v = pl.update(mock_solve(pl.lam[0]), growth=1.0, slow_ratio=0.3, eps_max=2.0, previous=v)
+        v = pl.update(mock_solve(float(pl.lam[0])), growth=1.0, slow_ratio=0.3, eps_max=2.0, previous=v)
     assert pl.lam[0] == pytest.approx(star, rel=1e-12)
     assert pl.pbar[0] == pytest.approx(star, rel=1e-12)
