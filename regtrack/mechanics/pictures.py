@@ -15,8 +15,10 @@ import numpy as np
 from regtrack._io import atomic_path
 
 
-def plate_outline(plate: dict, e_x: np.ndarray, n: np.ndarray, x_max: float) -> np.ndarray:
-    """Side-view polyline (mm) of a plate face with its rounded chest-wall edge."""
+def plate_outline(plate: dict, e_x: np.ndarray, n: np.ndarray, x_max: float, *,
+                  opening: bool = False) -> np.ndarray:
+    """Side-view polyline (mm) of a plate face with its rounded chest-wall edge; with
+    ``opening``, broken (a NaN row) where the face has its opening (a section through it)."""
     o = np.asarray(plate["origin_mm"], float)
     N = np.asarray(plate["normal"], float)
     r = float(plate["edge_radius_mm"])
@@ -26,9 +28,24 @@ def plate_outline(plate: dict, e_x: np.ndarray, n: np.ndarray, x_max: float) -> 
     ang = np.linspace(0.0, np.pi / 2, 20)
     arc_x = s0 - r * np.sin(ang)
     arc_h = h0 - up * r * (1 - np.cos(ang))
-    x = np.concatenate([[x_max], arc_x])
-    h = np.concatenate([[h0], arc_h])
-    return np.column_stack([x, h])
+    face_x, face_h = [x_max], [h0]
+    gap = plate_opening(plate, e_x) if opening else None
+    if gap is not None and gap[0] < x_max:
+        face_x += [min(gap[1], x_max), np.nan, gap[0]]
+        face_h += [h0, np.nan, h0]
+    return np.column_stack([np.concatenate([face_x, arc_x]), np.concatenate([face_h, arc_h])])
+
+
+def plate_opening(plate: dict, axis: np.ndarray) -> tuple[float, float] | None:
+    """Extent ``(lo, hi)`` along the model-frame unit vector ``axis`` (mm) of a plate's
+    opening (:attr:`.plates.RigidPlate.window`), from its record; None for a solid plate."""
+    w = plate.get("window_mm")
+    if not w:
+        return None
+    o, N, e1 = (np.asarray(plate[k], float) for k in ("origin_mm", "normal", "e1"))
+    e2 = np.cross(N, e1)
+    proj = [(o + s * e1 + t * e2) @ np.asarray(axis, float) for s in w[:2] for t in w[2:]]
+    return float(min(proj)), float(max(proj))
 
 
 #: fill colours of the sequence panels: skin, and the faces where the MRI's field of view

@@ -33,6 +33,18 @@ The normal's derivative (needed by the consistent contact tangent) is
 where ``J_q`` projects onto the local axes along which ``q`` follows ``y`` (the axes
 that are not clamped); it vanishes on the flat face.
 
+**An opening** (the compression window of an MR biopsy grid plate, through which the
+needle passes): the core loses the column ``W = (a_0, a_1) x (b_0, b_1) x R``, so the
+opening is the rectangle ``W`` on the face and its rim is rounded with the same radius
+``r`` (at depths beyond ``r`` it narrows to ``(a_0 + r, a_1 - r) x (b_0 + r, b_1 - r)``).
+A point over the opening, ``(s, t)`` in ``W``, has its closest core point on the nearest
+side of ``W``: ``q = (a_k or s, t or b_k, min(h, -r))``, the exact distance to the core
+(the distance from inside a rectangle to its complement is the distance to its nearest
+side).  The gap is continuous; the normal turns by 90 degrees across the diagonals of the
+opening, where a node would touch two sides' rims at once (only in its corners, within
+``r`` of both sides).  A node inside the plate itself (penetrated deeper than ``r`` beside
+the opening) is pushed back out through the face as before.
+
 Plates only translate during a protocol (:meth:`RigidPlate.moved_to`), so the local
 frame is fixed and a friction stick point stored in local coordinates follows the plate.
 """
@@ -98,6 +110,9 @@ class RigidPlate:
         ``-inf``/``inf`` for an unbounded side.
     edge_radius : float
         Radius of the rounded edges (mm, > 0).
+    window : (s0, s1, t0, t1) or None
+        A rectangular opening in the face (mm, local ``s`` and ``t`` like the ranges),
+        strictly inside the face; ``None`` for a solid plate.
     """
 
     name: str
@@ -107,6 +122,7 @@ class RigidPlate:
     s_range: tuple[float, float] = (-np.inf, np.inf)
     t_range: tuple[float, float] = (-np.inf, np.inf)
     edge_radius: float = 10.0
+    window: tuple[float, float, float, float] | None = None
     _rot: np.ndarray = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
@@ -126,6 +142,14 @@ class RigidPlate:
             object.__setattr__(self, nm, (lo, hi))
         if not (np.isfinite(self.edge_radius) and self.edge_radius > 0):
             raise ConfigError(f"plate '{self.name}' edge_radius {self.edge_radius}: must be > 0 mm")
+        if self.window is not None:
+            a0, a1, b0, b1 = (float(v) for v in self.window)
+            if not (self.s_range[0] < a0 < a1 < self.s_range[1]
+                    and self.t_range[0] < b0 < b1 < self.t_range[1]):
+                raise ConfigError(f"plate '{self.name}' window {[a0, a1, b0, b1]} mm: the opening "
+                                  f"must lie strictly inside the face (s {self.s_range}, "
+                                  f"t {self.t_range}); move or shrink it")
+            object.__setattr__(self, "window", (a0, a1, b0, b1))
 
     @property
     def e2(self) -> np.ndarray:
@@ -168,6 +192,16 @@ class RigidPlate:
         lo = np.array([self.s_range[0], self.t_range[0], -np.inf])
         hi = np.array([self.s_range[1], self.t_range[1], -r])
         q = np.clip(y, lo, hi)
+        side = self._window_side(y)
+        over = side >= 0
+        if over.any():  # over the opening: the closest core point is on its nearest side
+            a0, a1, b0, b1 = self.window
+            k = side[over]
+            qw = y[over].copy()
+            qw[:, 0] = np.select([k == 0, k == 1], [a0, a1], qw[:, 0])
+            qw[:, 1] = np.select([k == 2, k == 3], [b0, b1], qw[:, 1])
+            qw[:, 2] = np.minimum(qw[:, 2], -r)
+            q[over] = qw
         v = y - q
         rho = np.linalg.norm(v, axis=1)
         inside = rho < 1e-12 * max(r, 1.0)
@@ -186,6 +220,15 @@ class RigidPlate:
             dn = np.einsum("ai,nab,bj->nij", self._rot, m, self._rot)
         return PlateQuery(gap=gap, normal=normal, closest=closest, local=y, dn_dx=dn)
 
+    def _window_side(self, y: np.ndarray) -> np.ndarray:
+        """(N,) int: for local points over the opening, its nearest side (0: s = a0,
+        1: s = a1, 2: t = b0, 3: t = b1); -1 elsewhere."""
+        if self.window is None:
+            return np.full(len(y), -1)
+        a0, a1, b0, b1 = self.window
+        d = np.column_stack([y[:, 0] - a0, a1 - y[:, 0], y[:, 1] - b0, b1 - y[:, 1]])
+        return np.where((d > 0).all(axis=1), d.argmin(axis=1), -1)
+
     def to_dict(self) -> dict:
         """JSON-ready description (mm)."""
         def lim(v: float) -> float | str:
@@ -194,4 +237,5 @@ class RigidPlate:
                 "normal": self.normal.tolist(), "e1": self.e1.tolist(),
                 "s_range_mm": [lim(v) for v in self.s_range],
                 "t_range_mm": [lim(v) for v in self.t_range],
-                "edge_radius_mm": self.edge_radius}
+                "edge_radius_mm": self.edge_radius,
+                "window_mm": None if self.window is None else list(self.window)}

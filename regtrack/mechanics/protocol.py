@@ -10,6 +10,8 @@ A protocol is an ordered list of steps (Lapuebla-Ferri et al., four-step protoco
     edge_radius_mm = 10.0        # rounded (cylindrical) chest-wall edge
     posterior_edge_mm = 5.0      # chest-wall edge, anterior to the mean chest-wall x
     clearance_mm = 2.0           # initial distance of a plate from the breast
+    # window_mm = [40.0, 40.0]   # an opening in one plate (the biopsy grid's compression
+    # window_plate = "lower"     # window), centred on the lesion's projection
 
     [[steps]]
     name = "gravity-unloading"
@@ -64,6 +66,16 @@ class PlateGeometry:
                                      "anterior to the mean chest-wall x", ge=-200, le=200)
     clearance_mm: float = param(2.0, "mm", "initial distance of a plate from the breast",
                                 ge=0, le=100)
+    window_mm: list[float] | None = param(None, "mm", "[along e_x, across] opening of the grid "
+                                          "plate, centred on the lesion (none: solid plates)")
+    window_plate: str = param("lower", "", "the plate with the opening", choices=PLATES)
+
+    def problems(self) -> list[str]:
+        w = self.window_mm
+        if w is not None and (len(w) != 2 or not all(5.0 <= v <= 300.0 for v in w)):
+            return [f"window_mm = {list(w)}: give [width, height] of the opening, each "
+                    "5 to 300 mm"]
+        return []
 
 
 @dataclass(frozen=True)
@@ -135,6 +147,8 @@ class ProtocolOverrides:
     edge_radius_mm: float | None = param(None, "mm", "plate edge radius", gt=0, le=200)
     posterior_edge_mm: float | None = param(None, "mm", "plate chest-wall edge offset",
                                             ge=-200, le=200)
+    window_mm: list[float] | None = param(None, "mm", "[along e_x, across] opening of the grid "
+                                          "plate, centred on the lesion")
     protocol: str | None = param(None, "", "protocol file (TOML) replacing the shipped one")
 
     def problems(self) -> list[str]:
@@ -225,6 +239,11 @@ def apply_overrides(protocol: Protocol, ov: ProtocolOverrides) -> Protocol:
         geo = replace(geo, edge_radius_mm=ov.edge_radius_mm)
     if ov.posterior_edge_mm is not None:
         geo = replace(geo, posterior_edge_mm=ov.posterior_edge_mm)
+    if ov.window_mm is not None:
+        geo = replace(geo, window_mm=ov.window_mm)
+        bad = geo.problems()
+        if bad:
+            raise ConfigError(f"[protocol.{protocol.view}] " + "; ".join(bad))
     angle = protocol.angle_deg if ov.angle_deg is None else ov.angle_deg
     return replace(protocol, steps=tuple(steps), plates=geo, angle_deg=angle)
 

@@ -47,7 +47,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -104,6 +104,9 @@ class BodySetup:
     clamped : bool
         The chest-wall nodes are held in every direction (else they slide on the wall,
         :mod:`.support`, and are plate contact candidates like the skin's).
+    target : (3,) float or None
+        The lesion's centroid (mm), on which a plate opening is centred; None: the
+        breast's skin centroid.
     """
 
     points: np.ndarray
@@ -113,6 +116,7 @@ class BodySetup:
     side: str
     young_mpa: float
     clamped: bool = True
+    target: np.ndarray | None = None
 
 
 @dataclass
@@ -174,7 +178,6 @@ def chest_wall(body: BodySetup, config: ContactConfig) -> PlateContact | None:
     its nodal volume ``V_i`` (mm^3) over the mean skin edge ``h`` (mm), so the wall's
     penalty stiffness per node is of the same order inside as on the skin.  None when
     ``chest_wall_contact`` is off or the body has no fixed node."""
-    from dataclasses import replace
 
     if not config.chest_wall_contact or not body.fixed.any():
         return None
@@ -252,6 +255,9 @@ def make_plates(body: BodySetup, protocol: Protocol, *, config: ContactConfig
     for name, normal, height in (("lower", n, lo), ("upper", -n, hi)):
         pl = RigidPlate(name=name, origin=height * n, normal=normal, e1=frame.e_x,
                         s_range=(s_edge, np.inf), edge_radius=geo.edge_radius_mm)
+        if geo.window_mm and name == geo.window_plate:
+            centre = body.target if body.target is not None else X[nodes][over].mean(axis=0)
+            pl = replace(pl, window=_opening(pl, centre, geo.window_mm))
         for _ in range(50):  # back off until the rounded edge clears the base behind it too
             short = geo.clearance_mm - float(pl.query(X[nodes]).gap.min())
             if short <= 1e-9:
@@ -261,6 +267,20 @@ def make_plates(body: BodySetup, protocol: Protocol, *, config: ContactConfig
     log.info("plates: normal %s, chest-wall edge x = %.1f mm, eps_N = %.3g MPa/mm",
              np.round(n, 3).tolist(), s_edge, eps)
     return plates, frame
+
+
+def _opening(plate: RigidPlate, centre: np.ndarray, size_mm) -> tuple[float, float, float, float]:
+    """The window ``(s0, s1, t0, t1)`` (plate-local mm) of size ``size_mm`` = [along e_x,
+    across], centred on the projection of ``centre`` on the face; moved anteriorly, when the
+    lesion lies near the chest wall, to start 1 mm in front of the plate's chest-wall edge
+    (an opening must lie inside the face)."""
+    s, t, _ = plate.to_local(centre[None])[0]
+    w, h = (float(v) for v in size_mm)
+    s0 = max(s - w / 2.0, plate.s_range[0] + 1.0)
+    if s0 > s - w / 2.0:
+        log.info("plate %s: opening moved %.1f mm anteriorly to clear the chest-wall edge",
+                 plate.name, s0 - (s - w / 2.0))
+    return (s0, s0 + w, t - h / 2.0, t + h / 2.0)
 
 
 def _merge_stats(a: dict, b: dict) -> dict:

@@ -49,14 +49,17 @@ def body_from_model(model: BreastModel, young_mpa: float, *, sliding: bool = Fal
     """:class:`BodySetup` of a model whose tissue has the small-strain Young's modulus
     ``young_mpa`` (MPa; :attr:`.materials.ElementMaterials.tissue_young_mpa`).  With a
     ``sliding`` chest wall (:mod:`.support`) its nodes move along the wall, so the
-    chest-wall face joins the skin as a plate contact surface."""
+    chest-wall face joins the skin as a plate contact surface.  A plate opening is centred
+    on the first tumour's centroid."""
     skin = model.skin
     if sliding:
         from regtrack.mechanics.support import wall_face
 
         skin = np.concatenate([skin, wall_face(model.points, model.tets, model.fixed)])
+    lesions = model.tumour_centroids()
     return BodySetup(points=model.points, tets=model.tets, skin=skin, fixed=model.fixed,
-                     side=model.frame.side, young_mpa=young_mpa, clamped=not sliding)
+                     side=model.frame.side, young_mpa=young_mpa, clamped=not sliding,
+                     target=lesions[min(lesions)] if lesions else None)
 
 
 def run_protocol_on_model(model: BreastModel, protocol: Protocol, *, mechanics: Any = None,

@@ -134,3 +134,15 @@ class BreastModel:
         x = self.points if points is None else points
         p = x[self.tets]
         return np.einsum("ij,ij->i", np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), p[:, 3] - p[:, 0]) / 6.0
+
+    def tumour_centroids(self) -> dict[int, np.ndarray]:
+        """Volume-weighted centroid (mm, model frame, reference configuration) of each
+        tumour id (elements of the tumour region without an id count as tumour 1)."""
+        out = {}
+        sel = self.region == TUMOUR
+        vol = np.abs(self.tet_volumes())
+        ids = np.where(sel & (self.tumour_id <= 0), 1, self.tumour_id)
+        for k in np.unique(ids[sel]):
+            m = sel & (ids == k)
+            out[int(k)] = (vol[m] @ self.points[self.tets[m]].mean(axis=1)) / vol[m].sum()
+        return out

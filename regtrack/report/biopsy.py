@@ -120,16 +120,20 @@ def draw_target_section(ax, state, targets, frame: PlateFrame, *, cut: str) -> N
                        linestyles=ls, linewidths=lw)
         _section_lines(ax, pts, tum, frame, through, normal, axes_of, colors=TUMOUR,
                        linestyles=ls, linewidths=lw * 0.8)
-    from regtrack.mechanics.pictures import plate_outline
+    from regtrack.mechanics.pictures import plate_opening, plate_outline
 
     lo, hi = ax.dataLim.intervalx if ax.dataLim.width > 0 else (-50.0, 50.0)
     for name, h in frame.h.items():
         if cut == "axial":  # the plate face with its rounded chest-wall edge
-            line = plate_outline(frame.plates[name], frame.e_x, frame.n, hi + 10)
+            line = plate_outline(frame.plates[name], frame.e_x, frame.n, hi + 10, opening=True)
             line[:, 0] -= frame.origin @ frame.e_x
             line[:, 1] -= frame.origin @ frame.n
         else:  # the plates extend beyond the breast along e_down
             line = np.array([[lo - 10, h], [hi + 10, h]])
+            gap = plate_opening(frame.plates[name], frame.e_down)
+            if gap is not None:  # the section crosses the opening
+                g0, g1 = (v - frame.origin @ frame.e_down for v in gap)
+                line = np.array([[lo - 10, h], [g0, h], [np.nan, np.nan], [g1, h], [hi + 10, h]])
         ax.plot(*line.T, color=PLATE, lw=2.2, solid_capstyle="butt")
         ax.text(hi + 10, h, f"{PLATE_NAMES.get(name, name)} plate ", fontsize=6.5,
                 color=PLATE, va="top" if name == "lower" else "bottom", ha="right")
@@ -222,6 +226,18 @@ def _frame_of(state) -> tuple[dict, list[dict]]:
     return doc["plate_frame"], doc["steps"]
 
 
+def opening_line(frame: PlateFrame, name: str) -> str:
+    """One line locating a plate's opening (the grid's compression window) in the plate frame."""
+    from regtrack.mechanics.pictures import plate_opening
+
+    (s0, s1), (t0, t1) = ((lo - frame.origin @ ax, hi - frame.origin @ ax) for ax in
+                          (frame.e_x, frame.e_down)
+                          for lo, hi in [plate_opening(frame.plates[name], ax)])
+    return (f"Opening in the {PLATE_NAMES.get(name, name)} plate: {num(s1 - s0, 0)} x "
+            f"{num(t1 - t0, 0)} mm, s {num(s0, 1)} to {num(s1, 1)} mm, t {num(t0, 1)} to "
+            f"{num(t1, 1)} mm (the skin over it is free)")
+
+
 def target_page(state, mapped, case_id: str) -> Callable:
     """The drawing function of the target page (see the module docstring)."""
     frame_doc, steps = _frame_of(state)
@@ -244,14 +260,16 @@ def target_page(state, mapped, case_id: str) -> Callable:
                  "Frame: plate frame (s along e_x, chest wall → nipple; t along e_down; depth "
                  "from the lateral plate face along the plate normal) and patient LPS (the "
                  "MRI's frame of reference)."]
+        lines += [opening_line(frame, name) for name in frame.plates
+                  if frame.plates[name].get("window_mm")]
         import textwrap
 
         body = [w for ln in lines for w in textwrap.wrap(ln, 120)]
         fig.text(0.05, 0.94, "\n".join(body), fontsize=8, color="0.25", va="top",
                  linespacing=1.5)
         if targets:
-            ax0 = fig.add_axes([0.08, 0.47, 0.4, 0.4])
-            ax1 = fig.add_axes([0.57, 0.47, 0.4, 0.4])
+            ax0 = fig.add_axes([0.08, 0.47, 0.4, 0.38])
+            ax1 = fig.add_axes([0.57, 0.47, 0.4, 0.38])
             draw_target_section(ax0, state, targets, frame, cut="axial")
             draw_target_section(ax1, state, targets, frame, cut="coronal")
             section_legend(fig, y=0.435, sigma=any(t[3] is not None for t in targets))

@@ -14,7 +14,6 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from regtrack.errors import TrackingError
-from regtrack.model.types import TUMOUR
 from regtrack.tracking.cc_to_mlo import (ContourPrediction, SegmentPrediction, most_likely,
                                          track_view_contour, track_view_point)
 from regtrack.tracking.mri_to_view import (MriTrack, track_mri_point, track_points_region,
@@ -77,18 +76,6 @@ def parse_label(label: str) -> tuple[str, int]:
     raise TrackingError(f"--label {label!r}: use 'tumour' (every tumour of the model), "
                         "'tumour:K' (the K-th, K >= 1) or an integer label value of the MRI "
                         "label map (e.g. -3)")
-
-
-def tumour_centroids(model) -> dict[int, np.ndarray]:
-    """Mass centroid (model frame, reference configuration, mm) of each tumour id."""
-    out = {}
-    sel = model.region == TUMOUR
-    vol = np.abs(model.tet_volumes())
-    ids = np.where(sel & (model.tumour_id <= 0), 1, model.tumour_id)
-    for k in np.unique(ids[sel]):
-        m = sel & (ids == k)
-        out[int(k)] = (vol[m] @ model.points[model.tets[m]].mean(axis=1)) / vol[m].sum()
-    return out
 
 
 def _label_points(session, value: int) -> np.ndarray:
@@ -154,7 +141,7 @@ def track_case(session, *, mri_point=None, label: str | None = None,
             res.mri = track_points_region(model, session.views, _label_points(session, value),
                                           description=f"MRI label {value} (voxel centres)",
                                           config=cfg, truth=truth)
-    lesions = tumour_centroids(model)
+    lesions = model.tumour_centroids()
     for src_name, point in (view_points or {}).items():
         src = session.view(src_name)
         dst = session.view(OTHER[src.view])
