@@ -15,7 +15,7 @@ import pytest
 
 from regtrack.cli import main
 from regtrack.errors import ConfigError
-from regtrack.study.calibrate import calibrate
+from regtrack.study.calibrate import calibrate, to_json
 from tests._study_fakes import make_case
 
 FAKE = "fake"  # registered by tests._study_fakes
@@ -90,3 +90,78 @@ def test_sensitivity_survives_failed_neighbour_runs():
     none = slope(ev(0.9, nan), ev(1.0, 80.0), ev(1.1, nan), "c1")
     assert math.isnan(none["dS_dparam"]) and none["method"].startswith("not available")
     assert "0.9, 1.1" in none["method"]
+
+
+class _FakeSurrogate:
+    """Stands for a fitted surrogate of one view: its names, box and validation record."""
+
+    def __init__(self, view):
+        self.names = ("c1", "nu", "target_D")
+        self.lower, self.upper = (0.2, 0.45, 0.2), (3.0, 0.49, 0.6)
+        self.meta = {"validation": {"view": view, "held_out": {"pooled": {"median_mm": 0.2}}}}
+
+
+def _fake_surrogate_pipeline(monkeypatch, calls):
+    """The surrogate path's pipeline replaced by the fake metrics plus a known surrogate
+    error of 0.3 sin(5 c1) score points, so the search lands near, not at, the optimum."""
+    import regtrack.case
+    import regtrack.surrogate.evaluate as ev
+    from tests._study_fakes import metrics
+
+    class Pipe:
+        def __init__(self, case, surrogates, **kw):
+            self.views = tuple(surrogates)
+
+        def rows(self, point, D):
+            calls.append(point)
+            out = []
+            for v in self.views:
+                m = metrics(point["c1"], point["nu"], target_d=D[v])
+                err = 0.3 * math.sin(5 * point["c1"])
+                out.append({"view": v, **m, "BS_Av": m["BS_Av"] + err, "TS_Av": m["TS_Av"] + err})
+            return out
+
+    monkeypatch.setattr(ev, "SurrogatePipeline", Pipe)
+    monkeypatch.setattr(regtrack.case, "load_case", lambda d: d)
+
+
+def test_surrogate_search_replaces_the_grid_and_full_runs_confirm_it(tmp_path, monkeypatch):
+    """With surrogates the grid's 16 full runs become one at the centre of the box, one at
+    the surrogate's optimum, the local optimiser's and the sensitivity's: the same optimum
+    as the grid calibration (c1 0.8 kPa to 1 %, nu 0.47 to 1e-3, as above) from fewer full
+    runs, every reported score from a full run, and the record says what the surrogate did:
+    its optimum, its score error there, and uncertainty intervals holding the optimum."""
+    calls = []
+    _fake_surrogate_pipeline(monkeypatch, calls)
+    case = make_case(tmp_path, "A")
+    kw = dict(bounds={"c1": (0.2, 3.0), "nu": (0.45, 0.49)}, runner=FAKE, workers=1,
+              progress=False, max_evals=40)
+    grid = calibrate(case, cache_dir=tmp_path / "cache-grid", **kw)
+    res = calibrate(case, cache_dir=tmp_path / "cache-sur",
+                    surrogates={"CC": _FakeSurrogate("CC")}, **kw)
+    assert res.optimum.params["c1"] == pytest.approx(0.8, rel=0.01)
+    assert res.optimum.params["nu"] == pytest.approx(0.47, abs=1e-3)
+    assert res.computed < grid.computed and len(res.grid) == 1
+    assert not any(r.get("surrogate") for r in res.optimum.rows)  # a full run's rows
+    su = res.surrogate
+    assert su["evaluations"] == len(calls) > 50
+    assert su["score_error"] == pytest.approx(abs(su["score_surrogate"] - su["score_full"]))
+    for n, star in (("c1", 0.8), ("nu", 0.47)):
+        lo, hi = su["interval"][n]
+        assert lo <= star <= hi
+    # D from the full run at the box's centre (c1 = sqrt(0.2 x 3.0) kPa, to 4 digits)
+    assert json.loads(json.dumps(to_json(res)))["surrogate"]["D"] == {"CC": pytest.approx(
+        0.45 - 0.1 * math.log(math.sqrt(0.2 * 3.0) / 0.54), rel=1e-4)}
+
+
+@pytest.mark.parametrize("bounds, fixed, match", [
+    ({"c1": (0.2, 3.0)}, {}, "the surrogate takes c1, nu; calibrate or --fix exactly those"),
+    ({"c1": (0.1, 3.0), "nu": (0.45, 0.49)}, {}, r"--c1 0.1 3: outside the CC surrogate's range"),
+    ({"c1": (0.2, 3.0), "nu": (0.45, 0.49)}, {"friction": 0.2}, "calibrate or --fix exactly"),
+])
+def test_a_surrogate_that_does_not_fit_the_calibration_is_refused_before_any_run(
+        tmp_path, bounds, fixed, match):
+    with pytest.raises(ConfigError, match=match):
+        calibrate(make_case(tmp_path, "A"), bounds=bounds, fixed=fixed, runner=FAKE,
+                  cache_dir=tmp_path / "c", progress=False, surrogates={"CC": _FakeSurrogate("CC")})
+    assert not (tmp_path / "c").exists()

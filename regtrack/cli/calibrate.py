@@ -40,6 +40,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--runner", help="name of a registered runner (default: pipeline; "
                         "packages add runners through the 'regtrack.study_runners' entry "
                         "points)")
+    parser.add_argument("--surrogate", nargs="+", metavar="DIR",
+                        help="surrogate folders (`regtrack surrogate build`, one per view): a "
+                        "global search on them replaces the grid; every reported number is "
+                        "still from a full run")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
@@ -74,6 +78,19 @@ def run(args: argparse.Namespace) -> int:
         bounds["friction"] = tuple(args.friction)
     for name in fixed:
         bounds.pop(name, None)
+    surrogates = None
+    if args.surrogate:
+        from regtrack.surrogate import Surrogate
+
+        surrogates = {}
+        for folder in args.surrogate:
+            sur = Surrogate.load(folder)
+            view = str((sur.meta.get("validation") or {}).get("view", "")).upper()
+            if view not in ("CC", "MLO") or view in surrogates:
+                raise ConfigError(f"calibrate --surrogate {folder}: "
+                                  + (f"a second surrogate of {view}; give one per view" if view in surrogates
+                                     else "no view recorded; rebuild it with `regtrack surrogate build`"))
+            surrogates[view] = sur
     case = Path(args.case)
     # outside the case folder: the run keys hash the case folder's content
     out = Path(args.out) if args.out else case.resolve().parent / f"{case.resolve().name}_calibration"
@@ -82,7 +99,7 @@ def run(args: argparse.Namespace) -> int:
                     d_range=tuple(args.d_range), objective=args.objective, grid=args.grid,
                     max_evals=args.max_evals, runner=args.runner or DEFAULT_RUNNER,
                     cache_dir=cache, scheduler=args.scheduler, workers=args.workers,
-                    progress=not args.no_progress)
+                    progress=not args.no_progress, surrogates=surrogates)
     _io.write_json(out / "calibration.json", to_json(res))
     _io.save_figure(plots.calibration_figure(res), out / "calibration.png")
     opt = res.optimum
@@ -93,5 +110,11 @@ def run(args: argparse.Namespace) -> int:
     for name, s in res.sensitivity.items():
         log.info("sensitivity %s: dS/d%s = %.3g %% per unit (%s), grid spread %.2f %%", name, name,
                  s["dS_dparam"], s["method"], s["grid_spread"])
+    if res.surrogate is not None:
+        su = res.surrogate
+        log.info("surrogate search: %d evaluations, S %.2f %% predicted, %.2f %% simulated "
+                 "at its optimum; uncertainty %s", su["evaluations"], su["score_surrogate"],
+                 su["score_full"], ", ".join(f"{k} {lo:.4g} to {hi:.4g}"
+                                              for k, (lo, hi) in su["interval"].items()))
     log.info("%d runs computed, %d cached; results in %s", res.computed, res.cached, out)
     return 0 if res.feasible else 5

@@ -18,6 +18,22 @@ module automates that choice:
   step, and the spread ``max S - min S`` along each parameter's grid line through the best
   grid point.
 
+With per-view surrogates (``regtrack calibrate --surrogate DIR``, :mod:`regtrack.surrogate`;
+issue 56, after Han et al. 2012) the grid is replaced by a global search on the surrogates:
+
+1. one full run at the centre of the box gives each view's D (the DICOM's thickness or the
+   protocol's target sets it; the surrogates take D as a parameter);
+2. differential evolution (:func:`regtrack.surrogate.identify.identify`, seeded) on ``f``
+   with the rows of :class:`regtrack.surrogate.evaluate.SurrogatePipeline`: the
+   predicted compressions run through the same projection, registration and metrics;
+3. a full run at the surrogate's optimum; the surrogate's score error there,
+   ``|S_sur - S_full|`` (at least 0.1 points), is what the surrogate cannot resolve: the
+   profile interval of each parameter at that tolerance is the optimum's uncertainty;
+4. the bounded local optimiser with full runs, started at that run in a box of the
+   interval's half-width (at least 2 % and at most one grid step of the range), and the
+   sensitivity by full runs, as without a surrogate.  Every number reported is from a full
+   run; the surrogate only chose where to look, and the result says so.
+
 Parameter values are rounded to 4 significant digits before a run, so the optimiser's
 nearby points and every later calibration re-use cached runs.
 """
@@ -38,13 +54,15 @@ from regtrack.study.engine import Engine
 from regtrack.study.params import check_value
 from regtrack.study.runner import FAILED, RunSpec, make_run
 from regtrack.study.spec import DEFAULT_RUNNER, CaseRef, case_id_of
+from regtrack.surrogate.identify import LOG_PARAMS
+from regtrack.surrogate.identify import from_unit as _from_unit
+from regtrack.surrogate.identify import to_unit as _to_unit
 
 log = logging.getLogger(__name__)
 
 OBJECTIVES = ("mean", "BS_Av", "TS_Av")
 PENALTY = 1000.0  # objective points per unit of D outside the range
 FAILED_VALUE = 1e6
-LOG_PARAMS = ("c1",)
 
 
 @dataclass
@@ -74,6 +92,7 @@ class CalibrationResult:
     objective: str
     computed: int = 0
     cached: int = 0
+    surrogate: dict | None = None
 
     @property
     def feasible(self) -> bool:
@@ -167,23 +186,12 @@ class _Problem:
         return [self.memo[tuple(sorted(p.items()))] for p in points]
 
 
-def _to_unit(name: str, v: float, lo: float, hi: float) -> float:
-    if name in LOG_PARAMS:
-        return (math.log(v) - math.log(lo)) / (math.log(hi) - math.log(lo))
-    return (v - lo) / (hi - lo)
-
-
-def _from_unit(name: str, t: float, lo: float, hi: float) -> float:
-    t = min(1.0, max(0.0, t))
-    if name in LOG_PARAMS:
-        return math.exp(math.log(lo) + t * (math.log(hi) - math.log(lo)))
-    return lo + t * (hi - lo)
-
-
 def _local_search(prob: _Problem, start: Evaluation, bounds: dict, grid: int,
-                  max_evals: int) -> list[Evaluation]:
+                  max_evals: int, step: float | None = None) -> list[Evaluation]:
+    """Bounded local optimiser from ``start`` within ``step`` (unit coordinates; default
+    one grid step) of it in each parameter."""
     names = list(bounds)
-    step = 1.0 / (grid - 1)
+    step = 1.0 / (grid - 1) if step is None else step
     t0 = np.array([_to_unit(n, start.params[n], *bounds[n]) for n in names])
     box = [(max(0.0, t - step), min(1.0, t + step)) for t in t0]
     path: list[Evaluation] = []
@@ -197,12 +205,13 @@ def _local_search(prob: _Problem, start: Evaluation, bounds: dict, grid: int,
 
     if len(names) == 1:
         optimize.minimize_scalar(f, bounds=box[0], method="bounded",
-                                 options={"xatol": step / 100, "maxiter": max_evals})
+                                 options={"xatol": 1 / (grid - 1) / 100, "maxiter": max_evals})
     else:
         simplex = [t0] + [np.clip(t0 + np.eye(len(names))[i] * step / 2 * (1 if t0[i] < 0.5 else -1),
                                   0, 1) for i in range(len(names))]
         optimize.minimize(f, t0, method="Nelder-Mead", bounds=box,
-                          options={"initial_simplex": np.array(simplex), "xatol": step / 100,
+                          options={"initial_simplex": np.array(simplex),
+                                   "xatol": 1 / (grid - 1) / 100,
                                    "fatol": 1e-3, "maxfev": max_evals})
     return path
 
@@ -245,12 +254,86 @@ def slope(ea: Evaluation, best: Evaluation, eb: Evaluation, name: str) -> dict:
     return {"dS_dparam": (hi.score - lo.score) / step, "step": step, "method": how}
 
 
+def _check_surrogates(surrogates: dict, bounds: dict, fixed: dict, views) -> None:
+    """One line before any run: every view has a surrogate that takes exactly the
+    calibrated and fixed parameters (and D), and whose box holds the calibrated ranges."""
+    problems = []
+    for v in views:
+        sur = surrogates.get(v)
+        if sur is None:
+            problems.append(f"calibrate --surrogate: none of the surrogates is of view {v}; "
+                            f"build one with `regtrack surrogate build CASE --view {v.lower()}`")
+            continue
+        need = set(sur.names) - {"target_D"}
+        given = set(bounds) | set(fixed)
+        if need != given:
+            problems.append(f"calibrate --surrogate ({v}): the surrogate takes "
+                            f"{', '.join(sorted(need))}; calibrate or --fix exactly those "
+                            f"(got {', '.join(sorted(given)) or 'none'})")
+            continue
+        for n, (lo, hi) in bounds.items():
+            i = sur.names.index(n)
+            if lo < sur.lower[i] - 1e-12 or hi > sur.upper[i] + 1e-12:
+                problems.append(f"calibrate --{n} {lo:g} {hi:g}: outside the {v} surrogate's "
+                                f"range {sur.lower[i]:g} to {sur.upper[i]:g}; narrow it or "
+                                "rebuild the surrogate")
+    if problems:
+        raise ConfigError("; ".join(problems))
+
+
+def _surrogate_search(prob: _Problem, surrogates: dict, bounds: dict, grid: int
+                      ) -> tuple[Evaluation, dict, float]:
+    """Steps 1-3 of the module docstring: the full run at the surrogate's optimum, the
+    surrogate's record (its optimum, the score error there, the profile intervals) and
+    the local search's step (unit coordinates)."""
+    from regtrack.case import load_case
+    from regtrack.surrogate.evaluate import SurrogatePipeline
+    from regtrack.surrogate.identify import identify, profile
+
+    centre = {n: _from_unit(n, 0.5, *b) for n, b in bounds.items()}
+    first = prob.run([centre], label="calibrate: centre run (D of each view)")[0]
+    if first.error is not None:
+        raise ConfigError(f"{prob.case.case_dir}: the full run at the centre of the box "
+                          f"failed ({first.error}); run 'regtrack study' on the case to see why")
+    D = {r["view"]: float(r["D"]) for r in first.rows}
+    pipe = SurrogatePipeline(load_case(prob.case.case_dir), {v: surrogates[v] for v in prob.views},
+                             cache_dir=prob.cache_dir)
+    evals = [0]
+
+    def f(point: dict) -> float:
+        evals[0] += 1
+        rows = pipe.rows({**{k: v for k, v in prob.fixed.items()}, **point}, D)
+        return evaluate({"status": "ok", "rows": rows}, point, objective=prob.objective,
+                        d_range=prob.d_range).f
+
+    log.info("calibrate: global search on the surrogates of %s", ", ".join(prob.views))
+    ident = identify(f, bounds, tolerance=None, popsize=8, maxiter=12, polish=False)
+    opt = {n: _round(v) for n, v in ident.params.items()}
+    full = prob.run([opt], label="calibrate: full run at the surrogate's optimum")[0]
+    s_sur = -ident.value
+    tol = max(abs(s_sur - full.score), 0.1) if math.isfinite(full.score) else 0.1
+    profile(f, ident, bounds, tolerance=tol)
+    half = max(abs(_to_unit(n, ident.interval[n][1], *bounds[n])
+                   - _to_unit(n, ident.interval[n][0], *bounds[n])) / 2 for n in bounds)
+    step = min(max(half, 0.02), 1.0 / (grid - 1))
+    info = {"views": {v: (surrogates[v].meta.get("validation") or {}).get("held_out", {}).get("pooled")
+                      for v in prob.views},
+            "D": D, "optimum": ident.params, "score_surrogate": s_sur,
+            "score_full": full.score, "score_error": abs(s_sur - full.score),
+            "interval": {k: list(v) for k, v in ident.interval.items()},
+            "sensitivity": ident.sensitivity, "tolerance": tol,
+            "evaluations": evals[0], "local_step": step}
+    log.info("calibrate: surrogate optimum %s, S = %.2f %% (full run %.2f %%)", opt, s_sur,
+             full.score)
+    return full, info, step
+
+
 def calibrate(case_dir: str | Path, *, bounds: dict[str, tuple[float, float]],
               fixed: dict | None = None, views: tuple[str, ...] = ("CC",),
               d_range: tuple[float, float] = (0.2, 0.6), objective: str = "mean",
               grid: int = 4, max_evals: int = 25, runner: str = DEFAULT_RUNNER,
               cache_dir: str | Path, scheduler: str | None = None, workers: int = 0,
-              progress: bool = True) -> CalibrationResult:
+              progress: bool = True, surrogates: dict | None = None) -> CalibrationResult:
     """Find the parameters maximising the indicators with D in ``d_range``.
 
     Parameters
@@ -269,6 +352,9 @@ def calibrate(case_dir: str | Path, *, bounds: dict[str, tuple[float, float]],
         Grid values per parameter (>= 2); ``grid ** len(bounds)`` runs.
     max_evals : int
         Most runs of the local optimiser.
+    surrogates : dict, optional
+        View -> :class:`~regtrack.surrogate.model.Surrogate` of every calibrated view: the
+        grid is replaced by the global search on them (module docstring).
     """
     fixed = dict(fixed or {})
     _check_bounds(bounds, fixed)
@@ -281,18 +367,26 @@ def calibrate(case_dir: str | Path, *, bounds: dict[str, tuple[float, float]],
     if not (case_dir / "case.toml").is_file():
         raise ConfigError(f"{case_dir}: not a case folder (no case.toml); give a case folder")
     case = CaseRef(case_dir, case_id_of(case_dir))
+    if surrogates:
+        _check_surrogates(surrogates, bounds, fixed, views)
+    sur_info = None
     with Engine(runner=runner, cache_dir=Path(cache_dir), scheduler=scheduler, workers=workers,
                 progress=progress) as engine:
         prob = _Problem(engine, case, fixed=fixed, views=views, runner=runner,
                         cache_dir=cache_dir, objective=objective, d_range=d_range)
-        axes = {n: grid_values(n, lo, hi, grid) for n, (lo, hi) in bounds.items()}
-        points = [dict(zip(axes, combo)) for combo in itertools.product(*axes.values())]
-        grid_evals = prob.run(points, label="calibrate: grid")
-        best_grid = min(grid_evals, key=lambda e: e.f)
+        step = None
+        if surrogates:
+            best_grid, sur_info, step = _surrogate_search(prob, surrogates, bounds, grid)
+            grid_evals = [best_grid]
+        else:
+            axes = {n: grid_values(n, lo, hi, grid) for n, (lo, hi) in bounds.items()}
+            points = [dict(zip(axes, combo)) for combo in itertools.product(*axes.values())]
+            grid_evals = prob.run(points, label="calibrate: grid")
+            best_grid = min(grid_evals, key=lambda e: e.f)
         if best_grid.f >= FAILED_VALUE:
             raise ConfigError(f"{case_dir}: every grid run failed ({best_grid.error}); run "
                               "'regtrack study' on the case to see why")
-        path = _local_search(prob, best_grid, bounds, grid, max_evals)
+        path = _local_search(prob, best_grid, bounds, grid, max_evals, step)
         best = min([best_grid, *path], key=lambda e: e.f)
         sens = _sensitivity(prob, best, best_grid, grid_evals, bounds, grid)
     log.info("calibration of %s: %s S = %.2f %% (violation %.3g); %d runs computed, %d cached",
@@ -300,7 +394,7 @@ def calibrate(case_dir: str | Path, *, bounds: dict[str, tuple[float, float]],
     return CalibrationResult(case_id=case.case_id, optimum=best, best_grid=best_grid,
                              grid=grid_evals, path=path, sensitivity=sens, bounds=dict(bounds),
                              d_range=tuple(d_range), objective=objective,
-                             computed=prob.computed, cached=prob.cached)
+                             computed=prob.computed, cached=prob.cached, surrogate=sur_info)
 
 
 def to_json(result: CalibrationResult) -> dict:
@@ -320,4 +414,6 @@ def to_json(result: CalibrationResult) -> dict:
             "sensitivity": {k: {kk: num(vv) for kk, vv in s.items()}
                             for k, s in result.sensitivity.items()},
             "grid": [ev(e) for e in result.grid], "path": [ev(e) for e in result.path],
-            "runs_computed": result.computed, "runs_cached": result.cached}
+            "runs_computed": result.computed, "runs_cached": result.cached,
+            "surrogate": None if result.surrogate is None else {
+                k: (num(v) if isinstance(v, float) else v) for k, v in result.surrogate.items()}}

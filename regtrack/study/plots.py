@@ -194,11 +194,25 @@ def calibration_figure(result) -> Figure:
             ax.xaxis.set_major_formatter(FormatStrFormatter("%g"))
             ax.xaxis.set_minor_formatter(NullFormatter())
     del feas
+    su = getattr(result, "surrogate", None)
+    if su:  # where the surrogate's search cannot tell the scores apart
+        iv = su["interval"]
+        if len(names) == 1:
+            ax.axvspan(*iv[names[0]], color="C1", alpha=0.15,
+                       label=f"surrogate uncertainty (S within {su['tolerance']:.2g} %)")
+        else:
+            from matplotlib.patches import Rectangle
+
+            (a0, a1), (b0, b1) = iv[names[0]], iv[names[1]]
+            ax.add_patch(Rectangle((a0, b0), a1 - a0, b1 - b0, fill=False, ec="C1", lw=1.5,
+                                   label=f"surrogate uncertainty (S within {su['tolerance']:.2g} %)"))
     ax.legend(fontsize=8)
     ax.grid(alpha=0.3)
     lo, hi = result.d_range
     ax.set_title(f"calibration of {result.case_id}: " + ", ".join(
-        f"{k} = {v:g}" for k, v in opt.params.items()) + f"  (D in [{lo:g}, {hi:g}])", fontsize=9)
+        f"{k} = {v:g}" for k, v in opt.params.items()) + f"  (D in [{lo:g}, {hi:g}])"
+        + ("\nglobal search on the surrogate, every S from a full simulation" if su else ""),
+        fontsize=9)
     return fig
 
 

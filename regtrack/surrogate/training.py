@@ -5,7 +5,9 @@ Each design point becomes the case's overrides (:func:`regtrack.study.params.app
 ``target_D`` of the view, ``friction``) and is simulated by the pipeline's own stages
 (:func:`regtrack.pipeline.stages.mesh_stage`, :func:`~regtrack.pipeline.stages.simulate_stage`),
 so the mesh is built once and every simulation lands in (or is read from) the stage cache
-that ``regtrack run`` and ``regtrack study`` share.  The displacement of a run is its
+that ``regtrack run`` and ``regtrack study`` share.  A view with a mammogram takes the
+DICOM's geometry as ``regtrack run`` does (:func:`regtrack.pipeline.geometry.apply_geometry`:
+the MLO angle; a design's ``target_D`` wins over the DICOM's thickness).  The displacement of a run is its
 deformed positions minus the model's nodes (mm).
 
 The study engine (:mod:`regtrack.study.engine`) is not used: its runners return one flat row
@@ -49,6 +51,7 @@ def simulate_points(case: Any, view: str, names: tuple[str, ...], points: np.nda
     is recorded in ``failed`` and skipped."""
     from regtrack.case import resolve_configs
     from regtrack.pipeline import stages
+    from regtrack.pipeline.geometry import apply_geometry
     from regtrack.pipeline.run import open_run
     from regtrack.study.params import apply_point
 
@@ -64,6 +67,8 @@ def simulate_points(case: Any, view: str, names: tuple[str, ...], points: np.nda
         say(f"simulation {i + 1}/{len(points)}: {text}")
         configs = resolve_configs(case, apply_point(base, point, views=(view,)))
         run_ctx = open_run(case, configs, cache_dir=cache_dir)
+        if view in case.views:  # the DICOM's MLO angle (and projection), as `regtrack run`
+            apply_geometry(run_ctx, mesh.model, (view,))
         t0 = time.perf_counter()
         try:
             sim = stages.simulate_stage(run_ctx, mesh, view)

@@ -1,0 +1,153 @@
+"""Inverse identification of tissue parameters on a surrogate (Han et al. 2012).
+
+Han et al. identify the hyperelastic parameters by minimising the distance between
+simulated and measured landmark displacements with a hybrid global search (simulated
+annealing) finished by a local optimiser, a fast solver being the forward model.  Here the
+forward model is a :class:`~regtrack.surrogate.model.Surrogate` (a prediction costs about
+a millisecond), and the search is :func:`scipy.optimize.differential_evolution`: a
+population-based global search over the box, seeded (so the same data give the same
+answer on any machine), finished by its L-BFGS-B polish.  Parameters are searched in unit
+coordinates, logarithmic for ``c1`` (a stiffness: its effect scales with its ratio) and
+linear otherwise.
+
+Two objectives use it:
+
+* :func:`landmark_misfit`, Han's: the root-mean-square distance (mm) between predicted and
+  observed displacements of ``M`` landmark nodes,
+  :math:`J(p) = \\sqrt{\\tfrac{1}{M} \\sum_i \\lVert \\hat u_i(p) - u_i^{obs} \\rVert^2}`;
+* the calibration on real mammograms (:mod:`regtrack.study.calibrate` with a surrogate),
+  whose objective is the registration score.
+
+What is reported besides the optimum (:class:`Identification`):
+
+* **sensitivity**: central differences of the objective, ``dJ/dp`` per unit of each
+  parameter, at the optimum (step 1 % of the box);
+* **uncertainty**: for each parameter, the interval over which the objective stays within
+  ``tolerance`` of its optimum, the others held at the optimum (a conditional profile on
+  a 41-point scan of the box).  ``tolerance`` is what the objective cannot resolve: for a
+  landmark fit the surrogate's own error at the landmarks plus the measurement error.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy import optimize
+
+LOG_PARAMS = ("c1",)
+
+
+def to_unit(name: str, v: float, lo: float, hi: float) -> float:
+    """Parameter value -> [0, 1] over ``[lo, hi]`` (logarithmic for :data:`LOG_PARAMS`)."""
+    if name in LOG_PARAMS:
+        return (math.log(v) - math.log(lo)) / (math.log(hi) - math.log(lo))
+    return (v - lo) / (hi - lo)
+
+
+def from_unit(name: str, t: float, lo: float, hi: float) -> float:
+    """Inverse of :func:`to_unit`, with ``t`` clipped to [0, 1]."""
+    t = min(1.0, max(0.0, float(t)))
+    if name in LOG_PARAMS:
+        return math.exp(math.log(lo) + t * (math.log(hi) - math.log(lo)))
+    return lo + t * (hi - lo)
+
+
+@dataclass
+class Identification:
+    """Result of :func:`identify`.
+
+    Attributes
+    ----------
+    params : dict
+        The optimum (parameter name -> value, their units).
+    value : float
+        The objective there.
+    evaluations : int
+        Objective evaluations of the search.
+    sensitivity : dict
+        Name -> ``dJ/dp`` (objective units per parameter unit) at the optimum.
+    interval : dict
+        Name -> ``(low, high)``: where the objective stays within ``tolerance`` of the
+        optimum, the other parameters held there.
+    tolerance : float
+        The objective change the interval is drawn at.
+    """
+
+    params: dict
+    value: float
+    evaluations: int
+    sensitivity: dict = field(default_factory=dict)
+    interval: dict = field(default_factory=dict)
+    tolerance: float = 0.0
+
+    def to_dict(self) -> dict:
+        return {"params": self.params, "value": self.value, "evaluations": self.evaluations,
+                "sensitivity": self.sensitivity,
+                "interval": {k: list(v) for k, v in self.interval.items()},
+                "tolerance": self.tolerance}
+
+
+def identify(objective: Callable[[dict], float], bounds: Mapping[str, tuple[float, float]], *,
+             tolerance: float | None, seed: int = 0, popsize: int = 15, maxiter: int = 100,
+             polish: bool = True) -> Identification:
+    """Minimise ``objective(params)`` over the box ``bounds`` (name -> (low, high)).
+
+    Differential evolution (``popsize`` x dimensions members, at most ``maxiter``
+    generations, seeded) then, with ``polish``, L-BFGS-B from its best member; then the
+    sensitivity and the profile intervals at ``tolerance`` (see the module docstring; None
+    leaves them to a later :func:`profile`, when the tolerance is known only after a check).
+    """
+    names = list(bounds)
+    count = [0]
+
+    def point(t) -> dict:
+        return {n: from_unit(n, ti, *bounds[n]) for n, ti in zip(names, np.atleast_1d(t))}
+
+    def f(t) -> float:
+        count[0] += 1
+        return float(objective(point(t)))
+
+    res = optimize.differential_evolution(f, [(0.0, 1.0)] * len(names), seed=seed,
+                                          popsize=popsize, maxiter=maxiter, tol=1e-8,
+                                          polish=polish, updating="deferred")
+    best = point(res.x)
+    out = Identification(best, float(res.fun), count[0])
+    if tolerance is not None:
+        profile(objective, out, bounds, tolerance=tolerance)
+    return out
+
+
+def profile(objective: Callable[[dict], float], ident: Identification,
+            bounds: Mapping[str, tuple[float, float]], *, tolerance: float) -> Identification:
+    """Fill ``ident``'s sensitivity (central differences, step 1 % of the box) and its
+    profile intervals at ``tolerance`` (41-point scans of each parameter, the others at
+    the optimum); returns ``ident``."""
+    best, value = ident.params, ident.value
+    for n, (lo, hi) in bounds.items():
+        h = 0.01 * (hi - lo)
+        a, b = max(lo, best[n] - h), min(hi, best[n] + h)
+        ident.sensitivity[n] = (objective({**best, n: b}) - objective({**best, n: a})) / (b - a)
+        ok = [float(v) for v in np.linspace(lo, hi, 41)
+              if objective({**best, n: float(v)}) <= value + tolerance]
+        ok.append(best[n])
+        ident.interval[n] = (min(ok), max(ok))
+    ident.tolerance = float(tolerance)
+    return ident
+
+
+def landmark_misfit(surrogate, nodes: Sequence[int], observed: np.ndarray, *,
+                    fixed: Mapping[str, float] | None = None) -> Callable[[dict], float]:
+    """Han's objective: RMS distance (mm) between the surrogate's displacements of the
+    landmark ``nodes`` and the ``observed`` ones ``(M, 3)`` (mm).  Parameters of the
+    surrogate not searched come from ``fixed``."""
+    nodes = np.asarray(nodes, int)
+    obs = np.asarray(observed, float).reshape(len(nodes), 3)
+    fixed = dict(fixed or {})
+
+    def J(params: dict) -> float:
+        u = surrogate.predict({**fixed, **params})[nodes]
+        return float(np.sqrt(np.mean(np.sum((u - obs) ** 2, axis=1))))
+    return J
