@@ -46,6 +46,8 @@ CACHE = PIPELINE_CACHE
     (["--view", "biopsy", "--compare-mri", "missing.nii.gz"], r"--compare-mri .*missing\.nii\.gz"),
     (["--view", "biopsy", "--mri-point", "1", "2", "3", "--no-simulate"],
      r"not in the cache .*; drop --no-simulate to compute them now"),
+    (["--view", "biopsy", "--mri-point", "1", "2", "3", "--surrogate", "x"],
+     r"--surrogate gives the --uncertainty terms; add --uncertainty"),
 ])
 def test_bad_track_3d_arguments(tmp_path, capsys, extra, message):
     import re
@@ -169,3 +171,37 @@ def _check_biopsy_report(pdf, state, doc, rows):
         assert {num(fwd.displacement_mm[i], 1), num(fwd.sigma_mm[i], 1)} <= set(texts)
     assert {"26.0", num(doc["compression"]["plate_gap_mm"], 1)} <= set(texts)
     assert "MR-guided biopsy: needle target, case case" in texts
+
+
+def test_uncertainty_terms_from_a_surrogate_are_its_differences():
+    """``--uncertainty --surrogate``: each term is the surrogate's difference added to the
+    full simulation's nodes.  A surrogate whose field is a uniform translation linear in
+    each parameter (a, b, c mm per unit of c1, nu, D; reproduced exactly by the fit) moves
+    every mapped point by exactly that translation: the c1 term is |a| c1 c1_rel_sigma, the
+    nu term |b| nu_sigma, the plate term |c| degree_sigma (1e-9 mm); c1 is the phantom's
+    one composition c1.  Nothing is simulated (a state at the reference shape)."""
+    from regtrack.case import load_case, resolve_configs
+    from regtrack.surrogate import ParameterBox, fit_surrogate
+    from regtrack.tracking.compressed import CompressedState
+    from regtrack.tracking.deformation import DeformationMap
+    from regtrack.tracking.sensitivity import point_sigma, surrogate_point
+    from tests._models import coarse_model
+
+    model = coarse_model(PHANTOM)
+    a, b, c = np.array([1.0, -2.0, 0.5]), np.array([0.0, 30.0, 40.0]), np.array([-8.0, 6.0, 0.0])
+    box = ParameterBox(("c1", "nu", "target_D"), (0.2, 0.45, 0.2), (2.0, 0.49, 0.5))
+    pts = box.sample(6, seed=0)
+    fields = np.array([np.tile(p[0] * a + p[1] * b + p[2] * c, (model.n_nodes, 1)) for p in pts])
+    sur = fit_surrogate(pts, fields, names=box.names, lower=box.lower, upper=box.upper,
+                        meta={"validation": {"view": "CC"}})
+    state = CompressedState(None, "CC", DeformationMap.from_model(model, model.points, view="CC"),
+                            {"D": 0.38}, model)
+    lps = model.frame.to_patient(model.tumour_centroids()[1][None])
+    ps = point_sigma(PHANTOM, state, ["t"], lps, surrogate=sur)
+    cfg = resolve_configs(load_case(PHANTOM, deep=False))
+    c1 = surrogate_point(cfg, state, sur)["c1"]
+    assert ps.sources == {"c1": "surrogate", "nu": "surrogate", "plate": "surrogate"}
+    tr = cfg.tracking
+    np.testing.assert_allclose(ps.terms_mm["c1"], np.linalg.norm(a) * c1 * tr.c1_rel_sigma, rtol=1e-9)
+    np.testing.assert_allclose(ps.terms_mm["nu"], np.linalg.norm(b) * tr.nu_sigma, rtol=1e-9)
+    np.testing.assert_allclose(ps.terms_mm["plate"], np.linalg.norm(c) * tr.degree_sigma, rtol=1e-9)

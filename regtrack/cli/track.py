@@ -72,6 +72,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="1-sigma of each mapped point from c1, nu and the plate position "
                         "([tracking] c1_rel_sigma, nu_sigma, degree_sigma): three more "
                         "simulations (cached)")
+    g.add_argument("--surrogate", metavar="DIR",
+                   help="with --uncertainty: predict the three perturbed compressions with this "
+                        "view's surrogate (`regtrack surrogate build`) instead of simulating "
+                        "them; the points stay the full simulation's")
     g.add_argument("--compare-mri", metavar="LABELS",
                    help="label map of the compressed MRI (the case's label scheme): distance "
                         "of the simulated skin to its breast surface (RMS, p95, mm)")
@@ -219,6 +223,8 @@ def _track_3d(args: argparse.Namespace, console) -> int:
                 args.compare_mri, args.compare_landmarks)):
         raise TrackingError(f"--view {args.view.lower()}: nothing to track; give --mri-point, "
                             "--landmarks, --compressed-point, --warp or --compare-mri")
+    if args.surrogate and not args.uncertainty:
+        raise TrackingError("--surrogate gives the --uncertainty terms; add --uncertainty")
     if args.compare_landmarks and not args.landmarks:
         raise TrackingError("--compare-landmarks needs --landmarks (the same landmarks in "
                             "the MRI)")
@@ -237,6 +243,11 @@ def _track_3d(args: argparse.Namespace, console) -> int:
         from regtrack.tracking.landmarks import read_landmarks
 
         landmarks = read_landmarks(args.landmarks) if args.landmarks else None  # before any work
+        surrogate = None
+        if args.surrogate:
+            from regtrack.surrogate import Surrogate
+
+            surrogate = Surrogate.load(args.surrogate)
         observed = read_landmarks(args.compare_landmarks) if args.compare_landmarks else None
         case = load_case(args.case, deep=False)
         case_id = pseudonymous_id(case.id, found)
@@ -269,9 +280,14 @@ def _track_3d(args: argparse.Namespace, console) -> int:
             for i, m in enumerate(mapped):
                 ps = point_sigma(args.case, state, m.names, m.given_lps_mm,
                                  inverse=m.direction != "mri->compressed", cache_dir=args.cache,
-                                 simulate=not args.no_simulate, progress=progress)
-                mapped[i] = dataclasses.replace(m, sigma_mm=ps.sigma_mm, sigma_terms_mm=ps.terms_mm)
-        paths = write_points(out, state, mapped) if mapped else []
+                                 simulate=not args.no_simulate, progress=progress,
+                                 surrogate=surrogate)
+                mapped[i] = dataclasses.replace(m, sigma_mm=ps.sigma_mm, sigma_terms_mm=ps.terms_mm,
+                                                sigma_sources=ps.sources)
+        sur_doc = None if surrogate is None else {
+            "folder": str(args.surrogate), "used_for": "the uncertainty's c1, nu and plate terms",
+            "validation_held_out": (surrogate.meta.get("validation") or {}).get("held_out", {}).get("pooled")}
+        paths = write_points(out, state, mapped, surrogate=sur_doc) if mapped else []
         if state.view == "BIOPSY" and mapped and not args.no_pdf:
             from regtrack.pipeline.outputs import step_states
             from regtrack.report.biopsy import write_biopsy_report

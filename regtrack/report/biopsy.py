@@ -283,6 +283,9 @@ def target_page(state, mapped, case_id: str) -> Callable:
                 "from c1, ν and the plate position (--uncertainty), else not computed. The "
                 "needle enters perpendicular to the lateral plate at (s, t) and reaches the "
                 "target at the given depth.")
+        if any("surrogate" in (m.sigma_sources or {}).values() for m in mapped):
+            note += (" The 1σ terms are predicted by the per-patient surrogate (points_*.json: "
+                     "its held-out error); the positions are the full simulation's.")
 
         fig.text(0.05, 0.325 - h, "\n".join(textwrap.wrap(note, 140)), fontsize=6.5,
                  color="0.3", va="top")

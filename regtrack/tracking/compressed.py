@@ -104,6 +104,7 @@ class MappedPoints:
     mapped_lps_mm: np.ndarray
     sigma_mm: np.ndarray | None = None  # 1-sigma of the mapped position (.sensitivity)
     sigma_terms_mm: dict | None = None
+    sigma_sources: dict | None = None  # per term: "simulation" or "surrogate"
 
     @property
     def displacement_mm(self) -> np.ndarray:
@@ -122,6 +123,8 @@ class MappedPoints:
                 r["sigma_mm"] = float(self.sigma_mm[i])
                 terms = self.sigma_terms_mm or {}
                 r["sigma_terms_mm"] = {k: float(v[i]) for k, v in terms.items()}
+                if self.sigma_sources:
+                    r["sigma_sources"] = dict(self.sigma_sources)
         return rows
 
 
@@ -133,20 +136,27 @@ def map_points(dmap: DeformationMap, names, lps_mm, *, inverse: bool = False) ->
     return MappedPoints(names, "compressed->mri" if inverse else "mri->compressed", q, out)
 
 
-def write_points(out: Path, state: CompressedState, mapped: list[MappedPoints]) -> list[Path]:
-    """``points_<view>.json`` and ``.csv`` of the mapped points."""
+def write_points(out: Path, state: CompressedState, mapped: list[MappedPoints], *,
+                 surrogate: dict | None = None) -> list[Path]:
+    """``points_<view>.json`` and ``.csv`` of the mapped points; ``surrogate``: the record
+    (folder, validation error) of a surrogate that gave the uncertainty's terms."""
     out.mkdir(parents=True, exist_ok=True)
     stem = f"points_{state.view.lower()}"
     rows = [r for m in mapped for r in m.rows()]
+    how = "1-sigma from c1, nu and the plate position (regtrack.tracking.sensitivity)"
+    if surrogate is not None:
+        how += ("; its terms predicted by the per-patient surrogate (the positions are the "
+                "full simulation's)")
     doc = {"view": state.view, "frame": "patient LPS, mm (the MRI's frame of reference)",
            "compression": {k: state.summary.get(k) for k in ("protocol", "D", "T0_mm",
                                                               "plate_gap_mm", "upper_force_N",
                                                               "lower_force_N",
                                                               "force_imbalance_rel")},
            "stage_keys": state.stage_keys, "points": rows,
-           "uncertainty": ("1-sigma from c1, nu and the plate position (regtrack.tracking."
-                           "sensitivity)" if any("sigma_mm" in r for r in rows)
+           "uncertainty": (how if any("sigma_mm" in r for r in rows)
                            else "not computed (give --uncertainty)")}
+    if surrogate is not None:
+        doc["surrogate"] = surrogate
     js = write_json(out / f"{stem}.json", doc)
     buf = io.StringIO()
     w = csv.writer(buf, lineterminator="\n")
