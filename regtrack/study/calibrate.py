@@ -49,7 +49,7 @@ from pathlib import Path
 import numpy as np
 from scipy import optimize
 
-from regtrack.errors import ConfigError
+from regtrack.errors import ConfigError, RegtrackError
 from regtrack.study.engine import Engine
 from regtrack.study.params import check_value
 from regtrack.study.runner import FAILED, RunSpec, make_run
@@ -302,7 +302,11 @@ def _surrogate_search(prob: _Problem, surrogates: dict, bounds: dict, grid: int
 
     def f(point: dict) -> float:
         evals[0] += 1
-        rows = pipe.rows({**{k: v for k, v in prob.fixed.items()}, **point}, D)
+        try:
+            rows = pipe.rows({**prob.fixed, **point}, D)
+        except RegtrackError as err:  # e.g. no registration of a predicted shape: a bad point
+            log.debug("surrogate point %s: %s", point, err)
+            return FAILED_VALUE
         return evaluate({"status": "ok", "rows": rows}, point, objective=prob.objective,
                         d_range=prob.d_range).f
 

@@ -166,7 +166,7 @@ def lopo_folds(names: list[str]) -> list[tuple[str, list[int], list[int]]]:
     return out
 
 
-def make_regressor(kind: str = "extra", *, n_estimators: int = 60, min_samples_leaf: int = 3,
+def make_regressor(kind: str = "extra", *, n_estimators: int = 40, min_samples_leaf: int = 3,
                    max_features: float = 1.0, n_jobs: int = 1, seed: int = 0):
     """scikit-learn tree ensemble: ``extra`` (ExtraTreesRegressor, Geurts et al. 2006) or
     ``forest`` (RandomForestRegressor, Breiman 2001); multi-output (the 3 components)."""
@@ -192,7 +192,7 @@ class PopulationSurrogate:
 
     view: str
     kind: str = "extra"
-    per_patient: int | None = 3000
+    per_patient: int | None = 1500
     columns: tuple[int, ...] = tuple(range(len(FEATURES)))
     seed: int = 0
     regressor_options: dict = field(default_factory=dict)
