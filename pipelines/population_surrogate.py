@@ -10,9 +10,10 @@ prediction seconds.  Writes ``lopo.csv``, ``lopo.md`` and ``importances.csv`` to
 
 Usage::
 
-    .venv/bin/python pipelines/population_surrogate.py --runs /work/scratch/cohort4/runs \\
-        --views cc mlo --out /work/scratch/popsur
+    .venv/bin/python pipelines/population_surrogate.py --runs COHORT/runs \\
+        --views cc mlo --out reports/population_surrogate
 
+``COHORT`` is the ``--out`` folder of ``pipelines/bench_cohort.py`` run at the defaults.
 Expects ``<runs>/<breast>/out/model.vtu`` and ``<runs>/<breast>/sim_default_<view>/*.vtu``
 (the result files of ``regtrack simulate``); breasts without a result for a view are skipped
 for that view.  Reads only; does not simulate.
@@ -160,10 +161,11 @@ def write(rows: list[dict], imps: dict, errs: dict, out: Path, args) -> None:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--runs", type=Path, default=Path("/work/scratch/cohort4/runs"))
+    ap.add_argument("--runs", type=Path, required=True,
+                    help="the runs/ folder of a pipelines/bench_cohort.py output at the defaults")
     ap.add_argument("--views", nargs="+", default=["cc", "mlo"], choices=["cc", "mlo"])
     ap.add_argument("--sim", default="sim_default", help="result folder prefix (<sim>_<view>)")
-    ap.add_argument("--out", type=Path, default=Path("/work/scratch/popsur"))
+    ap.add_argument("--out", type=Path, default=Path("reports/population_surrogate"))
     ap.add_argument("--regressor", default="extra", choices=REGRESSORS)
     ap.add_argument("--trees", type=int, default=40)
     ap.add_argument("--min-leaf", type=int, default=3)
