@@ -65,14 +65,17 @@ def test_normal_derivative_by_finite_differences(seed):
     # points around the rounded edges, corners and face
     x = np.column_stack([rng.uniform(-12, 50, 200), rng.uniform(-40, 40, 200),
                          rng.uniform(-12, 6, 200)])
+    _check_derivatives(pl, x, h=1e-6, atol_dn=1e-5)
+
+
+def _check_derivatives(pl, x, *, h, atol_dn):
+    """dn/dx of the query against central differences of the normal, and dg/dx = n."""
     q = pl.query(x, curvature=True)
-    h = 1e-6
     for k in range(3):
         dx = np.zeros(3)
         dx[k] = h
         fd = (pl.query(x + dx).normal - pl.query(x - dx).normal) / (2 * h)
-        # skip the few points within h of a seam, where n is only C0 in its derivative
-        np.testing.assert_allclose(q.dn_dx[:, :, k], fd, atol=1e-5)
+        np.testing.assert_allclose(q.dn_dx[:, :, k], fd, atol=atol_dn)
         fg = (pl.query(x + dx).gap - pl.query(x - dx).gap) / (2 * h)
         np.testing.assert_allclose(fg, q.normal[:, k], atol=1e-6)  # dg/dx = n
 
@@ -129,16 +132,8 @@ def test_opening_normal_derivative_by_finite_differences(seed):
     d = np.column_stack([y[:, 0] - 10, 50 - y[:, 0], y[:, 1] + 15, 15 - y[:, 1]])
     srt = np.sort(d, axis=1)
     x = x[(srt[:, 1] - srt[:, 0] > 1e-3) & (np.abs(d).min(axis=1) > 1e-3)]  # off diagonals and sides
-    q = pl.query(x, curvature=True)
     assert (pl._window_side(pl.to_local(x)) >= 0).sum() > 100
-    h = 1e-7
-    for k in range(3):
-        dx = np.zeros(3)
-        dx[k] = h
-        fd = (pl.query(x + dx).normal - pl.query(x - dx).normal) / (2 * h)
-        np.testing.assert_allclose(q.dn_dx[:, :, k], fd, atol=1e-4)
-        fg = (pl.query(x + dx).gap - pl.query(x - dx).gap) / (2 * h)
-        np.testing.assert_allclose(fg, q.normal[:, k], atol=1e-6)
+    _check_derivatives(pl, x, h=1e-7, atol_dn=1e-4)
 
 
 def test_opening_outside_the_face_raises_config_error():
