@@ -335,3 +335,25 @@ def test_the_summary_reports_the_largest_force_imbalance_of_the_steps():
     res = runner.run()
     assert res.complete and not any("balance" in w for s in res.steps for w in s.warnings)
     assert summarise(res)["force_imbalance_rel"] == 0.004
+
+
+def test_biopsy_with_both_plates_moved_is_a_protocol_file():
+    """Issue 55's "lateral fixed, medial moved, or both": a biopsy protocol whose lateral
+    plate, after contact, also travels 3 mm towards the breast (``to = "position"``) before
+    the medial one closes to D = 26 %.  Both plates end where the steps put them: the
+    lateral plate's face 3 mm further along its normal, the gap (1 - D) T0 (by hand)."""
+    table = {"name": "biopsy-both", "view": "BIOPSY", "angle_deg": 90.0,
+             "plates": {"posterior_edge_mm": 5.0},
+             "steps": [{"action": "move_plate", "plate": "lower", "to": "contact"},
+                       {"action": "move_plate", "plate": "upper", "to": "contact"},
+                       {"action": "move_plate", "plate": "lower", "to": "position",
+                        "distance_mm": 3.0},
+                       {"action": "move_plate", "plate": "upper", "to": "degree",
+                        "target_D": 0.26}]}
+    res, runner = _run(parse_protocol(table, where="test"))
+    assert res.complete
+    n = runner.plates["lower"].plate.normal
+    touched, moved = (np.asarray(res.steps[i].plates["lower"]["origin_mm"]) for i in (1, 2))
+    assert (moved - touched) @ n == pytest.approx(3.0, abs=1e-9)
+    np.testing.assert_allclose(res.steps[3].plates["lower"]["origin_mm"], moved)
+    assert res.steps[-1].gap_mm == pytest.approx(0.74 * res.steps[-1].T0_mm, rel=1e-9)
