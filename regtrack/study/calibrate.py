@@ -19,20 +19,26 @@ module automates that choice:
   grid point.
 
 With per-view surrogates (``regtrack calibrate --surrogate DIR``, :mod:`regtrack.surrogate`;
-issue 56, after Han et al. 2012) the grid is replaced by a global search on the surrogates:
+issue 56, after Han et al. 2012) the grid and the local optimiser are replaced by a search
+on the surrogates, refined by full runs:
 
-1. one full run at the centre of the box gives each view's D (the DICOM's thickness or the
-   protocol's target sets it; the surrogates take D as a parameter);
+1. each view's D: the protocol's ``target_D``, or where D is an output (a gap from the
+   DICOM's thickness, a force target) one full run at the centre of the box;
 2. differential evolution (:func:`regtrack.surrogate.identify.identify`, seeded) on ``f``
    with the rows of :class:`regtrack.surrogate.evaluate.SurrogatePipeline`: the
    predicted compressions run through the same projection, registration and metrics;
-3. a full run at the surrogate's optimum; the surrogate's score error there,
-   ``|S_sur - S_full|`` (at least 0.1 points), is what the surrogate cannot resolve: the
-   profile interval of each parameter at that tolerance is the optimum's uncertainty;
-4. the bounded local optimiser with full runs, started at that run in a box of the
-   interval's half-width (at least 2 % and at most one grid step of the range), and the
-   sensitivity by full runs, as without a surrogate.  Every number reported is from a full
-   run; the surrogate only chose where to look, and the result says so.
+3. infill: full runs at the surrogates' optimum and at its sensitivity points (each
+   parameter moved by 5 % of a grid step down and up), their displacement fields added to
+   each surrogate (:meth:`~regtrack.surrogate.model.Surrogate.with_fields`), so the
+   refitted surrogate matches the full model's values and slopes there; a local search on
+   it from that optimum; repeated until the optimum moves less than the full calibration's
+   tolerance (1/100 of a grid step in unit coordinates), at most :data:`MAX_INFILL`
+   rounds;
+4. the surrogates' score error at the last optimum, ``|S_sur - S_full|`` (at least 0.1
+   points), is what they cannot resolve: the profile interval of each parameter at that
+   tolerance is the optimum's uncertainty.  The sensitivity is by the full runs around
+   the optimum (those of its infill round).  Every score reported is a full run's; the
+   surrogate only chose where to run, and the result says so.
 
 Parameter values are rounded to 4 significant digits before a run, so the optimiser's
 nearby points and every later calibration re-use cached runs.
@@ -63,6 +69,7 @@ log = logging.getLogger(__name__)
 OBJECTIVES = ("mean", "BS_Av", "TS_Av")
 PENALTY = 1000.0  # objective points per unit of D outside the range
 FAILED_VALUE = 1e6
+MAX_INFILL = 4  # rounds of full runs at the surrogates' optimum before giving up
 
 
 @dataclass
@@ -187,11 +194,9 @@ class _Problem:
 
 
 def _local_search(prob: _Problem, start: Evaluation, bounds: dict, grid: int,
-                  max_evals: int, step: float | None = None) -> list[Evaluation]:
-    """Bounded local optimiser from ``start`` within ``step`` (unit coordinates; default
-    one grid step) of it in each parameter."""
+                  max_evals: int) -> list[Evaluation]:
     names = list(bounds)
-    step = 1.0 / (grid - 1) if step is None else step
+    step = 1.0 / (grid - 1)
     t0 = np.array([_to_unit(n, start.params[n], *bounds[n]) for n in names])
     box = [(max(0.0, t - step), min(1.0, t + step)) for t in t0]
     path: list[Evaluation] = []
@@ -205,13 +210,12 @@ def _local_search(prob: _Problem, start: Evaluation, bounds: dict, grid: int,
 
     if len(names) == 1:
         optimize.minimize_scalar(f, bounds=box[0], method="bounded",
-                                 options={"xatol": 1 / (grid - 1) / 100, "maxiter": max_evals})
+                                 options={"xatol": step / 100, "maxiter": max_evals})
     else:
         simplex = [t0] + [np.clip(t0 + np.eye(len(names))[i] * step / 2 * (1 if t0[i] < 0.5 else -1),
                                   0, 1) for i in range(len(names))]
         optimize.minimize(f, t0, method="Nelder-Mead", bounds=box,
-                          options={"initial_simplex": np.array(simplex),
-                                   "xatol": 1 / (grid - 1) / 100,
+                          options={"initial_simplex": np.array(simplex), "xatol": step / 100,
                                    "fatol": 1e-3, "maxfev": max_evals})
     return path
 
@@ -281,23 +285,36 @@ def _check_surrogates(surrogates: dict, bounds: dict, fixed: dict, views) -> Non
         raise ConfigError("; ".join(problems))
 
 
+def _neighbours(point: dict, bounds: dict, grid: int) -> list[dict]:
+    """The sensitivity's points around ``point``: each parameter moved by 5 % of a grid step
+    (unit coordinates) down and up, in :func:`_sensitivity`'s order."""
+    out = []
+    for n, (lo, hi) in bounds.items():
+        t, h = _to_unit(n, point[n], lo, hi), 0.05 / (grid - 1)
+        out += [{**point, n: _from_unit(n, t - h, lo, hi)}, {**point, n: _from_unit(n, t + h, lo, hi)}]
+    return out
+
+
 def _surrogate_search(prob: _Problem, surrogates: dict, bounds: dict, grid: int
-                      ) -> tuple[Evaluation, dict, float]:
-    """Steps 1-3 of the module docstring: the full run at the surrogate's optimum, the
-    surrogate's record (its optimum, the score error there, the profile intervals) and
-    the local search's step (unit coordinates)."""
+                      ) -> tuple[Evaluation, list[Evaluation], dict]:
+    """Steps 1-3 of the module docstring; returns the first full run, the full runs at the
+    surrogates' optima and the record of the search."""
     from regtrack.case import load_case
     from regtrack.surrogate.evaluate import SurrogatePipeline
-    from regtrack.surrogate.identify import identify, profile
+    from regtrack.surrogate.identify import identify, profile, refine
 
-    centre = {n: _from_unit(n, 0.5, *b) for n, b in bounds.items()}
-    first = prob.run([centre], label="calibrate: centre run (D of each view)")[0]
-    if first.error is not None:
-        raise ConfigError(f"{prob.case.case_dir}: the full run at the centre of the box "
-                          f"failed ({first.error}); run 'regtrack study' on the case to see why")
-    D = {r["view"]: float(r["D"]) for r in first.rows}
     pipe = SurrogatePipeline(load_case(prob.case.case_dir), {v: surrogates[v] for v in prob.views},
                              cache_dir=prob.cache_dir)
+    D = pipe.nominal_D()
+    first = None
+    if D is None:  # D is an output (a gap or force target): one full run gives it
+        centre = {n: _round(_from_unit(n, 0.5, *b)) for n, b in bounds.items()}
+        first = prob.run([centre], label="calibrate: centre run (D of each view)")[0]
+        if first.error is not None:
+            raise ConfigError(f"{prob.case.case_dir}: the full run at the centre of the box "
+                              f"failed ({first.error}); run 'regtrack study' on the case to "
+                              "see why")
+        D = {r["view"]: float(r["D"]) for r in first.rows}
     evals = [0]
 
     def f(point: dict) -> float:
@@ -310,26 +327,48 @@ def _surrogate_search(prob: _Problem, surrogates: dict, bounds: dict, grid: int
         return evaluate({"status": "ok", "rows": rows}, point, objective=prob.objective,
                         d_range=prob.d_range).f
 
+    def unit(p: dict) -> np.ndarray:
+        return np.array([_to_unit(n, p[n], *bounds[n]) for n in bounds])
+
+    xatol = 1.0 / (grid - 1) / 100  # the full calibration's local tolerance
     log.info("calibrate: global search on the surrogates of %s", ", ".join(prob.views))
     ident = identify(f, bounds, tolerance=None, popsize=8, maxiter=12, polish=False)
-    opt = {n: _round(v) for n, v in ident.params.items()}
-    full = prob.run([opt], label="calibrate: full run at the surrogate's optimum")[0]
-    s_sur = -ident.value
-    tol = max(abs(s_sur - full.score), 0.1) if math.isfinite(full.score) else 0.1
+    infill: list[Evaluation] = []
+    rounds: list[dict] = []
+    settled = False
+    for k in range(MAX_INFILL):
+        opt = {n: _round(v) for n, v in ident.params.items()}
+        if infill and np.abs(unit(opt) - unit(infill[-1].params)).max() <= xatol:
+            settled = True
+            break
+        pts = [opt, *_neighbours(opt, bounds, grid)]
+        evs = prob.run(pts, label=f"calibrate: full runs at the surrogates' optimum ({k + 1})")
+        full = evs[0]
+        rounds.append({"params": opt, "score_surrogate": -ident.value, "score_full": full.score})
+        log.info("calibrate: surrogate optimum %s, S = %.2f %% (full run %.2f %%)", opt,
+                 -ident.value, full.score)
+        infill.append(full)
+        ok = [(p, e) for p, e in zip(pts, evs) if e.error is None]
+        if full.error is not None or not ok:
+            break
+        D = {r["view"]: float(r["D"]) for r in full.rows}
+        pipe.add_full_runs([{**prob.fixed, **p} for p, _ in ok],
+                           [{r["view"]: float(r["D"]) for r in e.rows} for _, e in ok])
+        ident = refine(f, bounds, opt, step=max(4 * xatol, 0.02), xatol=xatol / 2)
+    last = rounds[-1]
+    s_sur, s_full = last["score_surrogate"], last["score_full"]
+    tol = max(abs(s_sur - s_full), 0.1) if math.isfinite(s_full) else 0.1
     profile(f, ident, bounds, tolerance=tol)
-    half = max(abs(_to_unit(n, ident.interval[n][1], *bounds[n])
-                   - _to_unit(n, ident.interval[n][0], *bounds[n])) / 2 for n in bounds)
-    step = min(max(half, 0.02), 1.0 / (grid - 1))
     info = {"views": {v: (surrogates[v].meta.get("validation") or {}).get("held_out", {}).get("pooled")
                       for v in prob.views},
-            "D": D, "optimum": ident.params, "score_surrogate": s_sur,
-            "score_full": full.score, "score_error": abs(s_sur - full.score),
+            "D": D, "optimum": ident.params, "score_surrogate": s_sur, "score_full": s_full,
+            "score_error": abs(s_sur - s_full), "rounds": rounds, "settled": settled,
             "interval": {k: list(v) for k, v in ident.interval.items()},
-            "sensitivity": ident.sensitivity, "tolerance": tol,
-            "evaluations": evals[0], "local_step": step}
-    log.info("calibrate: surrogate optimum %s, S = %.2f %% (full run %.2f %%)", opt, s_sur,
-             full.score)
-    return full, info, step
+            "sensitivity": ident.sensitivity, "tolerance": tol, "evaluations": evals[0]}
+    if not settled:
+        log.warning("calibrate: the surrogates' optimum still moved after %d rounds of full "
+                    "runs; the best of them is reported", len(rounds))
+    return (first or infill[0]), infill, info
 
 
 def calibrate(case_dir: str | Path, *, bounds: dict[str, tuple[float, float]],
@@ -378,19 +417,18 @@ def calibrate(case_dir: str | Path, *, bounds: dict[str, tuple[float, float]],
                 progress=progress) as engine:
         prob = _Problem(engine, case, fixed=fixed, views=views, runner=runner,
                         cache_dir=cache_dir, objective=objective, d_range=d_range)
-        step = None
         if surrogates:
-            best_grid, sur_info, step = _surrogate_search(prob, surrogates, bounds, grid)
+            best_grid, path, sur_info = _surrogate_search(prob, surrogates, bounds, grid)
             grid_evals = [best_grid]
         else:
             axes = {n: grid_values(n, lo, hi, grid) for n, (lo, hi) in bounds.items()}
             points = [dict(zip(axes, combo)) for combo in itertools.product(*axes.values())]
             grid_evals = prob.run(points, label="calibrate: grid")
             best_grid = min(grid_evals, key=lambda e: e.f)
-        if best_grid.f >= FAILED_VALUE:
-            raise ConfigError(f"{case_dir}: every grid run failed ({best_grid.error}); run "
-                              "'regtrack study' on the case to see why")
-        path = _local_search(prob, best_grid, bounds, grid, max_evals, step)
+            if best_grid.f >= FAILED_VALUE:
+                raise ConfigError(f"{case_dir}: every grid run failed ({best_grid.error}); run "
+                                  "'regtrack study' on the case to see why")
+            path = _local_search(prob, best_grid, bounds, grid, max_evals)
         best = min([best_grid, *path], key=lambda e: e.f)
         sens = _sensitivity(prob, best, best_grid, grid_evals, bounds, grid)
     log.info("calibration of %s: %s S = %.2f %% (violation %.3g); %d runs computed, %d cached",

@@ -60,6 +60,43 @@ class SurrogatePipeline:
                                   f"the case's has {self.mesh.model.n_nodes}; rebuild it with "
                                   "`regtrack surrogate build` on this case and its [model] settings")
 
+    def nominal_D(self) -> dict[str, float] | None:
+        """Each view's D when its protocol prescribes it (``target_D``); None when a view
+        compresses to a gap (e.g. the DICOM's thickness) or a force, where D is an output."""
+        out = {}
+        for v in self.views:
+            last = [s for s in self.ctx.configs.protocols[v].steps
+                    if s.action == "move_plate" and s.plate == "upper"][-1:]
+            if not last or last[0].to != "degree":
+                return None
+            out[v] = float(last[0].target_D)
+        return out
+
+    def add_full_runs(self, points: list[dict], D: list[dict[str, float]]) -> None:
+        """Refit each view's surrogate with the full simulations at ``points`` (infill
+        points, each with its views' D; :meth:`~regtrack.surrogate.model.Surrogate.with_fields`).
+        The simulations are those ``regtrack run`` makes with these parameters, so runs
+        already made (by the calibration's engine) are read from the stage cache."""
+        from regtrack.case import resolve_configs
+        from regtrack.pipeline import stages
+        from regtrack.pipeline.geometry import apply_geometry
+        from regtrack.pipeline.run import open_run
+        from regtrack.study.params import apply_point
+
+        case = self.ctx.case
+        fields: dict[str, list] = {v: [] for v in self.views}
+        for point in points:
+            ctx = open_run(case, resolve_configs(case, apply_point({}, point, views=self.views)),
+                           cache_dir=self.ctx.cache.root)
+            apply_geometry(ctx, self.mesh.model, self.views)
+            for v in self.views:
+                fields[v].append(stages.simulate_stage(ctx, self.mesh, v).positions
+                                 - self.mesh.model.points)
+        for v in self.views:
+            sur = self.surrogates[v]
+            params = [[{**p, "target_D": d[v]}[n] for n in sur.names] for p, d in zip(points, D)]
+            self.surrogates[v] = sur.with_fields(np.array(params), np.array(fields[v]))
+
     def positions(self, view: str, point: dict) -> np.ndarray:
         """Predicted deformed node positions (mm, model frame) of ``view`` at ``point``."""
         return self.mesh.model.points + self.surrogates[view].predict(point)

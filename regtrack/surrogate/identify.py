@@ -120,6 +120,30 @@ def identify(objective: Callable[[dict], float], bounds: Mapping[str, tuple[floa
     return out
 
 
+def refine(objective: Callable[[dict], float], bounds: Mapping[str, tuple[float, float]],
+           start: Mapping[str, float], *, step: float, xatol: float, maxfev: int = 80
+           ) -> Identification:
+    """Local minimisation from ``start``: bounded Nelder-Mead in the unit coordinates, an
+    initial simplex of edge ``step`` and a stop at ``xatol`` (both unit coordinates)."""
+    names = list(bounds)
+    count = [0]
+    t0 = np.array([to_unit(n, start[n], *bounds[n]) for n in names])
+
+    def point(t) -> dict:
+        return {n: from_unit(n, ti, *bounds[n]) for n, ti in zip(names, np.atleast_1d(t))}
+
+    def f(t) -> float:
+        count[0] += 1
+        return float(objective(point(t)))
+
+    simplex = [t0] + [np.clip(t0 + np.eye(len(names))[i] * step * (1 if t0[i] < 0.5 else -1),
+                              0.0, 1.0) for i in range(len(names))]
+    res = optimize.minimize(f, t0, method="Nelder-Mead", bounds=[(0.0, 1.0)] * len(names),
+                            options={"initial_simplex": np.array(simplex), "xatol": xatol,
+                                     "fatol": 1e-6, "maxfev": maxfev})
+    return Identification(point(res.x), float(res.fun), count[0])
+
+
 def profile(objective: Callable[[dict], float], ident: Identification,
             bounds: Mapping[str, tuple[float, float]], *, tolerance: float) -> Identification:
     """Fill ``ident``'s sensitivity (central differences, step 1 % of the box) and its

@@ -99,6 +99,23 @@ class Surrogate:
         one = isinstance(params, Mapping) or np.ndim(params) == 1
         return u[0] if one else u
 
+    def with_fields(self, params: np.ndarray, fields: np.ndarray, *, seed: int = 0) -> Surrogate:
+        """The surrogate refitted with more simulations: ``fields`` ``(m, N, 3)`` (mm) at
+        ``params`` ``(m, d)`` (infill points).  The PCA basis is kept (the new fields enter
+        through their coefficients on it); the Gaussian process is refitted on the old
+        training points' coefficients (its posterior mean there, equal to the fitted data
+        up to its nugget) and the new ones."""
+        if not isinstance(self.coefficients, GPCoefficients):
+            raise ValueError("with_fields: only a Gaussian-process surrogate takes infill points")
+        p = np.atleast_2d(np.asarray(params, float))
+        x_old = self.coefficients.x_train
+        y_old = self.coefficients.predict(x_old)
+        y_new = self.basis.coefficients(np.asarray(fields, float).reshape(len(p), -1))
+        coeffs = fit_gp(np.vstack([x_old, self.scaled(p)]), np.vstack([y_old, y_new]),
+                        kind=self.coefficients.kind, seed=seed)
+        meta = {**self.meta, "infill_points": [*self.meta.get("infill_points", []), *p.tolist()]}
+        return Surrogate(self.names, self.lower, self.upper, self.basis, coeffs, meta)
+
     def timed_predict(self, params: Any, *, repeats: int = 20) -> tuple[np.ndarray, float]:
         """:meth:`predict` and its median wall time over ``repeats`` calls (s)."""
         times = []
