@@ -131,6 +131,9 @@ def _fake_surrogate_pipeline(monkeypatch, calls):
             return None  # the fake's D depends on c1: one full run at the centre gives it
 
         def add_full_runs(self, points, D):
+            # the runs' own parameters (4 digits), so the real pipeline finds their
+            # simulations in the stage cache instead of simulating again
+            assert all(v == float(f"{v:.4g}") for p in points for v in p.values())
             self.points += [dict(p) for p in points]
 
         def error(self, point):

@@ -348,12 +348,13 @@ def _surrogate_search(prob: _Problem, surrogates: dict, bounds: dict, grid: int
         log.info("calibrate: surrogate optimum %s, S = %.2f %% (full run %.2f %%)", opt,
                  -ident.value, full.score)
         infill.append(full)
-        ok = [(p, e) for p, e in zip(pts, evs) if e.error is None]
+        ok = [e for e in evs if e.error is None]
         if full.error is not None or not ok:
             break
         D = {r["view"]: float(r["D"]) for r in full.rows}
-        pipe.add_full_runs([{**prob.fixed, **p} for p, _ in ok],
-                           [{r["view"]: float(r["D"]) for r in e.rows} for _, e in ok])
+        # the runs' own (rounded) parameters: the same simulations, found in the stage cache
+        pipe.add_full_runs([{**prob.fixed, **e.params} for e in ok],
+                           [{r["view"]: float(r["D"]) for r in e.rows} for e in ok])
         ident = refine(f, bounds, opt, step=max(4 * xatol, 0.02), xatol=xatol / 2)
     last = rounds[-1]
     s_sur, s_full = last["score_surrogate"], last["score_full"]
