@@ -183,7 +183,7 @@ def test_surrogate_search_replaces_the_grid_and_full_runs_confirm_it(tmp_path, m
     assert su["score_error"] == pytest.approx(abs(su["score_surrogate"] - su["score_full"]))
     for n, star in (("c1", 0.8), ("nu", 0.47)):
         lo, hi = su["interval"][n]
-        assert lo <= star <= hi
+        assert lo <= star <= hi and lo <= res.optimum.params[n] <= hi
     # D from the last full run at the surrogate's optimum (the fake's D depends on c1)
     c1 = su["rounds"][-1]["params"]["c1"]
     assert json.loads(json.dumps(to_json(res)))["surrogate"]["D"] == {"CC": pytest.approx(

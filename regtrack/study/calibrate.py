@@ -34,9 +34,9 @@ on the surrogates, refined by full runs:
    it from that optimum; repeated until the optimum moves less than the full calibration's
    tolerance (1/100 of a grid step in unit coordinates), at most :data:`MAX_INFILL`
    rounds;
-4. the surrogates' score error at the last optimum, ``|S_sur - S_full|`` (at least 0.1
-   points), is what they cannot resolve: the profile interval of each parameter at that
-   tolerance is the optimum's uncertainty.  The sensitivity is by the full runs around
+4. the optimum reported is the best full run; the surrogates' score error there,
+   ``|S_sur - S_full|`` (at least 0.1 points), is what they cannot resolve: the profile
+   interval of each parameter at that tolerance around it is the optimum's uncertainty.  The sensitivity is by the full runs around
    the optimum (those of its infill round).  Every score reported is a full run's; the
    surrogate only chose where to run, and the result says so.
 
@@ -235,7 +235,7 @@ def _sensitivity(prob: _Problem, best: Evaluation, best_grid: Evaluation,
                 if all(e.params[m] == best_grid.params[m] for m in bounds if m != n)
                 and math.isfinite(e.score)]
         out[n] = {**slope(evs[2 * i], best, evs[2 * i + 1], n),
-                  "grid_spread": (max(line) - min(line)) if line else math.nan}
+                  "grid_spread": (max(line) - min(line)) if len(line) > 1 else math.nan}
     return out
 
 
@@ -356,9 +356,12 @@ def _surrogate_search(prob: _Problem, surrogates: dict, bounds: dict, grid: int
         pipe.add_full_runs([{**prob.fixed, **e.params} for e in ok],
                            [{r["view"]: float(r["D"]) for r in e.rows} for e in ok])
         ident = refine(f, bounds, opt, step=max(4 * xatol, 0.02), xatol=xatol / 2)
-    last = rounds[-1]
-    s_sur, s_full = last["score_surrogate"], last["score_full"]
+    # the uncertainty around the optimum reported (the best full run), at the surrogates'
+    # score error there
+    i_best = min(range(len(infill)), key=lambda i: infill[i].f)
+    s_sur, s_full = rounds[i_best]["score_surrogate"], rounds[i_best]["score_full"]
     tol = max(abs(s_sur - s_full), 0.1) if math.isfinite(s_full) else 0.1
+    ident.params, ident.value = dict(infill[i_best].params), f(infill[i_best].params)
     profile(f, ident, bounds, tolerance=tol)
     info = {"views": {v: (surrogates[v].meta.get("validation") or {}).get("held_out", {}).get("pooled")
                       for v in prob.views},
