@@ -187,12 +187,19 @@ def calibration_figure(result) -> Figure:
                 label="optimum")
         ax.set_xlabel(a)
         ax.set_ylabel(b)
+        (a0, a1), (b0, b1) = result.bounds[a], result.bounds[b]
+        ax.set_ylim(b0 - 0.03 * (b1 - b0), b1 + 0.03 * (b1 - b0))  # the whole calibrated box
         if a == "c1":
             from matplotlib.ticker import FormatStrFormatter, NullFormatter
 
             ax.set_xscale("log")
+            ax.set_xlim(a0 / (a1 / a0) ** 0.03, a1 * (a1 / a0) ** 0.03)
             ax.xaxis.set_major_formatter(FormatStrFormatter("%g"))
-            ax.xaxis.set_minor_formatter(NullFormatter())
+            # under a decade the major ticks are too few: label the minor ones too
+            ax.xaxis.set_minor_formatter(FormatStrFormatter("%g") if a1 / a0 < 10
+                                         else NullFormatter())
+        else:
+            ax.set_xlim(a0 - 0.03 * (a1 - a0), a1 + 0.03 * (a1 - a0))
     del feas
     su = getattr(result, "surrogate", None)
     if su:  # where the surrogate's search cannot tell the scores apart
