@@ -223,13 +223,7 @@ def _local_search(prob: _Problem, start: Evaluation, bounds: dict, grid: int,
 def _sensitivity(prob: _Problem, best: Evaluation, best_grid: Evaluation,
                  grid_evals: list[Evaluation], bounds: dict, grid: int) -> dict[str, dict]:
     out: dict[str, dict] = {}
-    pts = []
-    for n, (lo, hi) in bounds.items():
-        t = _to_unit(n, best.params[n], lo, hi)
-        h = 0.05 / (grid - 1)
-        a, b = _from_unit(n, t - h, lo, hi), _from_unit(n, t + h, lo, hi)
-        pts += [{**best.params, n: a}, {**best.params, n: b}]
-    evs = prob.run(pts, label="calibrate: sensitivity")
+    evs = prob.run(_neighbours(best.params, bounds, grid), label="calibrate: sensitivity")
     for i, n in enumerate(bounds):
         line = [e.score for e in grid_evals
                 if all(e.params[m] == best_grid.params[m] for m in bounds if m != n)

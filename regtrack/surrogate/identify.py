@@ -90,6 +90,21 @@ class Identification:
                 "tolerance": self.tolerance}
 
 
+def _in_unit_box(objective: Callable[[dict], float], bounds: Mapping[str, tuple[float, float]]):
+    """``(point, f, count)``: unit coordinates -> parameters, the objective of unit
+    coordinates, and a one-item list counting its calls."""
+    names = list(bounds)
+    count = [0]
+
+    def point(t) -> dict:
+        return {n: from_unit(n, ti, *bounds[n]) for n, ti in zip(names, np.atleast_1d(t))}
+
+    def f(t) -> float:
+        count[0] += 1
+        return float(objective(point(t)))
+    return point, f, count
+
+
 def identify(objective: Callable[[dict], float], bounds: Mapping[str, tuple[float, float]], *,
              tolerance: float | None, seed: int = 0, popsize: int = 15, maxiter: int = 100,
              polish: bool = True) -> Identification:
@@ -101,14 +116,7 @@ def identify(objective: Callable[[dict], float], bounds: Mapping[str, tuple[floa
     leaves them to a later :func:`profile`, when the tolerance is known only after a check).
     """
     names = list(bounds)
-    count = [0]
-
-    def point(t) -> dict:
-        return {n: from_unit(n, ti, *bounds[n]) for n, ti in zip(names, np.atleast_1d(t))}
-
-    def f(t) -> float:
-        count[0] += 1
-        return float(objective(point(t)))
+    point, f, count = _in_unit_box(objective, bounds)
 
     res = optimize.differential_evolution(f, [(0.0, 1.0)] * len(names), seed=seed,
                                           popsize=popsize, maxiter=maxiter, tol=1e-8,
@@ -126,15 +134,8 @@ def refine(objective: Callable[[dict], float], bounds: Mapping[str, tuple[float,
     """Local minimisation from ``start``: bounded Nelder-Mead in the unit coordinates, an
     initial simplex of edge ``step`` and a stop at ``xatol`` (both unit coordinates)."""
     names = list(bounds)
-    count = [0]
+    point, f, count = _in_unit_box(objective, bounds)
     t0 = np.array([to_unit(n, start[n], *bounds[n]) for n in names])
-
-    def point(t) -> dict:
-        return {n: from_unit(n, ti, *bounds[n]) for n, ti in zip(names, np.atleast_1d(t))}
-
-    def f(t) -> float:
-        count[0] += 1
-        return float(objective(point(t)))
 
     simplex = [t0] + [np.clip(t0 + np.eye(len(names))[i] * step * (1 if t0[i] < 0.5 else -1),
                               0.0, 1.0) for i in range(len(names))]
