@@ -4,14 +4,12 @@ from __future__ import annotations
 
 import argparse
 import logging
+import math
 from pathlib import Path
 
 HELP = "calibrate c1 / nu (/ friction) of a case: coarse grid + bounded optimiser, cached runs"
 
 log = logging.getLogger("regtrack.calibrate")
-
-
-
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -108,8 +106,9 @@ def run(args: argparse.Namespace) -> int:
              ", ".join(f"{r.get('view')}: {r.get('D'):.3f}" for r in opt.rows if r.get("D") is not None),
              "feasible" if res.feasible else f"D outside range by {opt.violation:.3f}")
     for name, s in res.sensitivity.items():
-        log.info("sensitivity %s: dS/d%s = %.3g %% per unit (%s), grid spread %.2f %%", name, name,
-                 s["dS_dparam"], s["method"], s["grid_spread"])
+        spread = "" if math.isnan(s["grid_spread"]) else f", grid spread {s['grid_spread']:.2f} %"
+        log.info("sensitivity %s: dS/d%s = %.3g %% per unit (%s)%s", name, name,
+                 s["dS_dparam"], s["method"], spread)
     if res.surrogate is not None:
         su = res.surrogate
         log.info("surrogate search: %d evaluations, S %.2f %% predicted, %.2f %% simulated "

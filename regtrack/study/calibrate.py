@@ -27,18 +27,20 @@ on the surrogates, refined by full runs:
 2. differential evolution (:func:`regtrack.surrogate.identify.identify`, seeded) on ``f``
    with the rows of :class:`regtrack.surrogate.evaluate.SurrogatePipeline`: the
    predicted compressions run through the same projection, registration and metrics;
-3. infill: full runs at the surrogates' optimum and at its sensitivity points (each
-   parameter moved by 5 % of a grid step down and up), their displacement fields added to
-   each surrogate (:meth:`~regtrack.surrogate.model.Surrogate.with_fields`), so the
-   refitted surrogate matches the full model's values and slopes there; a local search on
-   it from that optimum; repeated until the optimum moves less than the full calibration's
-   tolerance (1/100 of a grid step in unit coordinates), at most :data:`MAX_INFILL`
-   rounds;
-4. the optimum reported is the best full run; the surrogates' score error there,
-   ``|S_sur - S_full|`` (at least 0.1 points), is what they cannot resolve: the profile
-   interval of each parameter at that tolerance around it is the optimum's uncertainty.  The sensitivity is by the full runs around
-   the optimum (those of its infill round).  Every score reported is a full run's; the
-   surrogate only chose where to run, and the result says so.
+3. infill: a full run at the surrogates' optimum; its displacement field is added to each
+   surrogate (:meth:`~regtrack.surrogate.model.Surrogate.with_fields`), so the refitted
+   surrogate reproduces the full model there, and a local search on it restarts from that
+   optimum.  Repeated until the refitted surrogates predict no gain the objective resolves
+   (the local search improves on the full run's score by less than the surrogates' score
+   error at the previous optimum, at least 0.1 points) or the optimum moves less than the
+   full calibration's tolerance (1/100 of a grid step in unit coordinates), at most
+   :data:`MAX_INFILL` rounds;
+4. the optimum reported is the best full run.  Around it, on the refitted surrogates: the
+   sensitivity (central differences, step 1 % of the box) and each parameter's profile
+   interval at the surrogates' score error (``|S_sur - S_full|`` there, at least 0.1
+   points: what they cannot resolve) as the optimum's uncertainty.  The optimum's score is
+   a full run's; the sensitivity and interval are the surrogates', and the result says so
+   (``method`` of each sensitivity).
 
 Parameter values are rounded to 4 significant digits before a run, so the optimiser's
 nearby points and every later calibration re-use cached runs.
@@ -233,6 +235,17 @@ def _sensitivity(prob: _Problem, best: Evaluation, best_grid: Evaluation,
     return out
 
 
+def _surrogate_sensitivity(info: dict, bounds: dict) -> dict[str, dict]:
+    """``dS/dp`` at the optimum on the refitted surrogates (the search's objective is
+    ``-S`` inside the D range, so its slope changes sign)."""
+    out = {}
+    for n, (lo, hi) in bounds.items():
+        x, h = info["optimum"][n], 0.01 * (hi - lo)  # the step of identify.profile
+        out[n] = {"dS_dparam": -float(info["sensitivity"][n]), "step": min(hi, x + h) - max(lo, x - h),
+                  "method": "central, on the refitted surrogates", "grid_spread": math.nan}
+    return out
+
+
 def slope(ea: Evaluation, best: Evaluation, eb: Evaluation, name: str) -> dict:
     """``dS/d(name)`` from the runs below (``ea``) and above (``eb``) the optimum: central
     difference; one-sided against the optimum when one of them failed; NaN with the reason
@@ -289,6 +302,16 @@ def _neighbours(point: dict, bounds: dict, grid: int) -> list[dict]:
     return out
 
 
+def _forward(point: dict, bounds: dict, grid: int) -> list[dict]:
+    """One point per parameter, moved by a tenth of a grid step (unit coordinates) towards
+    the inside of the box."""
+    out = []
+    for n, (lo, hi) in bounds.items():
+        t, h = _to_unit(n, point[n], lo, hi), 0.1 / (grid - 1)
+        out.append({**point, n: _round(_from_unit(n, t + h if t <= 0.5 else t - h, lo, hi))})
+    return out
+
+
 def _surrogate_search(prob: _Problem, surrogates: dict, bounds: dict, grid: int
                       ) -> tuple[Evaluation, list[Evaluation], dict]:
     """Steps 1-3 of the module docstring; returns the first full run, the full runs at the
@@ -335,7 +358,9 @@ def _surrogate_search(prob: _Problem, surrogates: dict, bounds: dict, grid: int
         if infill and np.abs(unit(opt) - unit(infill[-1].params)).max() <= xatol:
             settled = True
             break
-        pts = [opt, *_neighbours(opt, bounds, grid)]
+        # the first round also corrects the surrogates' slopes (a forward point per
+        # parameter); later optima lie near earlier full runs, which do that
+        pts = [opt, *(_forward(opt, bounds, grid) if not infill else [])]
         evs = prob.run(pts, label=f"calibrate: full runs at the surrogates' optimum ({k + 1})")
         full = evs[0]
         rounds.append({"params": opt, "score_surrogate": -ident.value, "score_full": full.score})
@@ -343,7 +368,7 @@ def _surrogate_search(prob: _Problem, surrogates: dict, bounds: dict, grid: int
                  -ident.value, full.score)
         infill.append(full)
         ok = [e for e in evs if e.error is None]
-        if full.error is not None or not ok:
+        if full.error is not None:
             break
         D = {r["view"]: float(r["D"]) for r in full.rows}
         # the runs' own (rounded) parameters: the same simulations, found in the stage cache
@@ -428,7 +453,10 @@ def calibrate(case_dir: str | Path, *, bounds: dict[str, tuple[float, float]],
                                   "'regtrack study' on the case to see why")
             path = _local_search(prob, best_grid, bounds, grid, max_evals)
         best = min([best_grid, *path], key=lambda e: e.f)
-        sens = _sensitivity(prob, best, best_grid, grid_evals, bounds, grid)
+        if surrogates:
+            sens = _surrogate_sensitivity(sur_info, bounds)
+        else:
+            sens = _sensitivity(prob, best, best_grid, grid_evals, bounds, grid)
     log.info("calibration of %s: %s S = %.2f %% (violation %.3g); %d runs computed, %d cached",
              case.case_id, best.params, best.score, best.violation, prob.computed, prob.cached)
     return CalibrationResult(case_id=case.case_id, optimum=best, best_grid=best_grid,

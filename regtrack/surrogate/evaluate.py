@@ -3,8 +3,9 @@
 :class:`SurrogatePipeline` holds a case's model, real mammograms and per-view surrogates;
 :meth:`SurrogatePipeline.rows` predicts each view's displacement at a parameter point
 (about a millisecond), and from there runs the pipeline's own stages: the virtual
-mammogram (:func:`regtrack.pipeline.stages.virtual_stage`) and the registration with the
-paper's metrics (:func:`regtrack.pipeline.stages.align_stage`).  The rows have the layout
+mammogram (:func:`regtrack.pipeline.stages.virtual_stage`, outlines only: the X-ray-like
+image is not rendered) and the registration with the paper's metrics
+(:func:`regtrack.pipeline.stages.align_stage`).  The rows have the layout
 of ``regtrack run``'s (``BS_Av``, ``TS_Av``, ``theta_p``, ``D``, ...), with ``surrogate``
 set to True and no force (a surrogate predicts shape only).
 
@@ -50,6 +51,9 @@ class SurrogatePipeline:
             raise ConfigError(f"{case.toml_path}: a surrogate of {', '.join(missing)} is given "
                               "but the case has no mammogram of that view")
         self.surrogates = {v.upper(): s for v, s in surrogates.items()}
+        # the metrics need the outlines only: no X-ray-like image of each predicted shape
+        overrides = {**(overrides or {})}
+        overrides["virtual"] = {**overrides.get("virtual", {}), "render": False}
         self.ctx = open_run(case, resolve_configs(case, overrides), cache_dir=cache_dir)
         self.reals = {v: stages.real_stage(self.ctx, v) for v in self.views}
         self.mesh = stages.mesh_stage(self.ctx)

@@ -20,6 +20,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit
 
 #: Largest number of (triangle, pixel) candidates handled at once (memory bound).
 CHUNK_CANDIDATES = 2_000_000
@@ -57,17 +58,6 @@ def grid_around(xy: np.ndarray, *, spacing: float, margin: int = 3) -> Grid:
     hi = np.ceil(xy.max(0) / spacing) + margin
     shape = (int(hi[1] - lo[1]) + 1, int(hi[0] - lo[0]) + 1)
     return Grid((float(lo[0] * spacing), float(lo[1] * spacing)), float(spacing), shape)
-
-
-def _edge(pu, pv, px, py, flip):
-    """Canonical edge function E_{uv}; ``flip`` negates it (edge traversed v -> u)."""
-    e = (pv[:, 0] - pu[:, 0]) * (py - pu[:, 1]) - (pv[:, 1] - pu[:, 1]) * (px - pu[:, 0])
-    return np.where(flip, -e, e)
-
-
-def _owned(d: np.ndarray) -> np.ndarray:
-    """Half-open owner rule for a directed edge vector ``d`` (exactly one of d, -d owns)."""
-    return (d[:, 1] > 0) | ((d[:, 1] == 0) & (d[:, 0] > 0))
 
 
 def rasterise(points: np.ndarray, faces: np.ndarray, grid: Grid, *,
@@ -137,35 +127,61 @@ def rasterise(points: np.ndarray, faces: np.ndarray, grid: Grid, *,
     return count.reshape(h, w), acc.reshape(h, w)
 
 
+@njit(cache=True, nogil=True)
+def _covered(points, faces, c0, r0, nc, ncand, ox, oy, s, width):  # pragma: no cover (JIT)
+    """Pixels whose centre lies in each triangle (owner rule of the module docstring).
+
+    Returns the flat pixel index, the triangle and the three edge functions (barycentric
+    numerators, opposite vertices 0, 1, 2) of every covered (triangle, pixel) pair, in
+    triangle order and row-major within a triangle's bounding box."""
+    total = 0
+    for t in range(len(faces)):
+        total += ncand[t]
+    idx = np.empty(total, np.int64)
+    tri = np.empty(total, np.int64)
+    bary = np.empty((total, 3))
+    n = 0
+    e = np.empty(3)
+    for t in range(len(faces)):
+        for q in range(ncand[t]):
+            col = c0[t] + q % nc[t]
+            row = r0[t] + q // nc[t]
+            px = ox + col * s
+            py = oy + row * s
+            inside = True
+            for k in range(3):  # edge opposite vertex k: (k+1 -> k+2), canonical direction
+                iu = faces[t, (k + 1) % 3]
+                iv = faces[t, (k + 2) % 3]
+                a, b = (iv, iu) if iu > iv else (iu, iv)
+                ek = ((points[b, 0] - points[a, 0]) * (py - points[a, 1])
+                      - (points[b, 1] - points[a, 1]) * (px - points[a, 0]))
+                if iu > iv:
+                    ek = -ek
+                dx = points[iv, 0] - points[iu, 0]
+                dy = points[iv, 1] - points[iu, 1]
+                owned = dy > 0 or (dy == 0 and dx > 0)
+                if not (ek > 0 or (ek == 0 and owned)):
+                    inside = False
+                    break
+                e[k] = ek
+            if inside:
+                idx[n] = row * width + col
+                tri[n] = t
+                bary[n, 0], bary[n, 1], bary[n, 2] = e[0], e[1], e[2]
+                n += 1
+    return idx[:n], tri[:n], bary[:n]
+
+
 def _accumulate(points, faces, area2, wts, c0, r0, nc, ncand, grid, values, post, count, acc):
-    total = int(ncand.sum())
-    if total == 0:
+    if int(ncand.sum()) == 0:
         return
-    tri = np.repeat(np.arange(len(faces)), ncand)
-    local = np.arange(total) - np.repeat(np.cumsum(ncand) - ncand, ncand)
-    cols = c0[tri] + local % np.maximum(nc[tri], 1)
-    rows = r0[tri] + local // np.maximum(nc[tri], 1)
-    px = grid.origin[0] + cols * grid.spacing
-    py = grid.origin[1] + rows * grid.spacing
-    f = faces[tri]
-    inside = np.ones(total, bool)
-    bary = []
-    for k in range(3):  # edge opposite vertex k: (k+1 -> k+2)
-        iu, iv = f[:, (k + 1) % 3], f[:, (k + 2) % 3]
-        flip = iu > iv
-        a = np.where(flip, iv, iu)
-        b = np.where(flip, iu, iv)
-        e = _edge(points[a], points[b], px, py, flip)
-        d = points[iv] - points[iu]
-        inside &= (e > 0) | ((e == 0) & _owned(d))
-        bary.append(e)
-    idx = rows[inside] * grid.shape[1] + cols[inside]
+    idx, tri, bary = _covered(points, faces, c0, r0, nc, ncand, float(grid.origin[0]),
+                              float(grid.origin[1]), float(grid.spacing), int(grid.shape[1]))
     count += np.bincount(idx, minlength=count.size)
     if values is None:
         return
-    v = np.asarray(values, float)[f[inside]]
-    a2 = area2[tri[inside]]
-    val = sum(bary[k][inside] * v[:, k] for k in range(3)) / a2
+    v = np.asarray(values, float)[faces[tri]]
+    val = sum(bary[:, k] * v[:, k] for k in range(3)) / area2[tri]
     if post is not None:
         val = post(val)
-    acc += np.bincount(idx, weights=val * wts[tri[inside]], minlength=acc.size)
+    acc += np.bincount(idx, weights=val * wts[tri], minlength=acc.size)
