@@ -27,14 +27,13 @@ on the surrogates, refined by full runs:
 2. differential evolution (:func:`regtrack.surrogate.identify.identify`, seeded) on ``f``
    with the rows of :class:`regtrack.surrogate.evaluate.SurrogatePipeline`: the
    predicted compressions run through the same projection, registration and metrics;
-3. infill: a full run at the surrogates' optimum; its displacement field is added to each
-   surrogate (:meth:`~regtrack.surrogate.model.Surrogate.with_fields`), so the refitted
-   surrogate reproduces the full model there, and a local search on it restarts from that
-   optimum.  Repeated until the refitted surrogates predict no gain the objective resolves
-   (the local search improves on the full run's score by less than the surrogates' score
-   error at the previous optimum, at least 0.1 points) or the optimum moves less than the
-   full calibration's tolerance (1/100 of a grid step in unit coordinates), at most
-   :data:`MAX_INFILL` rounds;
+3. infill: a full run at the surrogates' optimum (in the first round also one point per
+   parameter a tenth of a grid step inside the box, so that the refit matches the full
+   model's slopes there too); its displacement fields are added to each surrogate (:meth:`~regtrack.surrogate.model.Surrogate.with_fields`), so the refitted
+   surrogate reproduces the full model there, and a local search on it restarts from the
+   best full run so far.  Repeated until that search ends at a full run already made
+   (within the full calibration's tolerance, 1/100 of a grid step in unit coordinates), at
+   most :data:`MAX_INFILL` rounds;
 4. the optimum reported is the best full run.  Around it, on the refitted surrogates: the
    sensitivity (central differences, step 1 % of the box) and each parameter's profile
    interval at the surrogates' score error (``|S_sur - S_full|`` there, at least 0.1
@@ -349,14 +348,14 @@ def _surrogate_search(prob: _Problem, surrogates: dict, bounds: dict, grid: int
 
     xatol = 1.0 / (grid - 1) / 100  # the full calibration's local tolerance
     log.info("calibrate: global search on the surrogates of %s", ", ".join(prob.views))
-    ident = identify(f, bounds, tolerance=None, popsize=8, maxiter=12, polish=False)
+    ident = identify(f, bounds, tolerance=None, popsize=6, maxiter=10, polish=False)
     infill: list[Evaluation] = []
     rounds: list[dict] = []
     settled = False
     for k in range(MAX_INFILL):
         opt = {n: _round(v) for n, v in ident.params.items()}
-        if infill and np.abs(unit(opt) - unit(infill[-1].params)).max() <= xatol:
-            settled = True
+        if any(np.abs(unit(opt) - unit(e.params)).max() <= xatol for e in infill):
+            settled = True  # the refitted surrogates' optimum is a full run already
             break
         # the first round also corrects the surrogates' slopes (a forward point per
         # parameter); later optima lie near earlier full runs, which do that
@@ -374,7 +373,9 @@ def _surrogate_search(prob: _Problem, surrogates: dict, bounds: dict, grid: int
         # the runs' own (rounded) parameters: the same simulations, found in the stage cache
         pipe.add_full_runs([{**prob.fixed, **e.params} for e in ok],
                            [{r["view"]: float(r["D"]) for r in e.rows} for e in ok])
-        ident = refine(f, bounds, opt, step=max(4 * xatol, 0.02), xatol=xatol / 2)
+        best = min(infill, key=lambda e: e.f)
+        ident = refine(f, bounds, best.params, step=max(4 * xatol, 0.02), xatol=xatol / 2,
+                       maxfev=40)
     # the uncertainty around the optimum reported (the best full run), at the surrogates'
     # score error there
     i_best = min(range(len(infill)), key=lambda i: infill[i].f)

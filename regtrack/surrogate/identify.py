@@ -23,8 +23,8 @@ What is reported besides the optimum (:class:`Identification`):
 * **sensitivity**: central differences of the objective, ``dJ/dp`` per unit of each
   parameter, at the optimum (step 1 % of the box);
 * **uncertainty**: for each parameter, the interval over which the objective stays within
-  ``tolerance`` of its optimum, the others held at the optimum (a conditional profile on
-  a 41-point scan of the box).  ``tolerance`` is what the objective cannot resolve: for a
+  ``tolerance`` of its optimum, the others held at the optimum (a conditional profile: a
+  21-point scan of the box, its ends sharpened by bisection).  ``tolerance`` is what the objective cannot resolve: for a
   landmark fit the surrogate's own error at the landmarks plus the measurement error.
 """
 
@@ -146,21 +146,44 @@ def refine(objective: Callable[[dict], float], bounds: Mapping[str, tuple[float,
 
 
 def profile(objective: Callable[[dict], float], ident: Identification,
-            bounds: Mapping[str, tuple[float, float]], *, tolerance: float) -> Identification:
+            bounds: Mapping[str, tuple[float, float]], *, tolerance: float,
+            scan: int = 21, bisections: int = 4) -> Identification:
     """Fill ``ident``'s sensitivity (central differences, step 1 % of the box) and its
-    profile intervals at ``tolerance`` (41-point scans of each parameter, the others at
-    the optimum); returns ``ident``."""
+    profile intervals at ``tolerance``: a ``scan``-point scan of each parameter over the box,
+    the others at the optimum, whose outermost points within the tolerance are then
+    sharpened by ``bisections`` bisections against their outer neighbours (the ends to
+    1/(scan - 1)/2**bisections of the box); returns ``ident``."""
     best, value = ident.params, ident.value
+
+    def within(n: str, v: float) -> bool:
+        return objective({**best, n: float(v)}) <= value + tolerance
+
     for n, (lo, hi) in bounds.items():
         h = 0.01 * (hi - lo)
         a, b = max(lo, best[n] - h), min(hi, best[n] + h)
         ident.sensitivity[n] = (objective({**best, n: b}) - objective({**best, n: a})) / (b - a)
-        ok = [float(v) for v in np.linspace(lo, hi, 41)
-              if objective({**best, n: float(v)}) <= value + tolerance]
-        ok.append(best[n])
-        ident.interval[n] = (min(ok), max(ok))
+        xs = np.linspace(lo, hi, scan)
+        ok = np.array([within(n, v) for v in xs])
+        ends = [best[n]]
+        if ok.any():
+            i, j = int(np.argmax(ok)), int(len(ok) - 1 - np.argmax(ok[::-1]))
+            ends += [_sharpen(lambda v: within(n, v), xs[i], xs[i - 1] if i > 0 else None, bisections),
+                     _sharpen(lambda v: within(n, v), xs[j], xs[j + 1] if j < scan - 1 else None,
+                              bisections)]
+        ident.interval[n] = (min(ends), max(ends))
     ident.tolerance = float(tolerance)
     return ident
+
+
+def _sharpen(inside: Callable[[float], bool], good: float, bad: float | None, steps: int) -> float:
+    """The point within the tolerance nearest ``bad`` after ``steps`` bisections of
+    [good, bad] (``good`` itself when it is the box's end)."""
+    if bad is None:
+        return float(good)
+    for _ in range(steps):
+        mid = 0.5 * (good + bad)
+        good, bad = (mid, bad) if inside(mid) else (good, mid)
+    return float(good)
 
 
 def landmark_misfit(surrogate, nodes: Sequence[int], observed: np.ndarray, *,

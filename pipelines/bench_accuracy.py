@@ -1,0 +1,212 @@
+"""Accuracy of regtrack on the CalculiX ground-truth cases (issue 52, item 4).
+
+Runs ``regtrack run`` at its defaults on the cases written by
+``pipelines/make_truth_cases.py`` and compares with the hidden truth (which regtrack never
+reads):
+
+* ``<case>_paper``      (rotated DICOMs + true tumour outline): paper mode; theta error =
+  theta_p - the truth's in-plane rotation, and d_T;
+* ``<case>_paper_rot0`` (the same case, unrotated): the frame check; theta_p there is the
+  registration's own bias, and theta_p(rot) - theta_p(rot0) - rotation isolates the frame;
+* ``<case>_track``      (rotated DICOMs, no outline): tracking mode; the predicted lesion
+  centroid (``lesions.json``, DICOM pixels) against the true projected tumour's area
+  centroid, in mm on the detector (pixel spacing of the DICOM).  The regtrack lesion is
+  matched to the truth tumour by its MRI centroid (``mri_lps_mm``), never by the image.
+
+Writes ``accuracy.csv`` and ``accuracy.md`` (per case and view, with medians) under
+``--out``.
+
+Usage::
+
+    .venv/bin/python pipelines/bench_accuracy.py [--root /work/scratch/truth] [--only pel03R,...]
+        [--variants paper,paper_rot0,track] [--collect-only]
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import logging
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+log = logging.getLogger("bench_accuracy")
+REPO = Path(__file__).resolve().parents[1]
+VARIANTS = ("paper", "paper_rot0", "track")
+
+
+def run_case(case: Path, out: Path, cache: Path, timeout: int) -> dict:
+    """``regtrack run`` at the defaults; returns {rc, seconds, log tail}."""
+    out.mkdir(parents=True, exist_ok=True)
+    if (out / "metrics.json").exists():
+        return {"rc": 0, "seconds": None, "reused": True}
+    cmd = [str(REPO / ".venv" / "bin" / "regtrack"), "run", str(case), "--out", str(out), "--cache", str(cache),
+           "--no-report", "--serial-views"]
+    env = dict(os.environ, OMP_NUM_THREADS="1")
+    t0 = time.perf_counter()
+    with open(out.parent / f"{out.name}.log", "w") as fh:
+        try:
+            pr = subprocess.run(cmd, stdout=fh, stderr=subprocess.STDOUT, env=env, timeout=timeout)
+            rc = pr.returncode
+        except subprocess.TimeoutExpired:
+            rc = 124
+    dt = time.perf_counter() - t0
+    tail = (out.parent / f"{out.name}.log").read_text().splitlines()[-3:]
+    log.info("%s: rc %d in %.0f s", case.name, rc, dt)
+    return {"rc": rc, "seconds": dt, "tail": tail}
+
+
+def _metrics(out: Path) -> dict:
+    f = out / "metrics.json"
+    if not f.exists():
+        return {}
+    return {v["view"]: v for v in json.loads(f.read_text())["views"]}
+
+
+def _lesions(out: Path) -> dict:
+    f = out / "lesions.json"
+    if not f.exists():
+        return {}
+    return {v: d.get("lesions", []) for v, d in json.loads(f.read_text())["views"].items()}
+
+
+def match_lesion(lesions: list, truth_tumour: dict) -> dict | None:
+    """The regtrack lesion whose MRI centroid is nearest the truth tumour's (MRI side only)."""
+    best, bd = None, np.inf
+    for le in lesions:
+        m = le.get("mri_lps_mm")
+        if m is None:
+            continue
+        d = float(np.linalg.norm(np.asarray(m) - np.asarray(truth_tumour["centroid_lps_mm"])))
+        if d < bd:
+            best, bd = le, d
+    if best is not None:
+        best = dict(best, mri_match_mm=bd)
+    return best
+
+
+def _median(vals):
+    v = [x for x in vals if x is not None and np.isfinite(x)]
+    return float(np.median(v)) if v else None
+
+
+def collect(root: Path, name: str, truth: dict, res: Path) -> list[dict]:
+    rows = []
+    mp, m0, mt = (_metrics(res / f"{name}_{v}") for v in VARIANTS)
+    lt = _lesions(res / f"{name}_track")
+    for view, tv in truth["views"].items():
+        rot = tv["rotation_deg"]
+        px = tv["pixel_mm"]
+        row = {"case": name, "view": view, "rotation_true_deg": rot,
+               "D_true": truth["params"]["D"][view], "gap_true_mm": tv["simulation"]["gap_mm"],
+               "angle_true_deg": tv["simulation"]["angle_deg"],
+               "friction_true": truth["params"]["friction"]}
+        a = mp.get(view, {})
+        b = m0.get(view, {})
+        row.update({"theta_p_paper": a.get("theta_p"), "theta_p_b_paper": a.get("theta_p_b"),
+                    "theta_p_t_paper": a.get("theta_p_t"), "d_T_paper": a.get("d_T"),
+                    "lesion_error_paper_mm": a.get("lesion_error_mm"),
+                    "D_regtrack": a.get("D"), "gap_regtrack_mm": a.get("plate_gap_mm"),
+                    "gap_source": a.get("gap_source"), "projection": a.get("projection"),
+                    "angle_regtrack_deg": a.get("plate_angle_deg"),
+                    "theta_p_rot0": b.get("theta_p"), "d_T_rot0": b.get("d_T")})
+        row["theta_error_deg"] = (a["theta_p"] - rot) if a.get("theta_p") is not None else None
+        row["theta_error_vs_rot0_deg"] = (a["theta_p"] - b["theta_p"] - rot) \
+            if a.get("theta_p") is not None and b.get("theta_p") is not None else None
+        # tracking mode
+        c = mt.get(view, {})
+        row["mode_track"] = c.get("mode")
+        row["theta_p_track"] = c.get("theta_p")
+        err = None
+        if tv["tumours"] and view in lt:
+            tt = tv["tumours"][0]  # the largest tumour
+            le = match_lesion(lt[view], tt)
+            if le is not None:
+                d = np.asarray(le["centroid_px_rc"]) - np.asarray(tt["centroid_dicom_rc"])
+                err = float(np.linalg.norm(d) * px)
+                row["lesion_mri_match_mm"] = le["mri_match_mm"]
+                row["lesion_sigma_mm"] = le.get("sigma_mm")
+                row["n_lesions_regtrack"] = len(lt[view])
+        row["lesion_error_track_mm"] = err
+        rows.append(row)
+    return rows
+
+
+COLS = ["case", "view", "rotation_true_deg", "theta_p_paper", "theta_error_deg", "theta_p_rot0",
+        "theta_error_vs_rot0_deg", "d_T_paper", "lesion_error_paper_mm", "lesion_error_track_mm",
+        "lesion_sigma_mm", "n_lesions_regtrack", "lesion_mri_match_mm", "D_true", "D_regtrack", "gap_true_mm",
+        "gap_regtrack_mm", "gap_source", "angle_true_deg", "angle_regtrack_deg", "projection", "friction_true",
+        "theta_p_b_paper", "theta_p_t_paper", "theta_p_track", "mode_track", "d_T_rot0"]
+
+
+def write_tables(rows: list[dict], out: Path) -> None:
+    out.mkdir(parents=True, exist_ok=True)
+    with open(out / "accuracy.csv", "w", newline="") as fh:
+        w = csv.DictWriter(fh, fieldnames=COLS, extrasaction="ignore")
+        w.writeheader()
+        w.writerows(rows)
+
+    def f(x, nd=2):
+        return "-" if x is None else (f"{x:.{nd}f}" if isinstance(x, float) else str(x))
+
+    show = ["case", "view", "rotation_true_deg", "theta_p_paper", "theta_error_deg", "theta_p_rot0",
+            "theta_error_vs_rot0_deg", "d_T_paper", "lesion_error_track_mm", "lesion_error_paper_mm",
+            "D_true", "D_regtrack", "angle_true_deg", "angle_regtrack_deg"]
+    lines = ["| " + " | ".join(show) + " |", "|" + "---|" * len(show)]
+    for r in rows:
+        lines.append("| " + " | ".join(f(r.get(k)) for k in show) + " |")
+    med = {k: _median([r.get(k) for r in rows]) for k in ("theta_error_deg", "theta_error_vs_rot0_deg",
+                                                            "d_T_paper", "lesion_error_track_mm",
+                                                            "lesion_error_paper_mm", "theta_p_rot0")}
+    absmed = _median([abs(r["theta_error_deg"]) for r in rows if r.get("theta_error_deg") is not None])
+    worst = max([r["lesion_error_track_mm"] for r in rows if r.get("lesion_error_track_mm") is not None],
+                default=None)
+    lines += ["", f"Medians over {len(rows)} case-views: |theta error| {f(absmed)} deg (signed {f(med['theta_error_deg'])}), "
+              f"theta_p on the unrotated copy {f(med['theta_p_rot0'])} deg, d_T {f(med['d_T_paper'])} mm, "
+              f"tracking-mode lesion centroid error {f(med['lesion_error_track_mm'])} mm (worst {f(worst)} mm), "
+              f"paper-mode lesion error {f(med['lesion_error_paper_mm'])} mm."]
+    (out / "accuracy.md").write_text("\n".join(lines) + "\n")
+    print("\n".join(lines))
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--root", default="/work/scratch/truth", help="make_truth_cases.py --out")
+    ap.add_argument("--out", default=None, help="results folder (default ROOT/bench)")
+    ap.add_argument("--only", default="", help="comma-separated case names, e.g. pel03R")
+    ap.add_argument("--variants", default=",".join(VARIANTS))
+    ap.add_argument("--collect-only", action="store_true", help="do not run regtrack; tabulate what exists")
+    ap.add_argument("--timeout", type=int, default=3600)
+    a = ap.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
+    root = Path(a.root)
+    res = Path(a.out) if a.out else root / "bench"
+    names = sorted(p.stem for p in (root / "truth").glob("*.json"))
+    if a.only:
+        keep = set(a.only.split(","))
+        names = [n for n in names if n in keep]
+    variants = [v for v in a.variants.split(",") if v]
+    runs = {}
+    rows = []
+    for name in names:
+        truth = json.loads((root / "truth" / f"{name}.json").read_text())
+        if not a.collect_only:
+            for v in variants:
+                case = root / "cases" / f"{name}_{v}"
+                runs[f"{name}_{v}"] = run_case(case, res / f"{name}_{v}", res / "cache" / name, a.timeout)
+        rows += collect(root, name, truth, res)
+    (res).mkdir(parents=True, exist_ok=True)
+    if runs:
+        (res / "runs.json").write_text(json.dumps(runs, indent=1))
+    write_tables(rows, res)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,854 @@
+"""Ground-truth mammography cases from Pelicano exams, made with a solver that is not ours.
+
+Issue 52, item 4: an independent development cohort.  For each exam and breast this
+script builds, *without regtrack's model, mechanics or virtual-mammogram stages*:
+
+1. **Its own mesh.**  The breast mask of the *detailed* label map (tissue, skin and tumour
+   anterior of a coronal chest-wall cut and of the muscle), smoothed and resampled to
+   2 mm, marching cubes (scikit-image), gmsh re-meshing of that surface and a tet10
+   volume mesh (straight-sided second order, C3D10) at an element size chosen for about
+   ``--target-tets`` elements (a few thousand nodes).
+2. **A CalculiX 2.20 compression** per view (``ccx``, single-threaded): heterogeneous
+   neo-Hookean tissue (``*HYPERELASTIC, NEO HOOKE``; fat labels 5-7 and skin, gland 1-3,
+   transition 4 = mean, tumour -3/-4 = 10 x gland; c1 drawn per case), chest-wall nodes
+   fixed, standing gravity (``*DLOAD GRAV``, rho = 1000 kg/m^3), two rigid plates
+   (``*RIGID BODY`` on one layer of C3D8 elements) with surface-to-surface penalty
+   contact and ``*FRICTION`` mu drawn in 0.05-0.2; the lower plate touches the breast's
+   lowest point, the upper plate moves down until the gap is (1 - D) times the
+   uncompressed thickness, D drawn in 0.30-0.50; MLO: plates rotated about the
+   antero-posterior axis by an angle drawn in 40-60 deg.
+3. **A cone-beam rendering** (point source SID 650-660 mm above the detector, detector
+   15-25 mm below the lower plate, the source's foot at the middle of the chest-wall
+   edge) of fat / gland / tumour path lengths (``regtrack.virtual.xray.path_lengths``,
+   a geometric helper), Poisson noise, a random in-plane rotation (-10..10 deg) about the
+   projected nipple, written as DICOM MG (``regtrack.phantom.dicom_mg.write_mg_dicom``)
+   with BodyPartThickness, CompressionForce (N), PositionerPrimaryAngle (MLO),
+   DistanceSourceToDetector, DistanceSourceToPatient,
+   EstimatedRadiographicMagnificationFactor and ImagerPixelSpacing.
+
+Frames.  The plate frame of a view is :func:`regtrack.virtual.frames.plate_frame` (a
+*convention*: which way CC and MLO plates and images are oriented, shared by every
+mammography unit), applied to the model frame (origin nipple, x anterior, y superior,
+z patient right).  The image is the canonical frame of :mod:`regtrack.views` (chest wall
+left), stored under the IHE hanging (right breasts flipped).  The in-plane rotation is
+``q = R(theta) (p' - n') + n'`` with ``R = [[c, -s], [s, c]]`` (y down), ``p'`` the
+cone-beam projection on the detector and ``n'`` the projected nipple: the sense of
+regtrack's ``theta_p``.  An unrotated copy (theta = 0) of every case is written too, for
+the frame check.
+
+Output (all under ``--out``, default /work/scratch/truth)::
+
+    work/<case>/            mesh, CalculiX decks and logs, displacements (npz)
+    cases/<case>_track/     case.toml: label map + DICOMs, no tumour outline (tracking mode)
+    cases/<case>_paper/     the same DICOMs + the true tumour outline (paper mode)
+    cases/<case>_paper_rot0/  unrotated DICOMs + outline (frame check)
+    truth/<case>.json       the hidden truth (outside every case folder)
+
+Usage::
+
+    OMP_NUM_THREADS=1 .venv/bin/python pipelines/make_truth_cases.py --exams 03R,10R
+        [--views CC,MLO] [--out /work/scratch/truth] [--target-tets 3000]
+
+Data: Pelicano et al., Sensors 2021 and PLoS One 2024 (../shared/data/pelicano).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import os
+import re
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+from scipy import ndimage
+from scipy.spatial import cKDTree
+
+log = logging.getLogger("make_truth_cases")
+REPO = Path(__file__).resolve().parents[1]
+DATA = Path(os.environ.get("REGTRACK_SHARED_DATA", REPO.parent / "shared" / "data")) / "pelicano"
+
+FAT, GLAND, TRANS, TUM = 0, 1, 2, 3
+GROUP_NAMES = {FAT: "fat", GLAND: "gland", TRANS: "transition", TUM: "tumour"}
+#: attenuation (1/mm, ~20 keV; Johns & Yaffe 1987)
+MU = {FAT: 0.0456, GLAND: 0.0802, TRANS: 0.0629, TUM: 0.0844}
+RHO_KG_MM3 = 1.0e-6          # 1000 kg/m^3 in kg/mm^3 (units mm, mN, kPa = mN/mm^2, kg, s)
+G_MM_S2 = 9810.0
+PIXEL_MM = 0.1
+#: contact penalty (kPa/mm) and friction stick slope (kPa/mm): soft tissue, c1 < 2 kPa
+PENALTY = 20.0
+STICK_SLOPE = 5.0
+#: pseudo-time of the gravity ramp in the single CalculiX step
+T_GRAV = 0.2
+RENDER_MM = 0.4
+#: gmsh tet10 node order -> Abaqus/CalculiX C3D10 (edges 01,12,20,03,13,23)
+C3D10_EDGES = [(0, 1), (1, 2), (2, 0), (0, 3), (1, 3), (2, 3)]
+C3D10_FACES = {1: (0, 1, 2), 2: (0, 3, 1), 3: (1, 3, 2), 4: (2, 3, 0)}
+
+
+# ------------------------------------------------------------------------- parameters
+
+def draw_params(exam: str, side: str, seed: int) -> dict:
+    """The case's hidden parameters (seeded by exam, side and --seed)."""
+    rng = np.random.default_rng([seed, int(exam), 0 if side == "R" else 1])
+    fat = float(rng.uniform(0.3, 0.6))
+    gland = float(rng.uniform(0.8, 1.6))
+    p = {
+        "c1_kpa": {"fat": fat, "gland": gland, "transition": 0.5 * (fat + gland), "tumour": 10.0 * gland},
+        "nu": 0.49,
+        "friction": float(rng.uniform(0.05, 0.2)),
+        "D": {"CC": float(rng.uniform(0.30, 0.50)), "MLO": float(rng.uniform(0.30, 0.50))},
+        "mlo_angle_deg": float(rng.uniform(40.0, 60.0)),
+        "rotation_deg": {"CC": float(rng.uniform(-10, 10)), "MLO": float(rng.uniform(-10, 10))},
+        "sid_mm": float(rng.uniform(650.0, 660.0)),
+        "detector_gap_mm": {"CC": float(rng.uniform(15.0, 25.0)), "MLO": float(rng.uniform(15.0, 25.0))},
+        "pixel_mm": PIXEL_MM,
+        "quanta_per_pixel": 20000.0,
+        "noise_seed": int(rng.integers(0, 2**31 - 1)),
+    }
+    return p
+
+
+# ------------------------------------------------------------------------- label map
+
+def find_zip(exam: str, kind: str) -> Path:
+    d = DATA / f"Exam_{exam}"
+    for f in d.iterdir():
+        if f.name.lower() == f"label_map_{kind}.zip":
+            return f
+    raise FileNotFoundError(f"{d}: no label_map_{kind}.zip")
+
+
+def model_basis(side: str) -> np.ndarray:
+    """Rows: model axes (x anterior, y superior, z patient right) in LPS."""
+    return np.array([[0.0, -1.0, 0.0], [0.0, 0.0, 1.0], [-1.0, 0.0, 0.0]])
+
+
+def breast_geometry(exam: str, side: str) -> dict:
+    """Breast mask of the detailed map, the chest-wall cut, tumour components (LPS mm)."""
+    from regtrack.imaging.readers import read_label_map
+
+    vol = read_label_map(find_zip(exam, "detailed"))
+    lab = vol.data
+    A = np.asarray(vol.affine, float)
+    ijk = np.indices(lab.shape, dtype=np.float32)
+    # world coordinates of every voxel, axis by axis (LPS)
+    lps = [A[r, 0] * ijk[0] + A[r, 1] * ijk[1] + A[r, 2] * ijk[2] + A[r, 3] for r in range(3)]
+    del ijk
+    body = lab != 0
+    x_mid = float(np.median(lps[0][body & (lab > 0)]))
+    half = lps[0] < x_mid if side == "R" else lps[0] > x_mid
+    ant = -lps[1]  # anterior coordinate (mm)
+    tissue = np.isin(lab, [1, 2, 3, 4, 5, 6, 7, -2, -3, -4]) & half
+    muscle = (lab == -1) & half
+    # chest-wall cut: near the most anterior part of the muscle's anterior surface (90th
+    # percentile over the columns that hold tissue), so that little muscle lies in front
+    ant_axis = int(np.argmax(np.abs(A[1, :3])))
+    m_front = np.where(muscle, ant, -np.inf).max(axis=ant_axis)
+    t_any = tissue.any(axis=ant_axis)
+    cols = np.isfinite(m_front) & t_any
+    cut = float(np.percentile(m_front[cols], 90)) + 2.0
+    m_front_b = np.expand_dims(np.where(np.isfinite(m_front), m_front, -np.inf), ant_axis)
+    mask = tissue & (ant > cut) & (ant > m_front_b + 0.5)
+    # the breast's footprint on the chest wall: columns whose tissue is at least 35 % of the
+    # deepest column's (and 20 mm) thick; this drops the thin subcutaneous layer of the chest
+    thick = mask.sum(axis=ant_axis) * float(np.linalg.norm(A[:3, ant_axis]))
+    foot = thick >= max(20.0, 0.35 * float(thick.max()))
+    fl, fn = ndimage.label(foot)
+    if fn > 1:
+        fs = ndimage.sum_labels(thick, fl, index=np.arange(1, fn + 1))
+        foot = fl == (1 + int(np.argmax(fs)))
+    foot = ndimage.binary_fill_holes(ndimage.binary_dilation(foot, iterations=3))
+    mask &= np.expand_dims(foot, ant_axis)
+    lbl, n = ndimage.label(mask)
+    if n == 0:
+        raise RuntimeError(f"exam {exam} {side}: empty breast mask")
+    sizes = ndimage.sum_labels(mask, lbl, index=np.arange(1, n + 1))
+    mask = lbl == (1 + int(np.argmax(sizes)))
+    # tumour components inside the breast (>= 20 voxels)
+    tum = np.isin(lab, [-3, -4]) & mask
+    tl, tn = ndimage.label(tum)
+    tumours = []
+    vox_vol = abs(np.linalg.det(A[:3, :3]))
+    for t in range(1, tn + 1):
+        sel = tl == t
+        nv = int(sel.sum())
+        if nv < 20:
+            continue
+        surf = sel & ~ndimage.binary_erosion(sel)
+        idx = np.argwhere(surf)
+        pts = idx @ A[:3, :3].T + A[:3, 3]
+        cen = np.argwhere(sel).mean(0) @ A[:3, :3].T + A[:3, 3]
+        vals, cnt = np.unique(lab[sel], return_counts=True)
+        tumours.append({"voxels": nv, "volume_mm3": nv * vox_vol, "centroid_lps_mm": cen.tolist(),
+                        "label": int(vals[np.argmax(cnt)]), "surface_points_lps": pts})
+    tumours.sort(key=lambda t: -t["voxels"])
+    # muscle distance (mm) for the chest-wall nodes
+    sp = np.linalg.norm(A[:3, :3], axis=0)
+    dist_muscle = ndimage.distance_transform_edt(~(lab == -1), sampling=sp).astype(np.float32)
+    return {"labels": lab, "affine": A, "mask": mask, "cut_ant_mm": cut, "tumours": tumours,
+            "dist_muscle": dist_muscle, "spacing": sp, "x_mid": x_mid}
+
+
+def lps_to_index(A: np.ndarray, pts: np.ndarray) -> np.ndarray:
+    return (np.asarray(pts, float) - A[:3, 3]) @ np.linalg.inv(A[:3, :3]).T
+
+
+# ------------------------------------------------------------------------- meshing
+
+def surface_from_mask(geo: dict, step_mm: float = 2.0) -> tuple[np.ndarray, np.ndarray]:
+    """Marching-cubes surface (LPS mm) of the smoothed breast mask resampled to step_mm."""
+    from skimage import measure
+
+    mask, A = geo["mask"], geo["affine"]
+    sl = ndimage.find_objects(mask.astype(np.int8))[0]
+    sl = tuple(slice(max(s.start - 4, 0), s.stop + 4) for s in sl)
+    sub = mask[sl].astype(np.float32)
+    sp = geo["spacing"]
+    f = np.maximum(1, np.round(step_mm / sp)).astype(int)
+    sm = ndimage.gaussian_filter(sub, sigma=1.0)
+    co = sm[::f[0], ::f[1], ::f[2]]
+    co = np.pad(co, 1)
+    verts, faces, _, _ = measure.marching_cubes(co, 0.5)
+    idx = (verts - 1) * f + np.array([s.start for s in sl])
+    pts = idx @ A[:3, :3].T + A[:3, 3]
+    return pts, faces
+
+
+def gmsh_tet10(pts: np.ndarray, faces: np.ndarray, size_mm: float) -> tuple[np.ndarray, np.ndarray]:
+    """gmsh: re-mesh the surface and fill it with straight-sided tet10 (C3D10 order)."""
+    import gmsh
+
+    gmsh.initialize()
+    try:
+        gmsh.option.setNumber("General.Terminal", 0)
+        gmsh.option.setNumber("General.NumThreads", 1)
+        gmsh.model.add("breast")
+        s = gmsh.model.addDiscreteEntity(2)
+        tags = np.arange(1, len(pts) + 1)
+        gmsh.model.mesh.addNodes(2, s, tags.tolist(), pts.ravel().tolist())
+        gmsh.model.mesh.addElementsByType(s, 2, [], (faces + 1).ravel().tolist())
+        gmsh.model.mesh.removeDuplicateNodes()
+        gmsh.model.mesh.classifySurfaces(np.deg2rad(50), True, True, np.deg2rad(180))
+        gmsh.model.mesh.createGeometry()
+        surfs = [e[1] for e in gmsh.model.getEntities(2)]
+        loop = gmsh.model.geo.addSurfaceLoop(surfs)
+        gmsh.model.geo.addVolume([loop])
+        gmsh.model.geo.synchronize()
+        gmsh.option.setNumber("Mesh.MeshSizeMin", 0.6 * size_mm)
+        gmsh.option.setNumber("Mesh.MeshSizeMax", size_mm)
+        gmsh.option.setNumber("Mesh.MeshSizeFromCurvature", 0)
+        gmsh.option.setNumber("Mesh.Algorithm", 6)
+        gmsh.option.setNumber("Mesh.Algorithm3D", 1)
+        gmsh.option.setNumber("Mesh.Optimize", 1)
+        gmsh.option.setNumber("Mesh.SecondOrderLinear", 1)
+        gmsh.model.mesh.generate(3)
+        gmsh.model.mesh.setOrder(2)
+        ntag, ncoord, _ = gmsh.model.mesh.getNodes()
+        coords = np.asarray(ncoord).reshape(-1, 3)
+        et, en = gmsh.model.mesh.getElementsByType(11)
+        conn = np.asarray(en, np.int64).reshape(-1, 10)
+    finally:
+        gmsh.finalize()
+    # compact node numbering
+    order = np.argsort(ntag)
+    ntag = np.asarray(ntag)[order]
+    coords = coords[order]
+    used = np.unique(conn)
+    pos = np.searchsorted(ntag, used)
+    nodes = coords[pos]
+    conn = np.searchsorted(used, conn)
+    # reorder the mid-side nodes to C3D10 by midpoint matching (robust to gmsh's order)
+    c = nodes[conn[:, :4]]
+    out = np.empty_like(conn)
+    out[:, :4] = conn[:, :4]
+    for k, (a, b) in enumerate(C3D10_EDGES):
+        mid = 0.5 * (c[:, a] + c[:, b])
+        d = np.linalg.norm(nodes[conn[:, 4:]] - mid[:, None, :], axis=2)
+        out[:, 4 + k] = conn[np.arange(len(conn)), 4 + np.argmin(d, axis=1)]
+    # positive volume in the (right-handed) model frame is checked later
+    return nodes, out
+
+
+def tet_volumes(x: np.ndarray, tets: np.ndarray) -> np.ndarray:
+    p = x[tets[:, :4]]
+    return np.einsum("ij,ij->i", np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), p[:, 3] - p[:, 0]) / 6.0
+
+
+def fix_orientation(x: np.ndarray, tets: np.ndarray) -> np.ndarray:
+    v = tet_volumes(x, tets)
+    neg = v < 0
+    if neg.any():  # swap corners 1<->2 and the affected edges: 01<->02(=20), 13<->23
+        t = tets[neg].copy()
+        t[:, [1, 2]] = t[:, [2, 1]]
+        t[:, [4, 6]] = t[:, [6, 4]]
+        t[:, [8, 9]] = t[:, [9, 8]]
+        tets = tets.copy()
+        tets[neg] = t
+    return tets
+
+
+def boundary_faces(tets: np.ndarray) -> list[tuple[int, int, tuple[int, int, int]]]:
+    """(element index, C3D10 face id, corner nodes) of faces used once."""
+    rec = {}
+    for fid, (a, b, c) in C3D10_FACES.items():
+        f = np.sort(tets[:, [a, b, c]], axis=1)
+        for e in range(len(tets)):
+            key = tuple(f[e])
+            rec.setdefault(key, []).append((e, fid))
+    out = []
+    for key, lst in rec.items():
+        if len(lst) == 1:
+            out.append((lst[0][0], lst[0][1], key))
+    return out
+
+
+def build_mesh(geo: dict, side: str, target_tets: int) -> dict:
+    pts, faces = surface_from_mask(geo)
+    vol_mm3 = float(geo["mask"].sum() * np.prod(geo["spacing"]))
+    size = float((vol_mm3 / target_tets * 6 * np.sqrt(2)) ** (1 / 3))
+    t0 = time.perf_counter()
+    nodes_lps, tets = gmsh_tet10(pts, faces, size)
+    B = model_basis(side)
+    # nipple: the most anterior surface node; model frame origin there
+    x_m = nodes_lps @ B.T
+    nip = int(np.argmax(x_m[:, 0]))
+    origin_lps = nodes_lps[nip].copy()
+    x = (nodes_lps - origin_lps) @ B.T
+    tets = fix_orientation(x, tets)
+    vol = tet_volumes(x, tets)
+    # tissue group per element from the detailed labels at the centroid
+    A, lab = geo["affine"], geo["labels"]
+    cen = nodes_lps[tets[:, :4]].mean(1)
+    ijk = np.clip(np.round(lps_to_index(A, cen)).astype(int), 0, np.array(lab.shape) - 1)
+    lv = lab[ijk[:, 0], ijk[:, 1], ijk[:, 2]]
+    grp = np.full(len(tets), FAT, np.int64)
+    grp[np.isin(lv, [1, 2, 3])] = GLAND
+    grp[lv == 4] = TRANS
+    grp[np.isin(lv, [-3, -4])] = TUM
+    # chest-wall nodes: at the coronal cut or next to the muscle
+    ant = -nodes_lps[:, 1]
+    ijn = np.clip(np.round(lps_to_index(A, nodes_lps)).astype(int), 0, np.array(lab.shape) - 1)
+    dm = geo["dist_muscle"][ijn[:, 0], ijn[:, 1], ijn[:, 2]]
+    on_cut = ant < geo["cut_ant_mm"] + 2.5
+    fixed = on_cut | (dm < 2.5)
+    corner = np.zeros(len(x), bool)
+    corner[np.unique(tets[:, :4])] = True
+    return {"x": x, "tets": tets, "group": grp, "fixed": fixed, "on_cut": on_cut, "nipple": nip,
+            "origin_lps": origin_lps, "basis": B, "element_size_mm": size, "mesher_s": time.perf_counter() - t0,
+            "n_nodes": int(len(x)), "n_tets": int(len(tets)), "min_vol": float(vol.min()),
+            "volume_mm3": float(vol.sum()), "corner": corner,
+            "group_volume_mm3": {GROUP_NAMES[g]: float(vol[grp == g].sum()) for g in GROUP_NAMES}}
+
+
+# ------------------------------------------------------------------------- CalculiX
+
+def solver_frame(view: str, side: str, angle: float | None):
+    """Right-handed solver basis (rows e_x, s*e_down, n) and s (Y sign back to regtrack's)."""
+    from regtrack.virtual.frames import plate_frame
+
+    pf = plate_frame(view, side, angle_deg=angle)
+    s = 1.0 if np.dot(np.cross(pf.e_x, pf.e_down), pf.normal) > 0 else -1.0
+    return np.stack([pf.e_x, s * pf.e_down, pf.normal]), s, pf
+
+
+def plate_block(x0, x1, y0, y1, z, thick, nx, ny, node0, elem0, up: bool):
+    """One layer of C3D8 over [x0,x1]x[y0,y1]; contact face at height z (facing +z if up)."""
+    xs, ys = np.linspace(x0, x1, nx + 1), np.linspace(y0, y1, ny + 1)
+    zs = (z - thick, z) if up else (z, z + thick)
+    nodes, nid = {}, node0
+    lines = []
+    for k, zz in enumerate(zs):
+        for j, yy in enumerate(ys):
+            for i, xx in enumerate(xs):
+                nodes[(i, j, k)] = nid
+                lines.append(f"{nid}, {xx:.6f}, {yy:.6f}, {zz:.6f}")
+                nid += 1
+    elems, eid = [], elem0
+    for j in range(ny):
+        for i in range(nx):
+            n = [nodes[(i, j, 0)], nodes[(i + 1, j, 0)], nodes[(i + 1, j + 1, 0)], nodes[(i, j + 1, 0)],
+                 nodes[(i, j, 1)], nodes[(i + 1, j, 1)], nodes[(i + 1, j + 1, 1)], nodes[(i, j + 1, 1)]]
+            elems.append((eid, n))
+            eid += 1
+    face = "S2" if up else "S1"  # S2 = top (5-8), S1 = bottom (1-4)
+    return lines, elems, face, nid, eid
+
+
+def write_ccx(path: Path, mesh: dict, view: str, side: str, p: dict) -> dict:
+    angle = p["mlo_angle_deg"] if view == "MLO" else 0.0
+    Bs, s, pf = solver_frame(view, side, angle)
+    xs = mesh["x"] @ Bs.T            # solver coordinates (X, s*Y, h), origin nipple
+    h0 = float(xs[:, 2].min())
+    xs[:, 2] -= h0                   # lower plate contact face at h = 0
+    T0 = float(xs[:, 2].max())
+    gap = (1.0 - p["D"][view]) * T0
+    upper0 = T0 + 1.0
+    g = Bs @ np.array([0.0, -1.0, 0.0])  # standing gravity (model -y) in solver axes
+    tets, grp = mesh["tets"], mesh["group"]
+    nn = len(xs)
+    lo, hi = xs[:, :2].min(0) - 25.0, xs[:, :2].max(0) + 25.0
+    ext = hi - lo
+    nx, ny = max(4, int(ext[0] // 12)), max(4, int(ext[1] // 12))
+    L1, E1, f1, nid, eid = plate_block(lo[0], hi[0], lo[1], hi[1], 0.0, 2.0, nx, ny, nn + 1, len(tets) + 1, True)
+    L2, E2, f2, nid, eid = plate_block(lo[0], hi[0], lo[1], hi[1], upper0, 2.0, nx, ny, nid, eid, False)
+    r = list(range(nid, nid + 4))
+    out = ["*HEADING", f"regtrack truth (CalculiX) {view}", "*NODE, NSET=NALL"]
+    out += [f"{i + 1}, {a:.6f}, {b:.6f}, {c:.6f}" for i, (a, b, c) in enumerate(xs)]
+    out += ["*NODE, NSET=NPLOW"] + L1
+    out += ["*NODE, NSET=NPUP"] + L2
+    out += ["*NODE, NSET=NREF", f"{r[0]}, 0, 0, -5", f"{r[1]}, 0, 0, -5",
+            f"{r[2]}, 0, 0, {upper0 + 5:.6f}", f"{r[3]}, 0, 0, {upper0 + 5:.6f}"]
+    for gi, name in GROUP_NAMES.items():
+        ids = np.nonzero(grp == gi)[0]
+        if len(ids) == 0:
+            continue
+        out.append(f"*ELEMENT, TYPE=C3D10, ELSET=E{name.upper()}")
+        for e in ids:
+            out.append(f"{e + 1}, " + ", ".join(str(int(v) + 1) for v in tets[e]))
+    out.append("*ELSET, ELSET=EBREAST")
+    present = [n for gi, n in GROUP_NAMES.items() if (grp == gi).any()]
+    out += [f"E{n.upper()}" for n in present]
+    out.append("*ELEMENT, TYPE=C3D8, ELSET=EPLOW")
+    out += [f"{e}, " + ", ".join(map(str, n)) for e, n in E1]
+    out.append("*ELEMENT, TYPE=C3D8, ELSET=EPUP")
+    out += [f"{e}, " + ", ".join(map(str, n)) for e, n in E2]
+    fixed = np.nonzero(mesh["fixed"])[0] + 1
+    out.append("*NSET, NSET=NFIX")
+    out += [", ".join(map(str, fixed[i:i + 12])) for i in range(0, len(fixed), 12)]
+    out.append("*NSET, NSET=NRUP")
+    out.append(str(r[2]))
+    # slave: outer faces not on the chest wall
+    bf = boundary_faces(tets)
+    fx = mesh["fixed"]
+    out.append("*SURFACE, NAME=SBREAST, TYPE=ELEMENT")
+    nface = 0
+    for e, fid, key in bf:
+        if fx[list(key)].all():
+            continue
+        out.append(f"{e + 1}, S{fid}")
+        nface += 1
+    out.append("*SURFACE, NAME=SLOW, TYPE=ELEMENT")
+    out += [f"{e}, {f1}" for e, _ in E1]
+    out.append("*SURFACE, NAME=SUP, TYPE=ELEMENT")
+    out += [f"{e}, {f2}" for e, _ in E2]
+    nu = p["nu"]
+    for n in present:
+        c1 = p["c1_kpa"][n]
+        mu = 2 * c1
+        K = 2 * mu * (1 + nu) / (3 * (1 - 2 * nu))
+        out += [f"*MATERIAL, NAME=M{n.upper()}", "*HYPERELASTIC, NEO HOOKE", f"{c1:.6g}, {2.0 / K:.6g}",
+                "*DENSITY", f"{RHO_KG_MM3:.3e}", f"*SOLID SECTION, ELSET=E{n.upper()}, MATERIAL=M{n.upper()}"]
+    out += ["*MATERIAL, NAME=MPLATE", "*ELASTIC", "1000., 0.3",
+            "*SOLID SECTION, ELSET=EPLOW, MATERIAL=MPLATE", "*SOLID SECTION, ELSET=EPUP, MATERIAL=MPLATE",
+            f"*RIGID BODY, NSET=NPLOW, REF NODE={r[0]}, ROT NODE={r[1]}",
+            f"*RIGID BODY, NSET=NPUP, REF NODE={r[2]}, ROT NODE={r[3]}",
+            "*SURFACE INTERACTION, NAME=SI", "*SURFACE BEHAVIOR, PRESSURE-OVERCLOSURE=LINEAR", f"{PENALTY:g}",
+            "*FRICTION", f"{p['friction']:.4f}, {STICK_SLOPE:g}",
+            "*CONTACT PAIR, INTERACTION=SI, TYPE=SURFACE TO SURFACE", "SBREAST, SLOW", "SBREAST, SUP",
+            "*BOUNDARY", "NFIX, 1, 3"]
+    out += [f"{ri}, 1, 3" for ri in r]
+    # one step (a second step restarts CalculiX's friction and diverged at once): standing
+    # gravity ramped over t = 0-0.2 with the plates still, then the upper plate moves down
+    # linearly over t = 0.2-1 with gravity on
+    out += [f"*AMPLITUDE, NAME=AGRAV", f"0., 0., {T_GRAV}, 1., 1., 1.",
+            f"*AMPLITUDE, NAME=APLATE", f"0., 0., {T_GRAV}, 0., 1., 1.",
+            "*STEP, NLGEOM, INC=5000", "*STATIC", "0.02, 1.0, 1e-7, 0.03",
+            "*DLOAD, AMPLITUDE=AGRAV", f"EBREAST, GRAV, {G_MM_S2:.1f}, {g[0]:.6f}, {g[1]:.6f}, {g[2]:.6f}",
+            "*BOUNDARY, AMPLITUDE=APLATE", f"{r[2]}, 3, 3, {-(upper0 - gap):.6f}",
+            "*NODE PRINT, NSET=NALL", "U", "*NODE PRINT, NSET=NRUP", "RF", "*END STEP"]
+    path.write_text("\n".join(out) + "\n")
+    return {"T0_mm": T0, "gap_mm": gap, "upper0_mm": upper0, "h0_mm": h0, "angle_deg": angle,
+            "solver_basis": Bs.tolist(), "y_sign": s, "gravity_solver": g.tolist(),
+            "n_slave_faces": nface, "n_nodes_total": nid + 3}
+
+
+def parse_dat(path: Path, n: int) -> tuple[np.ndarray | None, float | None]:
+    """Last displacement block (n nodes) and the last upper-plate force (z, mN) in a .dat."""
+    txt = path.read_text().splitlines()
+    disp, force = None, None
+    i = 0
+    while i < len(txt):
+        line = txt[i]
+        if line.strip().startswith("displacements") and "NALL" in line:
+            u = np.zeros((n, 3))
+            j = i + 2
+            while j < len(txt) and txt[j].strip():
+                a = txt[j].split()
+                k = int(a[0])
+                if k <= n:
+                    u[k - 1] = [float(v) for v in a[1:4]]
+                j += 1
+            disp, i = u, j
+            continue
+        if line.strip().startswith("forces") and "NRUP" in line:
+            a = txt[i + 2].split()
+            force = float(a[3])
+        i += 1
+    return disp, force
+
+
+def run_ccx(work: Path, mesh: dict, view: str, side: str, p: dict, timeout: int) -> dict:
+    stem = f"ccx_{view.lower()}"
+    res = work / f"{stem}.npz"
+    if res.exists():
+        d = np.load(res, allow_pickle=True)
+        return json.loads(str(d["meta"])) | {"u": d["u"]}
+    meta = write_ccx(work / f"{stem}.inp", mesh, view, side, p)
+    env = dict(os.environ, OMP_NUM_THREADS="1", CCX_NPROC_STIFFNESS="1", CCX_NPROC_EQUATION_SOLVER="1")
+    t0 = time.perf_counter()
+    with open(work / f"{stem}.log", "w") as fh:
+        pr = subprocess.run(["ccx", "-i", stem], cwd=work, stdout=fh, stderr=subprocess.STDOUT,
+                            env=env, timeout=timeout)
+    dt = time.perf_counter() - t0
+    logtxt = (work / f"{stem}.log").read_text()
+    u, f = parse_dat(work / f"{stem}.dat", mesh["n_nodes"])
+    if pr.returncode != 0 or u is None or "Job finished" not in logtxt:
+        tail = "\n".join(logtxt.splitlines()[-15:])
+        raise RuntimeError(f"ccx {view} failed (rc {pr.returncode}, {dt:.0f} s):\n{tail}")
+    # back to the model frame
+    Bs = np.asarray(meta["solver_basis"])
+    u_model = u @ Bs
+    meta.update({"ccx_s": dt, "force_upper_mN": f, "n_increments": logtxt.count("increment size=")})
+    np.savez(res, u=u_model, meta=json.dumps(meta))
+    return meta | {"u": u_model}
+
+
+# ------------------------------------------------------------------------- embedding
+
+def shape10(L: np.ndarray) -> np.ndarray:
+    """(P, 10) quadratic tet shape functions at barycentric L (P, 4), C3D10 order."""
+    N = np.empty((len(L), 10))
+    N[:, :4] = L * (2 * L - 1)
+    for k, (a, b) in enumerate(C3D10_EDGES):
+        N[:, 4 + k] = 4 * L[:, a] * L[:, b]
+    return N
+
+
+def locate(x: np.ndarray, tets: np.ndarray, pts: np.ndarray, k: int = 40) -> tuple[np.ndarray, np.ndarray]:
+    """Containing tet (nearest if outside) and barycentric coordinates of points."""
+    c = x[tets[:, :4]]
+    tree = cKDTree(c.mean(1))
+    _, cand = tree.query(pts, k=min(k, len(tets)))
+    best_e = np.zeros(len(pts), int)
+    best_L = np.zeros((len(pts), 4))
+    best_m = np.full(len(pts), -np.inf)
+    for j in range(cand.shape[1]):
+        e = cand[:, j]
+        v = c[e]
+        T = np.stack([v[:, 1] - v[:, 0], v[:, 2] - v[:, 0], v[:, 3] - v[:, 0]], axis=2)
+        lam = np.linalg.solve(T, (pts - v[:, 0])[..., None])[..., 0]
+        L = np.column_stack([1 - lam.sum(1), lam])
+        m = L.min(1)
+        better = m > best_m
+        best_e[better], best_L[better], best_m[better] = e[better], L[better], m[better]
+    best_L = np.clip(best_L, 0, None)
+    best_L /= best_L.sum(1, keepdims=True)
+    return best_e, best_L
+
+
+def deform_points(mesh: dict, u: np.ndarray, pts_model: np.ndarray) -> np.ndarray:
+    e, L = locate(mesh["x"], mesh["tets"], pts_model)
+    N = shape10(L)
+    return pts_model + np.einsum("pk,pkd->pd", N, u[mesh["tets"][e]])
+
+
+# ------------------------------------------------------------------------- rendering
+
+def rot(theta_deg: float) -> np.ndarray:
+    t = np.deg2rad(theta_deg)
+    return np.array([[np.cos(t), -np.sin(t)], [np.sin(t), np.cos(t)]])
+
+
+def render_view(mesh: dict, sim: dict, view: str, side: str, p: dict, tumours_model: list,
+                rotation_deg: float) -> dict:
+    """Cone-beam image (canonical frame, stored orientation) and the exact annotations."""
+    from regtrack.phantom.dicom_mg import canonical_to_stored_rc, stored_from_canonical
+    from regtrack.virtual.raster import grid_around
+    from regtrack.virtual.xray import PointSource, path_lengths, perspective
+
+    Bs, s = np.asarray(sim["solver_basis"]), sim["y_sign"]
+    xd = mesh["x"] + sim["u"]
+    loc = xd @ Bs.T
+    loc[:, 2] -= sim["h0_mm"]
+    loc[:, 1] *= s            # regtrack's plate frame (X, Y down, h above the lower plate)
+    det_gap = p["detector_gap_mm"][view]
+    fixed = mesh["fixed"]
+    foot = (float(loc[fixed, 0].min()), float(0.5 * (loc[fixed, 1].min() + loc[fixed, 1].max())))
+    src = PointSource(foot, p["sid_mm"], -det_gap)
+    cor = mesh["tets"][:, :4]
+    P = perspective(loc, src)[:, :2]
+    gr = grid_around(P, spacing=RENDER_MM, margin=6)
+    lengths = path_lengths(loc, cor, mesh["group"], gr, source=src)
+    a_c = sum(MU[g] * L for g, L in lengths.items())
+    n_img = P[mesh["nipple"]]
+    R = rot(rotation_deg)
+    Q = (P - n_img) @ R.T + n_img
+    m = 12.0
+    # the chest-wall image edge: at the median chest-wall-plane node (tissue
+    # behind it is not imaged, as on a real mammogram)
+    x0 = float(np.median(Q[mesh["on_cut"], 0]))
+    y0, y1 = float(Q[:, 1].min()) - m, float(Q[:, 1].max()) + m
+    x1 = float(Q[:, 0].max()) + m
+    px = p["pixel_mm"]
+    shape = (int(np.ceil((y1 - y0) / px)) + 1, int(np.ceil((x1 - x0) / px)) + 1)
+    off = np.array([x0, y0])
+    rr, cc = np.mgrid[0:shape[0], 0:shape[1]].astype(np.float64)
+    qx, qy = cc * px + off[0], rr * px + off[1]
+    # inverse rotation to the unrotated detector plane, then sample the line integral
+    dx, dy = qx - n_img[0], qy - n_img[1]
+    pxu = R[0, 0] * dx + R[1, 0] * dy + n_img[0]
+    pyu = R[0, 1] * dx + R[1, 1] * dy + n_img[1]
+    del dx, dy, qx, qy, rr, cc
+    a = ndimage.map_coordinates(a_c, [(pyu - gr.origin[1]) / RENDER_MM, (pxu - gr.origin[0]) / RENDER_MM],
+                                order=1, mode="constant", cval=0.0)
+    del pxu, pyu
+    mask = a > 1e-4
+    rng = np.random.default_rng([p["noise_seed"], 0 if view == "CC" else 1, int(abs(rotation_deg) * 1000)])
+    I0 = p["quanta_per_pixel"]
+    n = rng.poisson(I0 * np.exp(-a))
+    pres = np.log(I0 / np.maximum(n, 0.5))
+    a_ref = 1.1 * float(np.percentile(a[mask], 99.9))
+    top = 4095
+    canon = np.clip(np.round(pres / a_ref * top), 0, top).astype(np.uint16)
+    stored = stored_from_canonical(canon, side)
+
+    def to_canon_px(p_local3):
+        pp = perspective(np.atleast_2d(p_local3), src)[:, :2]
+        qq = (pp - n_img) @ R.T + n_img - off
+        return qq[:, ::-1] / px  # (row, col)
+
+    nip_rc = to_canon_px(loc[[mesh["nipple"]]])[0]
+    truth_t = []
+    for t in tumours_model:
+        pd = deform_points(mesh, sim["u"], t["points_model"])
+        pl = pd @ Bs.T
+        pl[:, 2] -= sim["h0_mm"]
+        pl[:, 1] *= s
+        rc = to_canon_px(pl)
+        outline, cen = outline_from_points(rc, shape, radius_px=0.6 / px)
+        if outline is None:
+            continue
+        cen_def = t["centroid_model"] + 0.0
+        pc = deform_points(mesh, sim["u"], cen_def[None])
+        pcl = pc @ Bs.T
+        pcl[:, 2] -= sim["h0_mm"]
+        pcl[:, 1] *= s
+        truth_t.append({
+            "label": t["label"], "volume_mm3": t["volume_mm3"], "centroid_lps_mm": t["centroid_lps_mm"],
+            "outline_dicom_rc": canonical_to_stored_rc(outline, shape=shape, laterality=side).tolist(),
+            "centroid_dicom_rc": canonical_to_stored_rc(cen, shape=shape, laterality=side).tolist(),
+            "centroid_canonical_mm": (cen[::-1] * px).tolist(),
+            "volume_centroid_projected_dicom_rc": canonical_to_stored_rc(
+                to_canon_px(pcl)[0], shape=shape, laterality=side).tolist(),
+            "area_mm2": float(polygon_area(outline) * px * px)})
+    return {"stored": stored, "shape": shape, "truth": {
+        "view": view, "laterality": side, "rotation_deg": rotation_deg, "image_shape": list(shape),
+        "pixel_mm": px, "nipple_dicom_rc": canonical_to_stored_rc(nip_rc, shape=shape, laterality=side).tolist(),
+        "nipple_canonical_mm": (nip_rc[::-1] * px).tolist(),
+        "source_foot_plate_mm": list(foot), "detector_gap_mm": det_gap, "sid_mm": p["sid_mm"],
+        "offset_mm": off.tolist(), "nipple_detector_unrotated_mm": n_img.tolist(),
+        "image_map": "canonical_mm = R(rot) (p_detector - n') + n' - offset; p_detector = cone-beam "
+                     "projection of the plate-frame point; R = [[c,-s],[s,c]]; DICOM rc = IHE storage of "
+                     "canonical (right breast flipped left-right)",
+        "tumours": truth_t, "A_ref": a_ref}}
+
+
+def polygon_area(rc: np.ndarray) -> float:
+    x, y = rc[:, 1], rc[:, 0]
+    return 0.5 * abs(float(np.dot(x, np.roll(y, -1)) - np.dot(y, np.roll(x, -1))))
+
+
+def outline_from_points(rc: np.ndarray, shape, radius_px: float):
+    """Outline (row, col) and area centroid of the region covered by projected points."""
+    from shapely.geometry import Polygon
+    from skimage import measure, morphology
+
+    lo = np.floor(rc.min(0)).astype(int) - 20
+    hi = np.ceil(rc.max(0)).astype(int) + 20
+    sub = np.zeros(tuple(hi - lo + 1), bool)
+    ij = np.round(rc - lo).astype(int)
+    sub[ij[:, 0], ij[:, 1]] = True
+    rad = max(1, int(round(radius_px)))
+    sub = ndimage.binary_dilation(sub, morphology.disk(rad))
+    sub = ndimage.binary_closing(sub, morphology.disk(3 * rad))
+    sub = ndimage.binary_fill_holes(sub)
+    lab, n = ndimage.label(sub)
+    if n == 0:
+        return None, None
+    big = 1 + int(np.argmax(ndimage.sum_labels(sub, lab, np.arange(1, n + 1))))
+    sub = lab == big
+    cs = measure.find_contours(np.pad(sub, 1).astype(float), 0.5)
+    c = max(cs, key=len) - 1 + lo
+    poly = Polygon(c[:, ::-1]).simplify(0.3)
+    if not poly.is_valid:
+        poly = poly.buffer(0)
+    # the visible part: clipped by the image (the chest-wall edge can cut a deep tumour)
+    from shapely.geometry import box
+
+    vis = poly.intersection(box(0.0, 0.0, shape[1] - 1.0, shape[0] - 1.0))
+    if vis.is_empty:
+        return None, None
+    if vis.geom_type != "Polygon":
+        vis = max(getattr(vis, "geoms", [vis]), key=lambda g: g.area)
+    if vis.area < poly.area - 1e-6:
+        log.warning("tumour outline clipped by the image edge: %.0f %% visible", 100 * vis.area / poly.area)
+    poly = vis
+    xy = np.asarray(poly.exterior.coords)[:-1]
+    cen = np.array([poly.centroid.y, poly.centroid.x])
+    return xy[:, ::-1], cen
+
+
+def write_dicom(path: Path, stored: np.ndarray, view: str, side: str, case_id: str, p: dict, sim: dict,
+                truth: dict) -> None:
+    import pydicom
+    from regtrack.phantom.dicom_mg import write_mg_dicom
+
+    write_mg_dicom(path, stored, view=view, laterality=side, spacing_mm=p["pixel_mm"],
+                   uid_seed=f"truth-{case_id}", patient=case_id, bits_stored=12, compression_ratio=10.0,
+                   instance_number=1 if view == "CC" else 2, description=f"{side}{view} (CalculiX truth)")
+    ds = pydicom.dcmread(path)
+    sid, gap = p["sid_mm"], p["detector_gap_mm"][view]
+    ssd = sid - gap
+    ds.BodyPartThickness = f"{sim['gap_mm']:.1f}"
+    if sim.get("force_upper_mN") is not None:
+        ds.CompressionForce = f"{abs(sim['force_upper_mN']) / 1000.0:.1f}"
+    ds.PositionerPrimaryAngle = f"{(sim['angle_deg'] if side == 'R' else -sim['angle_deg']):.1f}" \
+        if view == "MLO" else "0"
+    ds.DistanceSourceToDetector = f"{sid:.1f}"
+    ds.DistanceSourceToPatient = f"{ssd:.1f}"
+    ds.EstimatedRadiographicMagnificationFactor = f"{sid / (ssd - 0.5 * sim['gap_mm']):.4f}"
+    ds.ImagerPixelSpacing = [p["pixel_mm"], p["pixel_mm"]]
+    ds.save_as(path, enforce_file_format=True)
+
+
+# ------------------------------------------------------------------------- case folders
+
+def write_case(root: Path, name: str, exam: str, side: str, views: dict, with_outline: bool,
+               rot0: bool) -> Path:
+    case = root / name
+    if case.exists():
+        shutil.rmtree(case)
+    (case / "mri").mkdir(parents=True)
+    (case / "mammo").mkdir()
+    src = find_zip(exam, "simple")
+    shutil.copy2(src, case / "mri" / src.name)
+    lines = ["# Ground-truth case made by pipelines/make_truth_cases.py (CalculiX truth);",
+             "# its truth lives outside this folder and is never read by regtrack.",
+             "[case]", f'id = "{name}"',
+             f'title = "Pelicano exam {exam} {side} breast, CalculiX truth'
+             f'{", unrotated" if rot0 else ""}{", tumour outline" if with_outline else ", tracking mode"}"',
+             "", "[mri]", f'labels = "mri/{src.name}"', 'scheme = "pelicano-simple"', f'side = "{side}"']
+    for v, info in views.items():
+        stem = v.lower()
+        shutil.copy2(info["dicom"], case / "mammo" / f"{stem}.dcm")
+        lines += ["", f"[views.{v}]", f'mammogram = "mammo/{stem}.dcm"']
+        if with_outline and info["tumours"]:
+            polys = [t["outline_dicom_rc"] for t in info["tumours"]]
+            doc = {"points_rc": polys[0]} if len(polys) == 1 else {"polygons_rc": polys}
+            (case / "mammo" / f"{stem}_tumour.json").write_text(json.dumps(doc))
+            lines.append(f'tumour_polygon = "mammo/{stem}_tumour.json"')
+    (case / "case.toml").write_text("\n".join(lines) + "\n")
+    return case
+
+
+def make_case(exam: str, side: str, views: list[str], out: Path, seed: int, target_tets: int,
+              timeout: int) -> dict:
+    name = f"pel{exam}{side}"
+    work = out / "work" / name
+    work.mkdir(parents=True, exist_ok=True)
+    p = draw_params(exam, side, seed)
+    t0 = time.perf_counter()
+    geo = breast_geometry(exam, side)
+    mesh = build_mesh(geo, side, target_tets)
+    log.info("%s: mesh %d nodes, %d tet10, size %.1f mm, groups %s, fixed %d", name, mesh["n_nodes"],
+             mesh["n_tets"], mesh["element_size_mm"], mesh["group_volume_mm3"], int(mesh["fixed"].sum()))
+    B, o = mesh["basis"], mesh["origin_lps"]
+    tumours_model = []
+    for t in geo["tumours"]:
+        pts = (t["surface_points_lps"] - o) @ B.T
+        if len(pts) > 20000:
+            pts = pts[np.random.default_rng(0).choice(len(pts), 20000, replace=False)]
+        tumours_model.append({**{k: v for k, v in t.items() if k != "surface_points_lps"},
+                              "points_model": pts,
+                              "centroid_model": (np.asarray(t["centroid_lps_mm"]) - o) @ B.T})
+    t_mesh = time.perf_counter() - t0
+    doc = {"note": "Hidden ground truth; regtrack never reads this file.", "exam": exam, "side": side,
+           "case": name, "params": p,
+           "mesh": {k: mesh[k] for k in ("n_nodes", "n_tets", "element_size_mm", "volume_mm3",
+                                          "group_volume_mm3", "min_vol")}
+           | {"n_fixed": int(mesh["fixed"].sum()), "chest_cut_ant_mm": geo["cut_ant_mm"],
+              "nipple_lps_mm": mesh["origin_lps"].tolist(), "mesh_s": t_mesh,
+              "element": "C3D10 (gmsh order 2, straight-sided)"},
+           "tumours_mri": [{k: v for k, v in t.items() if k not in ("points_model", "centroid_model")}
+                           for t in tumours_model],
+           "views": {}, "views_rot0": {}}
+    per_variant = {"rot": {}, "rot0": {}}
+    for v in views:
+        sim = run_ccx(work, mesh, v, side, p, timeout)
+        log.info("%s %s: ccx %.0f s, gap %.1f mm (T0 %.1f), force %.1f N", name, v, sim.get("ccx_s", -1),
+                 sim["gap_mm"], sim["T0_mm"], abs(sim.get("force_upper_mN") or 0) / 1000)
+        simmeta = {k: val for k, val in sim.items() if k != "u"}
+        simmeta["max_displacement_mm"] = float(np.linalg.norm(sim["u"], axis=1).max())
+        for var, rotdeg in (("rot", p["rotation_deg"][v]), ("rot0", 0.0)):
+            r = render_view(mesh, sim, v, side, p, tumours_model, rotdeg)
+            dpath = work / f"{v.lower()}_{var}.dcm"
+            write_dicom(dpath, r["stored"], v, side, f"{name}", p, sim, r["truth"])
+            per_variant[var][v] = {"dicom": dpath, "tumours": r["truth"]["tumours"]}
+            doc["views" if var == "rot" else "views_rot0"][v] = r["truth"] | {"simulation": simmeta}
+    cases = out / "cases"
+    cases.mkdir(parents=True, exist_ok=True)
+    write_case(cases, f"{name}_track", exam, side, per_variant["rot"], with_outline=False, rot0=False)
+    write_case(cases, f"{name}_paper", exam, side, per_variant["rot"], with_outline=True, rot0=False)
+    write_case(cases, f"{name}_paper_rot0", exam, side, per_variant["rot0"], with_outline=True, rot0=True)
+    doc["total_s"] = time.perf_counter() - t0
+    (out / "truth").mkdir(exist_ok=True)
+    (out / "truth" / f"{name}.json").write_text(json.dumps(doc, indent=1, default=_json_default))
+    return doc
+
+
+def _json_default(o):
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, (np.integer,)):
+        return int(o)
+    if isinstance(o, (np.floating,)):
+        return float(o)
+    if isinstance(o, Path):
+        return str(o)
+    raise TypeError(type(o))
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--exams", required=True, help="comma-separated exam+side, e.g. 03R,10R,11L")
+    ap.add_argument("--views", default="CC,MLO")
+    ap.add_argument("--out", default="/work/scratch/truth")
+    ap.add_argument("--seed", type=int, default=52)
+    ap.add_argument("--target-tets", type=int, default=2500)
+    ap.add_argument("--ccx-timeout", type=int, default=1800)
+    a = ap.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
+    os.environ.setdefault("OMP_NUM_THREADS", "1")
+    out = Path(a.out)
+    views = [v.strip().upper() for v in a.views.split(",")]
+    rc = 0
+    for item in a.exams.split(","):
+        m = re.fullmatch(r"(\d\d)([LR])", item.strip())
+        if not m:
+            raise SystemExit(f"--exams: {item!r} is not like 03R")
+        try:
+            make_case(m.group(1), m.group(2), views, out, a.seed, a.target_tets, a.ccx_timeout)
+        except Exception as e:  # report and go on with the next exam
+            log.error("exam %s failed: %s", item, e)
+            rc = 1
+    return rc
+
+
+if __name__ == "__main__":
+    sys.exit(main())
