@@ -85,6 +85,9 @@ PENALTY = 20.0
 STICK_SLOPE = 5.0
 #: pseudo-time of the gravity ramp in the single CalculiX step
 T_GRAV = 0.2
+#: initial overlap of the lowest breast point with the lower plate (removes the free mode
+#: along the plate normal; the chest wall holds the breast in-plane only, see write_ccx)
+OVERLAP_MM = 0.5
 RENDER_MM = 0.4
 #: gmsh tet10 node order -> Abaqus/CalculiX C3D10 (edges 01,12,20,03,13,23)
 C3D10_EDGES = [(0, 1), (1, 2), (2, 0), (0, 3), (1, 3), (2, 3)]
@@ -385,8 +388,8 @@ def write_ccx(path: Path, mesh: dict, view: str, side: str, p: dict) -> dict:
     Bs, s, pf = solver_frame(view, side, angle)
     xs = mesh["x"] @ Bs.T            # solver coordinates (X, s*Y, h), origin nipple
     h0 = float(xs[:, 2].min())
-    xs[:, 2] -= h0                   # lower plate contact face at h = 0
-    T0 = float(xs[:, 2].max())
+    xs[:, 2] -= h0 + OVERLAP_MM      # lower plate contact face at h = 0, OVERLAP_MM into the breast
+    T0 = float(xs[:, 2].max()) + OVERLAP_MM
     gap = (1.0 - p["D"][view]) * T0
     upper0 = T0 + 1.0
     g = Bs @ np.array([0.0, -1.0, 0.0])  # standing gravity (model -y) in solver axes
@@ -451,7 +454,7 @@ def write_ccx(path: Path, mesh: dict, view: str, side: str, p: dict) -> dict:
             "*SURFACE INTERACTION, NAME=SI", "*SURFACE BEHAVIOR, PRESSURE-OVERCLOSURE=LINEAR", f"{PENALTY:g}",
             "*FRICTION", f"{p['friction']:.4f}, {STICK_SLOPE:g}",
             "*CONTACT PAIR, INTERACTION=SI, TYPE=SURFACE TO SURFACE", "SBREAST, SLOW", "SBREAST, SUP",
-            "*BOUNDARY", "NFIX, 1, 3"]
+            "*BOUNDARY", "NFIX, 1, 2"]
     out += [f"{ri}, 1, 3" for ri in r]
     # one step (a second step restarts CalculiX's friction and diverged at once): standing
     # gravity ramped over t = 0-0.2 with the plates still, then the upper plate moves down
@@ -463,7 +466,7 @@ def write_ccx(path: Path, mesh: dict, view: str, side: str, p: dict) -> dict:
             "*BOUNDARY, AMPLITUDE=APLATE", f"{r[2]}, 3, 3, {-(upper0 - gap):.6f}",
             "*NODE PRINT, NSET=NALL", "U", "*NODE PRINT, NSET=NRUP", "RF", "*END STEP"]
     path.write_text("\n".join(out) + "\n")
-    return {"T0_mm": T0, "gap_mm": gap, "upper0_mm": upper0, "h0_mm": h0, "angle_deg": angle,
+    return {"T0_mm": T0, "gap_mm": gap, "upper0_mm": upper0, "h0_mm": h0 + OVERLAP_MM, "angle_deg": angle,
             "solver_basis": Bs.tolist(), "y_sign": s, "gravity_solver": g.tolist(),
             "n_slave_faces": nface, "n_nodes_total": nid + 3}
 
