@@ -11,10 +11,13 @@ script builds, *without regtrack's model, mechanics or virtual-mammogram stages*
 2. **A CalculiX 2.20 compression** per view (``ccx``, single-threaded): heterogeneous
    neo-Hookean tissue (``*HYPERELASTIC, NEO HOOKE``; fat labels 5-7 and skin, gland 1-3,
    transition 4 = mean, tumour -3/-4 = 10 x gland; c1 drawn per case), chest-wall nodes
-   fixed, standing gravity (``*DLOAD GRAV``, rho = 1000 kg/m^3), two rigid plates
-   (``*RIGID BODY`` on one layer of C3D8 elements) with surface-to-surface penalty
-   contact and ``*FRICTION`` mu drawn in 0.05-0.2; the lower plate touches the breast's
-   lowest point, the upper plate moves down until the gap is (1 - D) times the
+   (the coronal cut and next to the muscle) held in the plate plane and free along the
+   plate normal (fully fixed, the plates pinched the base and CalculiX diverged at first
+   contact), standing gravity (``*DLOAD GRAV``, rho = 1000 kg/m^3) ramped over the first
+   0.2 of the single step with the plates still, two rigid plates (``*RIGID BODY`` on one
+   layer of C3D8 elements) with surface-to-surface penalty contact and ``*FRICTION`` mu
+   drawn in 0.05-0.2; the lower plate overlaps the breast's lowest point by 0.5 mm (no
+   free mode along the normal), the upper plate moves down until the gap is (1 - D) times the
    uncompressed thickness, D drawn in 0.30-0.50; MLO: plates rotated about the
    antero-posterior axis by an angle drawn in 40-60 deg.
 3. **A cone-beam rendering** (point source SID 650-660 mm above the detector, detector

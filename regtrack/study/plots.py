@@ -152,10 +152,10 @@ def write_study_figures(result, summary: dict) -> list[Path]:
 
 
 def _validation(su: dict) -> str:
-    """`` (held-out error CC 0.17 mm median, ...)``: each view's surrogate validation."""
+    """``"\nsurrogate's held-out nodal error, median: CC 0.26 mm"``: each view's validation."""
     parts = [f"{v} {d['median_mm']:.2g} mm" for v, d in (su.get("views") or {}).items()
              if d and d.get("median_mm") is not None]
-    return f" (held-out nodal error, median: {', '.join(parts)})" if parts else ""
+    return f"\nsurrogate's held-out nodal error, median: {', '.join(parts)}" if parts else ""
 
 
 def calibration_figure(result) -> Figure:
@@ -170,6 +170,8 @@ def calibration_figure(result) -> Figure:
     feas = [e for e in ok if e.violation == 0]
     infeas = [e for e in ok if e.violation > 0]
     opt = result.optimum
+    su = getattr(result, "surrogate", None)
+    path_label = "full runs at the surrogate's optima" if su else "optimiser"
     if len(names) == 1:
         n = names[0]
         pts = sorted(ok, key=lambda e: e.params[n])
@@ -177,7 +179,7 @@ def calibration_figure(result) -> Figure:
         ax.plot([e.params[n] for e in infeas], [e.score for e in infeas], "rx", ms=10,
                 label="D outside range")
         ax.plot([e.params[n] for e in result.path], [e.score for e in result.path], ".",
-                color="0.5", label="optimiser")
+                color="0.5", label=path_label)
         ax.plot([opt.params[n]], [opt.score], "*", ms=16, color="gold", mec="k", label="optimum")
         ax.set_xlabel(n)
         ax.set_ylabel(f"S = {result.objective} (%)")
@@ -189,7 +191,7 @@ def calibration_figure(result) -> Figure:
         ax.plot([e.params[a] for e in infeas], [e.params[b] for e in infeas], "rx", ms=12,
                 label="D outside range")
         ax.plot([e.params[a] for e in result.path], [e.params[b] for e in result.path], ".-",
-                color="0.5", lw=0.6, label="optimiser")
+                color="0.5", lw=0.6, label=path_label)
         ax.plot([opt.params[a]], [opt.params[b]], "*", ms=18, color="gold", mec="k",
                 label="optimum")
         ax.set_xlabel(a)
@@ -208,7 +210,6 @@ def calibration_figure(result) -> Figure:
         else:
             ax.set_xlim(a0 - 0.03 * (a1 - a0), a1 + 0.03 * (a1 - a0))
     del feas
-    su = getattr(result, "surrogate", None)
     if su:  # where the surrogate's search cannot tell the scores apart
         iv = su["interval"]
         if len(names) == 1:
@@ -225,7 +226,7 @@ def calibration_figure(result) -> Figure:
     lo, hi = result.d_range
     ax.set_title(f"calibration of {result.case_id}: " + ", ".join(
         f"{k} = {v:g}" for k, v in opt.params.items()) + f"  (D in [{lo:g}, {hi:g}])"
-        + (f"\nglobal search on the surrogate{_validation(su)}, every S from a full simulation"
+        + (f"\nglobal search on the surrogate, every S from a full simulation{_validation(su)}"
            if su else ""), fontsize=9)
     return fig
 
