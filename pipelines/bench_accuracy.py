@@ -41,13 +41,17 @@ REPO = Path(__file__).resolve().parents[1]
 VARIANTS = ("paper", "paper_rot0", "track")
 
 
-def run_case(case: Path, out: Path, cache: Path, timeout: int) -> dict:
-    """``regtrack run`` at the defaults; returns {rc, seconds, log tail}."""
+def run_case(case: Path, out: Path, cache: Path, timeout: int, views: str | None = None) -> dict:
+    """``regtrack run`` at the defaults; returns {rc, seconds, log tail}.
+
+    When the run of both views fails, each view is run alone (``--views``; the stage cache
+    re-uses the simulations) into ``<out>_<view>``, so that one failing view does not hide
+    the other; :func:`_metrics` merges them."""
     out.mkdir(parents=True, exist_ok=True)
     if (out / "metrics.json").exists():
         return {"rc": 0, "seconds": None, "reused": True}
     cmd = [str(REPO / ".venv" / "bin" / "regtrack"), "run", str(case), "--out", str(out), "--cache", str(cache),
-           "--no-report", "--serial-views"]
+           "--no-report", "--serial-views"] + (["--views", views] if views else [])
     env = dict(os.environ, OMP_NUM_THREADS="1")
     t0 = time.perf_counter()
     with open(out.parent / f"{out.name}.log", "w") as fh:
@@ -58,22 +62,48 @@ def run_case(case: Path, out: Path, cache: Path, timeout: int) -> dict:
             rc = 124
     dt = time.perf_counter() - t0
     tail = (out.parent / f"{out.name}.log").read_text().splitlines()[-3:]
-    log.info("%s: rc %d in %.0f s", case.name, rc, dt)
-    return {"rc": rc, "seconds": dt, "tail": tail}
+    log.info("%s%s: rc %d in %.0f s", case.name, f" ({views})" if views else "", rc, dt)
+    res = {"rc": rc, "seconds": dt, "tail": tail}
+    if rc != 0 and views is None:
+        res["per_view"] = {v: run_case(case, out.parent / f"{out.name}_{v}", cache, timeout, views=v)
+                           for v in ("CC", "MLO")}
+    return res
+
+
+def _outs(out: Path) -> list[Path]:
+    """The run folder, or the per-view folders when the two-view run failed."""
+    if (out / "metrics.json").exists():
+        return [out]
+    return [p for p in (out.parent / f"{out.name}_CC", out.parent / f"{out.name}_MLO")
+            if (p / "metrics.json").exists()]
 
 
 def _metrics(out: Path) -> dict:
-    f = out / "metrics.json"
-    if not f.exists():
-        return {}
-    return {v["view"]: v for v in json.loads(f.read_text())["views"]}
+    res = {}
+    for o in _outs(out):
+        res.update({v["view"]: v for v in json.loads((o / "metrics.json").read_text())["views"]})
+    return res
 
 
 def _lesions(out: Path) -> dict:
-    f = out / "lesions.json"
-    if not f.exists():
-        return {}
-    return {v: d.get("lesions", []) for v, d in json.loads(f.read_text())["views"].items()}
+    res = {}
+    for o in _outs(out):
+        f = o / "lesions.json"
+        if f.exists():
+            res.update({v: d.get("lesions", []) for v, d in json.loads(f.read_text())["views"].items()})
+    return res
+
+
+def _errors(out: Path) -> dict:
+    """The last 'error:' line of each failed run's log, by view (or 'both')."""
+    res = {}
+    for suffix, key in (("", "both"), ("_CC", "CC"), ("_MLO", "MLO")):
+        lg = out.parent / f"{out.name}{suffix}.log"
+        if lg.exists() and not (out.parent / f"{out.name}{suffix}" / "metrics.json").exists():
+            err = [ln for ln in lg.read_text().splitlines() if "error" in ln.lower()]
+            if err:
+                res[key] = err[-1].strip()
+    return res
 
 
 def match_lesion(lesions: list, truth_tumour: dict) -> dict | None:
@@ -134,6 +164,13 @@ def collect(root: Path, name: str, truth: dict, res: Path) -> list[dict]:
                 row["lesion_sigma_mm"] = le.get("sigma_mm")
                 row["n_lesions_regtrack"] = len(lt[view])
         row["lesion_error_track_mm"] = err
+        errs = []
+        for var in VARIANTS:
+            e = _errors(res / f"{name}_{var}")
+            msg = e.get(view) or (e.get("both") if view not in (_metrics(res / f"{name}_{var}")) else None)
+            if msg:
+                errs.append(f"{var}: {msg}")
+        row["regtrack_errors"] = " | ".join(errs)
         rows.append(row)
     return rows
 
@@ -142,7 +179,7 @@ COLS = ["case", "view", "rotation_true_deg", "theta_p_paper", "theta_error_deg",
         "theta_error_vs_rot0_deg", "d_T_paper", "lesion_error_paper_mm", "lesion_error_track_mm",
         "lesion_sigma_mm", "n_lesions_regtrack", "lesion_mri_match_mm", "D_true", "D_regtrack", "gap_true_mm",
         "gap_regtrack_mm", "gap_source", "angle_true_deg", "angle_regtrack_deg", "projection", "friction_true",
-        "theta_p_b_paper", "theta_p_t_paper", "theta_p_track", "mode_track", "d_T_rot0"]
+        "theta_p_b_paper", "theta_p_t_paper", "theta_p_track", "mode_track", "d_T_rot0", "regtrack_errors"]
 
 
 def write_tables(rows: list[dict], out: Path) -> None:

@@ -4,14 +4,14 @@ Issue 52, item 4: an independent development cohort.  For each exam and breast t
 script builds, *without regtrack's model, mechanics or virtual-mammogram stages*:
 
 1. **Its own mesh.**  The breast mask of the *detailed* label map (tissue, skin and tumour
-   anterior of a coronal chest-wall cut and of the muscle), smoothed and resampled to
+   anterior of an oblique chest-wall plane and of the muscle), smoothed and resampled to
    2 mm, marching cubes (scikit-image), gmsh re-meshing of that surface and a tet10
    volume mesh (straight-sided second order, C3D10) at an element size chosen for about
    ``--target-tets`` elements (a few thousand nodes).
 2. **A CalculiX 2.20 compression** per view (``ccx``, single-threaded): heterogeneous
    neo-Hookean tissue (``*HYPERELASTIC, NEO HOOKE``; fat labels 5-7 and skin, gland 1-3,
    transition 4 = mean, tumour -3/-4 = 10 x gland; c1 drawn per case), chest-wall nodes
-   (the coronal cut and next to the muscle) held in the plate plane and free along the
+   (the cut plane and next to the muscle) held in the plate plane and free along the
    plate normal (fully fixed, the plates pinched the base and CalculiX diverged at first
    contact), standing gravity (``*DLOAD GRAV``, rho = 1000 kg/m^3) ramped over the first
    0.2 of the single step with the plates still, two rigid plates (``*RIGID BODY`` on one
@@ -91,6 +91,8 @@ T_GRAV = 0.2
 #: initial overlap of the lowest breast point with the lower plate (removes the free mode
 #: along the plate normal; the chest wall holds the breast in-plane only, see write_ccx)
 OVERLAP_MM = 0.5
+#: the breast ends cranially / caudally where its protrusion falls below this fraction of the apex's
+FOLD_FRACTION = 0.4
 RENDER_MM = 0.4
 #: gmsh tet10 node order -> Abaqus/CalculiX C3D10 (edges 01,12,20,03,13,23)
 C3D10_EDGES = [(0, 1), (1, 2), (2, 0), (0, 3), (1, 3), (2, 3)]
@@ -130,9 +132,12 @@ def find_zip(exam: str, kind: str) -> Path:
     raise FileNotFoundError(f"{d}: no label_map_{kind}.zip")
 
 
-def model_basis(side: str) -> np.ndarray:
-    """Rows: model axes (x anterior, y superior, z patient right) in LPS."""
-    return np.array([[0.0, -1.0, 0.0], [0.0, 0.0, 1.0], [-1.0, 0.0, 0.0]])
+def model_basis(side: str, normal_lps=None) -> np.ndarray:
+    """Rows: model axes in LPS: x the chest-wall plane's normal (anterior, in the axial
+    plane), y superior, z = x cross y (patient right when x is anterior)."""
+    x = np.array([0.0, -1.0, 0.0]) if normal_lps is None else np.asarray(normal_lps, float)
+    y = np.array([0.0, 0.0, 1.0])
+    return np.stack([x, y, np.cross(x, y)])
 
 
 def breast_geometry(exam: str, side: str) -> dict:
@@ -147,7 +152,7 @@ def breast_geometry(exam: str, side: str) -> dict:
     lps = [A[r, 0] * ijk[0] + A[r, 1] * ijk[1] + A[r, 2] * ijk[2] + A[r, 3] for r in range(3)]
     del ijk
     body = lab != 0
-    x_mid = float(np.median(lps[0][body & (lab > 0)]))
+    x_mid = _midline_x(lab, lps, A)
     half = lps[0] < x_mid if side == "R" else lps[0] > x_mid
     ant = -lps[1]  # anterior coordinate (mm)
     tissue = np.isin(lab, [1, 2, 3, 4, 5, 6, 7, -2, -3, -4]) & half
@@ -158,19 +163,37 @@ def breast_geometry(exam: str, side: str) -> dict:
     m_front = np.where(muscle, ant, -np.inf).max(axis=ant_axis)
     t_any = tissue.any(axis=ant_axis)
     cols = np.isfinite(m_front) & t_any
-    cut = float(np.percentile(m_front[cols], 90)) + 2.0
+    # the chest wall is oblique (it faces antero-laterally): a line ant = c0 + c1 * L is
+    # fitted in the axial plane to the muscle's front (per column), and the cut plane is
+    # that line moved anterior to the 90th percentile of the residuals, plus 2 mm
+    lr_axis = int(np.argmax(np.abs(A[0, :3])))
+    xcol = np.take(lps[0], 0, axis=ant_axis)   # L coordinate of every column
+    c1, c0 = np.polyfit(xcol[cols].astype(float), m_front[cols].astype(float), 1)
+    c0 += float(np.percentile(m_front[cols] - (c0 + c1 * xcol[cols]), 90)) + 2.0
+    normal_lps = np.array([-c1, -1.0, 0.0]) / np.hypot(c1, 1.0)  # into the breast (anterior)
+    prot = (ant - (c0 + c1 * lps[0])) / np.hypot(c1, 1.0)       # distance anterior of the plane
+    cut = 0.0
     m_front_b = np.expand_dims(np.where(np.isfinite(m_front), m_front, -np.inf), ant_axis)
-    mask = tissue & (ant > cut) & (ant > m_front_b + 0.5)
-    # the breast's footprint on the chest wall: columns whose tissue is at least 35 % of the
-    # deepest column's (and 20 mm) thick; this drops the thin subcutaneous layer of the chest
-    thick = mask.sum(axis=ant_axis) * float(np.linalg.norm(A[:3, ant_axis]))
-    foot = thick >= max(20.0, 0.35 * float(thick.max()))
-    fl, fn = ndimage.label(foot)
-    if fn > 1:
-        fs = ndimage.sum_labels(thick, fl, index=np.arange(1, fn + 1))
-        foot = fl == (1 + int(np.argmax(fs)))
-    foot = ndimage.binary_fill_holes(ndimage.binary_dilation(foot, iterations=3))
-    mask &= np.expand_dims(foot, ant_axis)
+    mask = tissue & (prot > cut) & (ant > m_front_b + 0.5)
+    # cranial / caudal ends (inframammary fold): walking from the apex slice, the breast ends
+    # at the first axial slice whose largest protrusion anterior of the cut is below
+    # FOLD_FRACTION of the apex's (the thin chest layer above and below is not breast)
+    s_axis = int(np.argmax(np.abs(A[2, :3])))
+    other = tuple(a for a in range(3) if a != s_axis)
+    prof = np.where(mask, prot, -np.inf).max(axis=other)
+    k_apex = int(np.argmax(prof))
+    thr = FOLD_FRACTION * float(prof[k_apex])
+    lo = k_apex
+    while lo > 0 and prof[lo - 1] >= thr:
+        lo -= 1
+    hi = k_apex
+    while hi < len(prof) - 1 and prof[hi + 1] >= thr:
+        hi += 1
+    keep = np.zeros(len(prof), bool)
+    keep[lo:hi + 1] = True
+    shape = [1, 1, 1]
+    shape[s_axis] = len(prof)
+    mask &= keep.reshape(shape)
     lbl, n = ndimage.label(mask)
     if n == 0:
         raise RuntimeError(f"exam {exam} {side}: empty breast mask")
@@ -198,7 +221,28 @@ def breast_geometry(exam: str, side: str) -> dict:
     sp = np.linalg.norm(A[:3, :3], axis=0)
     dist_muscle = ndimage.distance_transform_edt(~(lab == -1), sampling=sp).astype(np.float32)
     return {"labels": lab, "affine": A, "mask": mask, "cut_ant_mm": cut, "tumours": tumours,
+            "plane": {"normal_lps": normal_lps, "c0": float(c0), "c1": float(c1)},
             "dist_muscle": dist_muscle, "spacing": sp, "x_mid": x_mid}
+
+
+def _midline_x(lab: np.ndarray, lps: list, A: np.ndarray) -> float:
+    """Patient-left coordinate (mm) of the sternum: the least anterior point of the body's
+    anterior profile between the two breasts' apices (each the most anterior tissue point
+    on its side of the body's centre)."""
+    body = lab != 0
+    lr_axis = int(np.argmax(np.abs(A[0, :3])))
+    other = tuple(a for a in range(3) if a != lr_axis)
+    ant = np.where(body, -lps[1], -np.inf).max(axis=other)       # anterior profile per L-R slice
+    idx = np.arange(lab.shape[lr_axis])
+    xw = A[0, lr_axis] * idx + A[0, 3]  # L coordinate of each slice (the axis is L-R aligned)
+    ok = np.isfinite(ant)
+    centre = float(np.median(idx[ok]))
+    left, right = idx < centre, idx >= centre
+    a1 = int(idx[left & ok][np.argmax(ant[left & ok])])
+    a2 = int(idx[right & ok][np.argmax(ant[right & ok])])
+    lo, hi = min(a1, a2), max(a1, a2)
+    k = lo + int(np.argmin(ant[lo:hi + 1]))
+    return float(xw[k])
 
 
 def lps_to_index(A: np.ndarray, pts: np.ndarray) -> np.ndarray:
@@ -320,7 +364,7 @@ def build_mesh(geo: dict, side: str, target_tets: int) -> dict:
     size = float((vol_mm3 / target_tets * 6 * np.sqrt(2)) ** (1 / 3))
     t0 = time.perf_counter()
     nodes_lps, tets = gmsh_tet10(pts, faces, size)
-    B = model_basis(side)
+    B = model_basis(side, geo["plane"]["normal_lps"])
     # nipple: the most anterior surface node; model frame origin there
     x_m = nodes_lps @ B.T
     nip = int(np.argmax(x_m[:, 0]))
@@ -337,8 +381,9 @@ def build_mesh(geo: dict, side: str, target_tets: int) -> dict:
     grp[np.isin(lv, [1, 2, 3])] = GLAND
     grp[lv == 4] = TRANS
     grp[np.isin(lv, [-3, -4])] = TUM
-    # chest-wall nodes: at the coronal cut or next to the muscle
-    ant = -nodes_lps[:, 1]
+    # chest-wall nodes: on the cut plane or next to the muscle
+    pl = geo["plane"]
+    ant = (-nodes_lps[:, 1] - (pl["c0"] + pl["c1"] * nodes_lps[:, 0])) / np.hypot(pl["c1"], 1.0)
     ijn = np.clip(np.round(lps_to_index(A, nodes_lps)).astype(int), 0, np.array(lab.shape) - 1)
     dm = geo["dist_muscle"][ijn[:, 0], ijn[:, 1], ijn[:, 2]]
     on_cut = ant < geo["cut_ant_mm"] + 2.5
@@ -502,9 +547,12 @@ def parse_dat(path: Path, n: int) -> tuple[np.ndarray | None, float | None]:
 def run_ccx(work: Path, mesh: dict, view: str, side: str, p: dict, timeout: int) -> dict:
     stem = f"ccx_{view.lower()}"
     res = work / f"{stem}.npz"
-    if res.exists():
+    if res.exists():  # re-use a finished run of the same mesh (re-rendering only)
         d = np.load(res, allow_pickle=True)
-        return json.loads(str(d["meta"])) | {"u": d["u"]}
+        if d["u"].shape[0] == mesh["n_nodes"]:
+            return json.loads(str(d["meta"])) | {"u": d["u"]}
+        log.warning("%s: mesh changed (%d nodes, run had %d); running CalculiX again", res,
+                    mesh["n_nodes"], d["u"].shape[0])
     meta = write_ccx(work / f"{stem}.inp", mesh, view, side, p)
     env = dict(os.environ, OMP_NUM_THREADS="1", CCX_NPROC_STIFFNESS="1", CCX_NPROC_EQUATION_SOLVER="1")
     t0 = time.perf_counter()
@@ -596,9 +644,9 @@ def render_view(mesh: dict, sim: dict, view: str, side: str, p: dict, tumours_mo
     R = rot(rotation_deg)
     Q = (P - n_img) @ R.T + n_img
     m = 12.0
-    # the chest-wall image edge: at the median chest-wall-plane node (tissue
+    # the chest-wall image edge: at the most anterior chest-wall-plane node after the rotation (tissue
     # behind it is not imaged, as on a real mammogram)
-    x0 = float(np.median(Q[mesh["on_cut"], 0]))
+    x0 = float(Q[mesh["on_cut"], 0].max())
     y0, y1 = float(Q[:, 1].min()) - m, float(Q[:, 1].max()) + m
     x1 = float(Q[:, 0].max()) + m
     px = p["pixel_mm"]
