@@ -29,9 +29,10 @@ on the surrogates, refined by full runs:
    predicted compressions run through the same projection, registration and metrics;
 3. infill: a full run at the surrogates' optimum (in the first round also one point per
    parameter a tenth of a grid step inside the box, so that the refit matches the full
-   model's slopes there too); its displacement fields are added to each surrogate (:meth:`~regtrack.surrogate.model.Surrogate.with_fields`), so the refitted
-   surrogate reproduces the full model there, and a local search on it restarts from the
-   best full run so far.  Repeated until that search ends at a full run already made
+   model's slopes there too); its displacement fields are added to each surrogate
+   (:meth:`~regtrack.surrogate.model.Surrogate.with_fields`), so the refitted surrogate
+   reproduces the full model there, and a local search on it restarts from the best full
+   run so far (the centre run of step 1 included).  Repeated until that search ends at a full run already made
    (within the full calibration's tolerance, 1/100 of a grid step in unit coordinates), at
    most :data:`MAX_INFILL` rounds;
 4. the optimum reported is the best full run.  Around it, on the refitted surrogates: the
@@ -352,9 +353,13 @@ def _surrogate_search(prob: _Problem, surrogates: dict, bounds: dict, grid: int
     infill: list[Evaluation] = []
     rounds: list[dict] = []
     settled = False
+
+    def fulls() -> list[Evaluation]:
+        return [e for e in (first, *infill) if e is not None]
+
     for k in range(MAX_INFILL):
         opt = {n: _round(v) for n, v in ident.params.items()}
-        if any(np.abs(unit(opt) - unit(e.params)).max() <= xatol for e in infill):
+        if any(np.abs(unit(opt) - unit(e.params)).max() <= xatol for e in fulls()):
             settled = True  # the refitted surrogates' optimum is a full run already
             break
         # the first round also corrects the surrogates' slopes (a forward point per
@@ -373,15 +378,16 @@ def _surrogate_search(prob: _Problem, surrogates: dict, bounds: dict, grid: int
         # the runs' own (rounded) parameters: the same simulations, found in the stage cache
         pipe.add_full_runs([{**prob.fixed, **e.params} for e in ok],
                            [{r["view"]: float(r["D"]) for r in e.rows} for e in ok])
-        best = min(infill, key=lambda e: e.f)
+        best = min(fulls(), key=lambda e: e.f)
         ident = refine(f, bounds, best.params, step=max(4 * xatol, 0.02), xatol=xatol / 2,
                        maxfev=40)
     # the uncertainty around the optimum reported (the best full run), at the surrogates'
-    # score error there
+    # score error in the best infill round
     i_best = min(range(len(infill)), key=lambda i: infill[i].f)
     s_sur, s_full = rounds[i_best]["score_surrogate"], rounds[i_best]["score_full"]
     tol = max(abs(s_sur - s_full), 0.1) if math.isfinite(s_full) else 0.1
-    ident.params, ident.value = dict(infill[i_best].params), f(infill[i_best].params)
+    best = min(fulls(), key=lambda e: e.f)
+    ident.params, ident.value = dict(best.params), f(best.params)
     profile(f, ident, bounds, tolerance=tol)
     info = {"views": {v: (surrogates[v].meta.get("validation") or {}).get("held_out", {}).get("pooled")
                       for v in prob.views},
