@@ -18,7 +18,7 @@ Writes ``accuracy.csv`` and ``accuracy.md`` (per case and view, with medians) un
 
 Usage::
 
-    .venv/bin/python pipelines/bench_accuracy.py [--root /work/scratch/truth] [--only pel03R,...]
+    .venv/bin/python pipelines/bench_accuracy.py [--root reports/truth] [--only pel03R,...]
         [--variants paper,paper_rot0,track] [--collect-only]
 """
 
@@ -139,12 +139,14 @@ def collect(root: Path, name: str, truth: dict, res: Path) -> list[dict]:
                "friction_true": truth["params"]["friction"]}
         a = mp.get(view, {})
         b = m0.get(view, {})
+        g = a or mt.get(view, {})  # the geometry regtrack used (paper run, else tracking run)
         row.update({"theta_p_paper": a.get("theta_p"), "theta_p_b_paper": a.get("theta_p_b"),
                     "theta_p_t_paper": a.get("theta_p_t"), "d_T_paper": a.get("d_T"),
                     "lesion_error_paper_mm": a.get("lesion_error_mm"),
-                    "D_regtrack": a.get("D"), "gap_regtrack_mm": a.get("plate_gap_mm"),
-                    "gap_source": a.get("gap_source"), "projection": a.get("projection"),
-                    "angle_regtrack_deg": a.get("plate_angle_deg"),
+                    "D_regtrack": g.get("D"), "gap_regtrack_mm": g.get("plate_gap_mm"),
+                    "gap_source": g.get("gap_source"), "projection": g.get("projection"),
+                    "angle_regtrack_deg": g.get("plate_angle_deg"),
+                    "BS_Av_track": mt.get(view, {}).get("BS_Av"), "d_B_track": mt.get(view, {}).get("d_B"),
                     "theta_p_rot0": b.get("theta_p"), "d_T_rot0": b.get("d_T")})
         row["theta_error_deg"] = (a["theta_p"] - rot) if a.get("theta_p") is not None else None
         row["theta_error_vs_rot0_deg"] = (a["theta_p"] - b["theta_p"] - rot) \
@@ -179,7 +181,8 @@ COLS = ["case", "view", "rotation_true_deg", "theta_p_paper", "theta_error_deg",
         "theta_error_vs_rot0_deg", "d_T_paper", "lesion_error_paper_mm", "lesion_error_track_mm",
         "lesion_sigma_mm", "n_lesions_regtrack", "lesion_mri_match_mm", "D_true", "D_regtrack", "gap_true_mm",
         "gap_regtrack_mm", "gap_source", "angle_true_deg", "angle_regtrack_deg", "projection", "friction_true",
-        "theta_p_b_paper", "theta_p_t_paper", "theta_p_track", "mode_track", "d_T_rot0", "regtrack_errors"]
+        "theta_p_b_paper", "theta_p_t_paper", "theta_p_track", "mode_track", "BS_Av_track", "d_B_track",
+        "d_T_rot0", "regtrack_errors"]
 
 
 def write_tables(rows: list[dict], out: Path) -> None:
@@ -214,7 +217,7 @@ def write_tables(rows: list[dict], out: Path) -> None:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--root", default="/work/scratch/truth", help="make_truth_cases.py --out")
+    ap.add_argument("--root", default="reports/truth", help="make_truth_cases.py --out")
     ap.add_argument("--out", default=None, help="results folder (default ROOT/bench)")
     ap.add_argument("--only", default="", help="comma-separated case names, e.g. pel03R")
     ap.add_argument("--variants", default=",".join(VARIANTS))

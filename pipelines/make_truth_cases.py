@@ -22,7 +22,8 @@ script builds, *without regtrack's model, mechanics or virtual-mammogram stages*
    antero-posterior axis by an angle drawn in 40-60 deg.
 3. **A cone-beam rendering** (point source SID 650-660 mm above the detector, detector
    15-25 mm below the lower plate, the source's foot at the middle of the chest-wall
-   edge) of fat / gland / tumour path lengths (``regtrack.virtual.xray.path_lengths``,
+   edge) of fat / gland / tumour path lengths through the 8 linear sub-tets of every tet10
+   (``regtrack.virtual.xray.path_lengths``,
    a geometric helper), Poisson noise, a random in-plane rotation (-10..10 deg) about the
    projected nipple, written as DICOM MG (``regtrack.phantom.dicom_mg.write_mg_dicom``)
    with BodyPartThickness, CompressionForce (N), PositionerPrimaryAngle (MLO),
@@ -39,7 +40,7 @@ cone-beam projection on the detector and ``n'`` the projected nipple: the sense 
 regtrack's ``theta_p``.  An unrotated copy (theta = 0) of every case is written too, for
 the frame check.
 
-Output (all under ``--out``, default /work/scratch/truth)::
+Output (all under ``--out``, default reports/truth)::
 
     work/<case>/            mesh, CalculiX decks and logs, displacements (npz)
     cases/<case>_track/     case.toml: label map + DICOMs, no tumour outline (tracking mode)
@@ -50,7 +51,7 @@ Output (all under ``--out``, default /work/scratch/truth)::
 Usage::
 
     OMP_NUM_THREADS=1 .venv/bin/python pipelines/make_truth_cases.py --exams 03R,10R
-        [--views CC,MLO] [--out /work/scratch/truth] [--target-tets 3000]
+        [--views CC,MLO] [--out reports/truth] [--target-tets 3000]
 
 Data: Pelicano et al., Sensors 2021 and PLoS One 2024 (../shared/data/pelicano).
 """
@@ -97,6 +98,9 @@ RENDER_MM = 0.4
 #: gmsh tet10 node order -> Abaqus/CalculiX C3D10 (edges 01,12,20,03,13,23)
 C3D10_EDGES = [(0, 1), (1, 2), (2, 0), (0, 3), (1, 3), (2, 3)]
 C3D10_FACES = {1: (0, 1, 2), 2: (0, 3, 1), 3: (1, 3, 2), 4: (2, 3, 0)}
+#: the 8 linear sub-tets of a C3D10 (4 corner tets, the inner octahedron split along 4-9)
+SUBTETS = np.array([[0, 4, 6, 7], [4, 1, 5, 8], [6, 5, 2, 9], [7, 8, 9, 3],
+                    [4, 9, 5, 6], [4, 9, 6, 7], [4, 9, 7, 8], [4, 9, 8, 5]])
 
 
 # ------------------------------------------------------------------------- parameters
@@ -151,7 +155,6 @@ def breast_geometry(exam: str, side: str) -> dict:
     # world coordinates of every voxel, axis by axis (LPS)
     lps = [A[r, 0] * ijk[0] + A[r, 1] * ijk[1] + A[r, 2] * ijk[2] + A[r, 3] for r in range(3)]
     del ijk
-    body = lab != 0
     x_mid = _midline_x(lab, lps, A)
     half = lps[0] < x_mid if side == "R" else lps[0] > x_mid
     ant = -lps[1]  # anterior coordinate (mm)
@@ -166,7 +169,6 @@ def breast_geometry(exam: str, side: str) -> dict:
     # the chest wall is oblique (it faces antero-laterally): a line ant = c0 + c1 * L is
     # fitted in the axial plane to the muscle's front (per column), and the cut plane is
     # that line moved anterior to the 90th percentile of the residuals, plus 2 mm
-    lr_axis = int(np.argmax(np.abs(A[0, :3])))
     xcol = np.take(lps[0], 0, axis=ant_axis)   # L coordinate of every column
     c1, c0 = np.polyfit(xcol[cols].astype(float), m_front[cols].astype(float), 1)
     c0 += float(np.percentile(m_front[cols] - (c0 + c1 * xcol[cols]), 90)) + 2.0
@@ -507,8 +509,8 @@ def write_ccx(path: Path, mesh: dict, view: str, side: str, p: dict) -> dict:
     # one step (a second step restarts CalculiX's friction and diverged at once): standing
     # gravity ramped over t = 0-0.2 with the plates still, then the upper plate moves down
     # linearly over t = 0.2-1 with gravity on
-    out += [f"*AMPLITUDE, NAME=AGRAV", f"0., 0., {T_GRAV}, 1., 1., 1.",
-            f"*AMPLITUDE, NAME=APLATE", f"0., 0., {T_GRAV}, 0., 1., 1.",
+    out += ["*AMPLITUDE, NAME=AGRAV", f"0., 0., {T_GRAV}, 1., 1., 1.",
+            "*AMPLITUDE, NAME=APLATE", f"0., 0., {T_GRAV}, 0., 1., 1.",
             "*STEP, NLGEOM, INC=5000", "*STATIC", "0.02, 1.0, 1e-7, 0.03",
             "*DLOAD, AMPLITUDE=AGRAV", f"EBREAST, GRAV, {G_MM_S2:.1f}, {g[0]:.6f}, {g[1]:.6f}, {g[2]:.6f}",
             "*BOUNDARY, AMPLITUDE=APLATE", f"{r[2]}, 3, 3, {-(upper0 - gap):.6f}",
@@ -589,6 +591,7 @@ def locate(x: np.ndarray, tets: np.ndarray, pts: np.ndarray, k: int = 40) -> tup
     c = x[tets[:, :4]]
     tree = cKDTree(c.mean(1))
     _, cand = tree.query(pts, k=min(k, len(tets)))
+    cand = np.asarray(cand).reshape(len(pts), -1)
     best_e = np.zeros(len(pts), int)
     best_L = np.zeros((len(pts), 4))
     best_m = np.full(len(pts), -np.inf)
@@ -635,10 +638,13 @@ def render_view(mesh: dict, sim: dict, view: str, side: str, p: dict, tumours_mo
     fixed = mesh["fixed"]
     foot = (float(loc[fixed, 0].min()), float(0.5 * (loc[fixed, 1].min() + loc[fixed, 1].max())))
     src = PointSource(foot, p["sid_mm"], -det_gap)
-    cor = mesh["tets"][:, :4]
+    # each curved tet10 rendered as its 8 linear sub-tets (its corner tet alone can invert
+    # where the quadratic element does not, which showed as dark wedges)
+    sub = mesh["tets"][:, SUBTETS].reshape(-1, 4)
+    sub_group = np.repeat(mesh["group"], len(SUBTETS))
     P = perspective(loc, src)[:, :2]
     gr = grid_around(P, spacing=RENDER_MM, margin=6)
-    lengths = path_lengths(loc, cor, mesh["group"], gr, source=src)
+    lengths = path_lengths(loc, sub, sub_group, gr, source=src)
     a_c = sum(MU[g] * L for g, L in lengths.items())
     n_img = P[mesh["nipple"]]
     R = rot(rotation_deg)
@@ -882,7 +888,7 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--exams", required=True, help="comma-separated exam+side, e.g. 03R,10R,11L")
     ap.add_argument("--views", default="CC,MLO")
-    ap.add_argument("--out", default="/work/scratch/truth")
+    ap.add_argument("--out", default="reports/truth")
     ap.add_argument("--seed", type=int, default=52)
     ap.add_argument("--target-tets", type=int, default=2500)
     ap.add_argument("--ccx-timeout", type=int, default=1800)

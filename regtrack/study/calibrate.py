@@ -32,9 +32,9 @@ on the surrogates, refined by full runs:
    model's slopes there too); its displacement fields are added to each surrogate
    (:meth:`~regtrack.surrogate.model.Surrogate.with_fields`), so the refitted surrogate
    reproduces the full model there, and a local search on it restarts from the best full
-   run so far (the centre run of step 1 included).  Repeated until that search ends at a full run already made
-   (within the full calibration's tolerance, 1/100 of a grid step in unit coordinates), at
-   most :data:`MAX_INFILL` rounds;
+   run so far (the centre run of step 1 included).  Repeated until that search ends at a
+   full run already made (within the full calibration's tolerance, 1/100 of a grid step in
+   unit coordinates), at most :data:`MAX_INFILL` rounds;
 4. the optimum reported is the best full run.  Around it, on the refitted surrogates: the
    sensitivity (central differences, step 1 % of the box) and each parameter's profile
    interval at the surrogates' score error (``|S_sur - S_full|`` there, at least 0.1
@@ -241,7 +241,8 @@ def _surrogate_sensitivity(info: dict, bounds: dict) -> dict[str, dict]:
     out = {}
     for n, (lo, hi) in bounds.items():
         x, h = info["optimum"][n], 0.01 * (hi - lo)  # the step of identify.profile
-        out[n] = {"dS_dparam": -float(info["sensitivity"][n]), "step": min(hi, x + h) - max(lo, x - h),
+        out[n] = {"dS_dparam": -float(info["sensitivity"][n]),
+                  "step": min(hi, x + h) - max(lo, x - h),
                   "method": "central, on the refitted surrogates", "grid_spread": math.nan}
     return out
 

@@ -1,0 +1,134 @@
+"""The CalculiX ground-truth pipeline's pieces (pipelines/make_truth_cases.py and
+pipelines/bench_accuracy.py) without CalculiX or a regtrack run: the tet10 numbering and
+its sub-tets, the quadratic embedding, the .dat parser, the rigid image map of the truth
+(rotation sense), the outline of projected points, and the lesion matching of the bench.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+PIPE = Path(__file__).resolve().parents[1] / "pipelines"
+
+
+def _load(name):
+    spec = importlib.util.spec_from_file_location(name, PIPE / f"{name}.py")
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = mod
+    spec.loader.exec_module(mod)
+    return mod
+
+
+@pytest.fixture(scope="module")
+def mt():
+    mod = _load("make_truth_cases")
+    yield mod
+    sys.modules.pop("make_truth_cases", None)
+
+
+@pytest.fixture(scope="module")
+def ba():
+    mod = _load("bench_accuracy")
+    yield mod
+    sys.modules.pop("bench_accuracy", None)
+
+
+def _tet10():
+    x = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], float)
+    mids = [0.5 * (x[a] + x[b]) for a, b in [(0, 1), (1, 2), (2, 0), (0, 3), (1, 3), (2, 3)]]
+    return np.vstack([x, mids]), np.arange(10)[None, :]
+
+
+def test_shape_functions_reproduce_a_quadratic_field(mt):
+    x, t = _tet10()
+    u = np.column_stack([x[:, 0] ** 2, x[:, 0] * x[:, 1], 2 * x[:, 2]])  # exact in P2
+    rng = np.random.default_rng(0)
+    L = rng.dirichlet(np.ones(4), size=20)
+    p = L[:, 1:] @ np.eye(3)  # barycentric -> point of the unit tet
+    N = mt.shape10(L)
+    assert np.allclose(N.sum(1), 1.0)
+    got = N @ u[t[0]]
+    want = np.column_stack([p[:, 0] ** 2, p[:, 0] * p[:, 1], 2 * p[:, 2]])
+    assert np.allclose(got, want)
+    # the embedding finds the element and gives the same displacement
+    moved = mt.deform_points({"x": x, "tets": t}, u, p)
+    assert np.allclose(moved - p, want)
+
+
+def test_subtets_fill_the_element_and_orientation_fix(mt):
+    x, t = _tet10()
+    sub = t[:, mt.SUBTETS].reshape(-1, 4)
+    v = mt.tet_volumes(x, np.pad(sub, ((0, 0), (0, 6))))
+    assert np.all(v > 0) and np.isclose(v.sum(), 1 / 6)
+    flipped = t.copy()
+    flipped[:, [1, 2]] = flipped[:, [2, 1]]
+    flipped[:, [4, 6]] = flipped[:, [6, 4]]
+    flipped[:, [8, 9]] = flipped[:, [9, 8]]
+    fixed = mt.fix_orientation(x, flipped)
+    assert mt.tet_volumes(x, fixed)[0] > 0
+    # after the fix the mid-side nodes still sit on their C3D10 edges
+    for k, (a, b) in enumerate(mt.C3D10_EDGES):
+        assert np.allclose(x[fixed[0, 4 + k]], 0.5 * (x[fixed[0, a]] + x[fixed[0, b]]))
+
+
+def test_boundary_faces_of_one_tet_are_its_four_faces(mt):
+    _, t = _tet10()
+    faces = mt.boundary_faces(t)
+    assert sorted(f for _, f, _ in faces) == [1, 2, 3, 4]
+
+
+def test_parse_dat_takes_the_last_blocks(mt, tmp_path):
+    dat = tmp_path / "r.dat"
+    dat.write_text(
+        "\n displacements (vx,vy,vz) for set NALL and time  0.5000000E+00\n\n"
+        "         1  1.0E+00  0.0E+00  0.0E+00\n         2  0.0E+00  1.0E+00  0.0E+00\n\n"
+        " forces (fx,fy,fz) for set NRUP and time  0.5000000E+00\n\n"
+        "      9001  0.0E+00  0.0E+00 -1.0E+03\n\n"
+        " displacements (vx,vy,vz) for set NALL and time  0.1000000E+01\n\n"
+        "         1  2.0E+00  0.0E+00  0.0E+00\n         2  0.0E+00  3.0E+00  0.0E+00\n\n"
+        " forces (fx,fy,fz) for set NRUP and time  0.1000000E+01\n\n"
+        "      9001  0.0E+00  0.0E+00 -2.5E+03\n")
+    u, f = mt.parse_dat(dat, 2)
+    assert np.allclose(u, [[2, 0, 0], [0, 3, 0]]) and f == -2500.0
+
+
+def test_rotation_sense_is_the_registrations(mt):
+    from regtrack.registration.geometry import rotation
+
+    for a in (-9.0, 0.0, 7.0):
+        assert np.allclose(mt.rot(a), rotation(a))
+
+
+def test_outline_and_centroid_of_a_projected_disc(mt):
+    rng = np.random.default_rng(1)
+    r = 40 * np.sqrt(rng.uniform(0, 1, 4000))
+    a = rng.uniform(0, 2 * np.pi, 4000)
+    rc = np.column_stack([200 + r * np.sin(a), 300 + r * np.cos(a)])
+    outline, cen = mt.outline_from_points(rc, (500, 600), radius_px=3)
+    assert np.allclose(cen, [200, 300], atol=1.0)
+    assert mt.polygon_area(outline) == pytest.approx(np.pi * 43 ** 2, rel=0.1)
+    # clipped by the image's edge: only the visible part counts
+    outline2, cen2 = mt.outline_from_points(rc - [0, 290], (500, 600), radius_px=3)
+    assert outline2[:, 1].min() >= 0 and cen2[1] > 10
+
+
+def test_draws_are_in_the_issue_ranges(mt):
+    for exam in ("03", "10", "11"):
+        p = mt.draw_params(exam, "R", 52)
+        assert 0.3 <= p["c1_kpa"]["fat"] <= 0.6 and 0.8 <= p["c1_kpa"]["gland"] <= 1.6
+        assert 0.05 <= p["friction"] <= 0.2 and 40 <= p["mlo_angle_deg"] <= 60
+        assert all(-10 <= v <= 10 for v in p["rotation_deg"].values())
+        assert all(0.3 <= v <= 0.5 for v in p["D"].values()) and 650 <= p["sid_mm"] <= 660
+    assert mt.draw_params("03", "R", 52) == mt.draw_params("03", "R", 52)
+
+
+def test_bench_matches_the_lesion_on_the_mri_side(ba):
+    lesions = [{"mri_lps_mm": [0, 0, 0], "centroid_px_rc": [1, 1]},
+               {"mri_lps_mm": [50, 0, 0], "centroid_px_rc": [9, 9]}]
+    m = ba.match_lesion(lesions, {"centroid_lps_mm": [48, 1, 0]})
+    assert m["centroid_px_rc"] == [9, 9] and m["mri_match_mm"] == pytest.approx(np.hypot(2, 1))
