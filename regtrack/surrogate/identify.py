@@ -24,8 +24,9 @@ What is reported besides the optimum (:class:`Identification`):
   parameter, at the optimum (step 1 % of the box);
 * **uncertainty**: for each parameter, the interval over which the objective stays within
   ``tolerance`` of its optimum, the others held at the optimum (a conditional profile: a
-  21-point scan of the box, its ends sharpened by bisection).  ``tolerance`` is what the objective cannot resolve: for a
-  landmark fit the surrogate's own error at the landmarks plus the measurement error.
+  21-point scan of the box, its ends sharpened by bisection).  ``tolerance`` is what the
+  objective cannot resolve: for a landmark fit the surrogate's own error at the landmarks
+  plus the measurement error.
 """
 
 from __future__ import annotations
@@ -167,9 +168,10 @@ def profile(objective: Callable[[dict], float], ident: Identification,
         ends = [best[n]]
         if ok.any():
             i, j = int(np.argmax(ok)), int(len(ok) - 1 - np.argmax(ok[::-1]))
-            ends += [_sharpen(lambda v: within(n, v), xs[i], xs[i - 1] if i > 0 else None, bisections),
-                     _sharpen(lambda v: within(n, v), xs[j], xs[j + 1] if j < scan - 1 else None,
-                              bisections)]
+            below = xs[i - 1] if i > 0 else None
+            above = xs[j + 1] if j < scan - 1 else None
+            ends += [_sharpen(lambda v: within(n, v), xs[i], below, bisections),
+                     _sharpen(lambda v: within(n, v), xs[j], above, bisections)]
         ident.interval[n] = (min(ends), max(ends))
     ident.tolerance = float(tolerance)
     return ident

@@ -142,25 +142,29 @@ def _covered(points, faces, c0, r0, nc, ncand, ox, oy, s, width):  # pragma: no 
     bary = np.empty((total, 3))
     n = 0
     e = np.empty(3)
+    ax, ay, ex, ey = np.empty(3), np.empty(3), np.empty(3), np.empty(3)
+    sign = np.empty(3)
+    owned = np.zeros(3, np.bool_)
     for t in range(len(faces)):
+        for k in range(3):  # edge opposite vertex k: (k+1 -> k+2), evaluated canonically
+            iu = faces[t, (k + 1) % 3]
+            iv = faces[t, (k + 2) % 3]
+            a, b = (iv, iu) if iu > iv else (iu, iv)
+            ax[k], ay[k] = points[a, 0], points[a, 1]
+            ex[k], ey[k] = points[b, 0] - points[a, 0], points[b, 1] - points[a, 1]
+            sign[k] = -1.0 if iu > iv else 1.0
+            dx = points[iv, 0] - points[iu, 0]
+            dy = points[iv, 1] - points[iu, 1]
+            owned[k] = dy > 0 or (dy == 0 and dx > 0)
         for q in range(ncand[t]):
             col = c0[t] + q % nc[t]
             row = r0[t] + q // nc[t]
             px = ox + col * s
             py = oy + row * s
             inside = True
-            for k in range(3):  # edge opposite vertex k: (k+1 -> k+2), canonical direction
-                iu = faces[t, (k + 1) % 3]
-                iv = faces[t, (k + 2) % 3]
-                a, b = (iv, iu) if iu > iv else (iu, iv)
-                ek = ((points[b, 0] - points[a, 0]) * (py - points[a, 1])
-                      - (points[b, 1] - points[a, 1]) * (px - points[a, 0]))
-                if iu > iv:
-                    ek = -ek
-                dx = points[iv, 0] - points[iu, 0]
-                dy = points[iv, 1] - points[iu, 1]
-                owned = dy > 0 or (dy == 0 and dx > 0)
-                if not (ek > 0 or (ek == 0 and owned)):
+            for k in range(3):
+                ek = sign[k] * (ex[k] * (py - ay[k]) - ey[k] * (px - ax[k]))
+                if not (ek > 0 or (ek == 0 and owned[k])):
                     inside = False
                     break
                 e[k] = ek
