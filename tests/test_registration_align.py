@@ -148,6 +148,17 @@ def test_degenerate_inputs(kind, match):
         align(real, virt)
 
 
+def test_virtual_tumour_at_the_chest_wall_is_not_an_annotation_error():
+    # the model's tumour is inside its silhouette by construction; its open skin contour,
+    # closed by a chord, need not cover a tumour at the chest wall
+    real, virt = _views(5.0, np.zeros(2))
+    virt.tumour_contours = [_ellipse((150.0, 0.0), 5.0, 5.0)]
+    assert np.isfinite(align(real, virt).theta_p)
+    real.tumour_contours = [_ellipse((150.0, 0.0), 5.0, 5.0)]
+    with pytest.raises(RegistrationError, match="real CC view .* outside the breast contour"):
+        align(real, virt)
+
+
 def test_registration_overlay_png(tmp_path):
     from regtrack.registration.figures import save_registration_png
 
