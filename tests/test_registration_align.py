@@ -159,6 +159,19 @@ def test_virtual_tumour_at_the_chest_wall_is_not_an_annotation_error():
         align(real, virt)
 
 
+def test_real_tumour_at_the_chest_wall_inside_a_short_skin_line():
+    # the extracted skin line may stop 20 mm short of the chest-wall edge; a tumour between
+    # its chord and the edge is inside the breast, one beyond the nipple is not
+    real, virt = _views(5.0, np.zeros(2))
+    real.breast_contour = real.breast_contour[real.breast_contour[:, 0] > 20.0]
+    real.tumour_contours = [_ellipse((8.0, 10.0), 5.0, 4.0)]
+    virt.tumour_contours = [_ellipse((10.0, 12.0), 5.0, 4.0)]
+    assert np.isfinite(align(real, virt).theta_p)
+    real.tumour_contours = [_ellipse((95.0, 10.0), 5.0, 4.0)]
+    with pytest.raises(RegistrationError, match="outside the breast contour"):
+        align(real, virt)
+
+
 def test_registration_overlay_png(tmp_path):
     from regtrack.registration.figures import save_registration_png
 

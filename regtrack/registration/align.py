@@ -163,6 +163,13 @@ def _label(v: MammogramView, who: str) -> str:
     return f"{who} {v.view} view{src}"
 
 
+def _closed_at_chest_wall(bc: np.ndarray):
+    """The region of a skin contour (canonical mm, x from the chest-wall edge towards the
+    nipple) closed by carrying its two ends horizontally to the chest-wall edge."""
+    x0 = min(0.0, float(bc[:, 0].min()))
+    return G.polygon(np.vstack([bc, [[x0, bc[-1, 1]], [x0, bc[0, 1]]]]))
+
+
 def check_view(v: MammogramView, who: str, cfg: RegistrationConfig) -> None:
     """Raise :class:`RegistrationError` on degenerate inputs (one line naming the view)."""
     name = _label(v, who)
@@ -199,11 +206,12 @@ def check_view(v: MammogramView, who: str, cfg: RegistrationConfig) -> None:
         if tp.is_empty or tp.area <= 0.0 or np.abs(t).max() > MAX_COORD_MM:
             raise RegistrationError(f"{name}: tumour contour {k} encloses no area or lies more "
                                     f"than {MAX_COORD_MM:g} mm away; redraw the tumour polygon")
-        # an annotation check: the model's own tumour lies inside its silhouette by
-        # construction, but its open skin contour, closed by a chord, may not cover a
-        # tumour at the chest wall
+        # an annotation check (the model's own tumour lies inside its silhouette by
+        # construction): against the skin line closed along the chest-wall edge x = 0 of
+        # the image, since its ends may stop short of that edge and a chord would cut off
+        # a tumour at the chest wall
         c = tp.representative_point()
-        if who == "real" and not breast.covers(c):
+        if who == "real" and not _closed_at_chest_wall(bc).covers(c):
             raise RegistrationError(
                 f"{name}: tumour contour {k} (near x={c.x:.1f}, y={c.y:.1f} mm) lies outside the "
                 "breast contour; check the tumour annotation's pixel grid and the view's flip")
