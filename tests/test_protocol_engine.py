@@ -99,8 +99,31 @@ def test_shipped_protocols_parse():
     assert cc.steps[-1].target_D == pytest.approx(0.38)
     assert mlo.steps[-1].target_D == pytest.approx(0.28)
     assert mlo.angle_deg == 45.0 and cc.view == "CC" and mlo.view == "MLO"
-    np.testing.assert_allclose(cc.steps[0].direction, [-1, 0, 0])
-    np.testing.assert_allclose(cc.steps[2].direction, [0, -1, 0])
+    # gravity is a patient-frame load: prone MRI gravity (LPS anterior) reversed, then
+    # standing gravity (LPS inferior)
+    assert cc.steps[0].frame == cc.steps[2].frame == "patient"
+    np.testing.assert_allclose(cc.steps[0].direction, [0, 1, 0])
+    np.testing.assert_allclose(cc.steps[2].direction, [0, 0, -1])
+
+
+def test_patient_frame_gravity_does_not_turn_with_the_chest_wall():
+    from regtrack.mechanics.protocol_run import gravity_direction
+    from regtrack.model.geometry import make_frame
+
+    cc = shipped_protocol("cc")
+    # a patient-aligned model: the unloading is -x, standing gravity -y (model frame)
+    np.testing.assert_allclose(gravity_direction(cc.steps[0], None), [-1, 0, 0], atol=1e-12)
+    np.testing.assert_allclose(gravity_direction(cc.steps[2], None), [0, -1, 0], atol=1e-12)
+    # a right breast whose chest wall faces 20 deg laterally (towards -L): the model x is
+    # that normal, and the prone gravity (LPS anterior) has a medial model component
+    a = np.deg2rad(20.0)
+    fr = make_frame(np.array([-np.sin(a), -np.cos(a), 0.0]), "R", np.zeros(3))
+    d = gravity_direction(cc.steps[0], fr.axes)
+    lps = fr.axes.T @ d  # back to LPS
+    np.testing.assert_allclose(lps, [0, 1, 0], atol=1e-12)
+    assert d[0] == pytest.approx(-np.cos(a)) and abs(d[2]) == pytest.approx(np.sin(a))
+    np.testing.assert_allclose(fr.axes.T @ gravity_direction(cc.steps[2], fr.axes), [0, 0, -1],
+                               atol=1e-12)
 
 
 def test_cc_protocol_reaches_target_D_on_mock_body():

@@ -15,9 +15,10 @@ A protocol is an ordered list of steps (Lapuebla-Ferri et al., four-step protoco
 
     [[steps]]
     name = "gravity-unloading"
-    action = "gravity"           # add a named gravity load: direction (model frame) x factor g
+    action = "gravity"           # add a named gravity load: direction x factor g
     load = "prone-unloading"
-    direction = [-1.0, 0.0, 0.0]
+    direction = [0.0, 1.0, 0.0]
+    frame = "patient"            # direction in the MRI's LPS axes (default "model")
     factor = 1.0
 
     [[steps]]
@@ -32,10 +33,13 @@ A protocol is an ordered list of steps (Lapuebla-Ferri et al., four-step protoco
     load = "prone-unloading"
 
 Gravity loads add up: the body force at any time is ``rho g sum_k factor_k d_k`` with
-``g = 9.81 m/s^2`` and ``d_k`` the unit directions of the active loads (model frame,
-``x`` anterior, ``y`` superior).  The MRI is prone (gravity ``+x``), so the unloading
-step applies ``-x``; standing gravity is ``-y`` for both views (the MLO rotates the
-plates, not the patient).
+``g = 9.81 m/s^2`` and ``d_k`` the unit directions of the active loads.  A direction is
+given in the model frame (``x`` the chest-wall normal, ``y`` superior) or, with
+``frame = "patient"``, in the MRI's LPS axes.  Gravity is a patient-frame load: the MRI is
+prone, so its gravity is LPS anterior ``(0, -1, 0)`` and the unloading step applies
+``(0, 1, 0)``; standing gravity is LPS inferior ``(0, 0, -1)`` for both views (the MLO
+rotates the plates, not the patient).  In the model frame these would turn with the
+chest wall, which faces 15-30 degrees laterally of anterior on real breasts.
 """
 
 from __future__ import annotations
@@ -52,6 +56,7 @@ from regtrack.errors import ConfigError
 from regtrack.views import SIMULATED_VIEWS
 
 ACTIONS = ("gravity", "remove_gravity", "move_plate", "hold")
+FRAMES = ("model", "patient")
 PLATE_MODES = ("contact", "degree", "gap", "force", "position")
 PLATES = ("lower", "upper")
 G_STANDARD = 9.81  # m/s^2
@@ -85,8 +90,11 @@ class Step:
     action: str = param("hold", "", "what the step does", choices=ACTIONS)
     name: str = param("", "", "step name in reports (default: action + index)")
     load: str = param("", "", "gravity load name (gravity / remove_gravity)")
-    direction: list[float] = param(None, "-", "gravity direction, model frame",
+    direction: list[float] = param(None, "-", "gravity direction (in the axes of `frame`)",
                                    default_factory=lambda: [0.0, -1.0, 0.0])
+    frame: str = param("model", "", "axes of `direction`: the model frame, or the patient's "
+                       "LPS axes of the MRI (gravity does not turn with the chest wall)",
+                       choices=FRAMES)
     factor: float = param(1.0, "g", "gravity magnitude in multiples of 9.81 m/s^2", ge=0, le=100)
     plate: str = param("upper", "", "plate to move", choices=PLATES)
     to: str = param("contact", "", "plate target", choices=PLATE_MODES)

@@ -107,6 +107,10 @@ class BodySetup:
     target : (3,) float or None
         The lesion's centroid (mm), on which a plate opening is centred; None: the
         breast's skin centroid.
+    axes : (3, 3) float or None
+        Rows: the model x, y, z axes in the MRI's LPS axes, for gravity given in the
+        patient frame (``frame = "patient"``); None: the model frame is LPS-aligned
+        (x = anterior, y = superior).
     """
 
     points: np.ndarray
@@ -117,6 +121,19 @@ class BodySetup:
     young_mpa: float
     clamped: bool = True
     target: np.ndarray | None = None
+    axes: np.ndarray | None = None
+
+
+def gravity_direction(step: Step, axes: np.ndarray | None) -> np.ndarray:
+    """A gravity step's direction in the model frame: as given, or turned from the
+    patient's LPS axes by the model frame's ``axes`` (rows: model axes in LPS; None: the
+    patient-aligned frame, x anterior, y superior)."""
+    from regtrack.model.types import AnatomicalFrame
+
+    d = np.asarray(step.direction, float)
+    if step.frame == "patient":
+        d = (AnatomicalFrame.standard("L").axes if axes is None else np.asarray(axes, float)) @ d
+    return d
 
 
 @dataclass
@@ -410,7 +427,7 @@ class ProtocolRunner:
         T0 = None
         stats: dict = {}
         if step.action == "gravity":
-            d = np.asarray(step.direction, float)
+            d = gravity_direction(step, self.body.axes)
             vec = step.factor * G_STANDARD * d / np.linalg.norm(d)
             self.loads[step.load] = self.loads.get(step.load, np.zeros(3)) + vec
             stats = self._solve(sum(self.loads.values(), np.zeros(3)), step.name)

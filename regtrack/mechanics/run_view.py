@@ -59,7 +59,7 @@ def body_from_model(model: BreastModel, young_mpa: float, *, sliding: bool = Fal
     lesions = model.tumour_centroids()
     return BodySetup(points=model.points, tets=model.tets, skin=skin, fixed=model.fixed,
                      side=model.frame.side, young_mpa=young_mpa, clamped=not sliding,
-                     target=lesions[min(lesions)] if lesions else None)
+                     target=lesions[min(lesions)] if lesions else None, axes=model.frame.axes)
 
 
 def run_protocol_on_model(model: BreastModel, protocol: Protocol, *, mechanics: Any = None,
