@@ -134,7 +134,7 @@ def collect(root: Path, name: str, truth: dict, res: Path) -> list[dict]:
         rot = tv["rotation_deg"]
         px = tv["pixel_mm"]
         row = {"case": name, "view": view, "rotation_true_deg": rot,
-               "D_true": truth["params"]["D"][view], "gap_true_mm": tv["simulation"]["gap_mm"],
+               "D_true": tv["simulation"].get("D_reached", truth["params"]["D"][view]), "gap_true_mm": tv["simulation"]["gap_mm"],
                "angle_true_deg": tv["simulation"]["angle_deg"],
                "friction_true": truth["params"]["friction"]}
         a = mp.get(view, {})

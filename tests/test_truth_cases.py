@@ -93,8 +93,25 @@ def test_parse_dat_takes_the_last_blocks(mt, tmp_path):
         "         1  2.0E+00  0.0E+00  0.0E+00\n         2  0.0E+00  3.0E+00  0.0E+00\n\n"
         " forces (fx,fy,fz) for set NRUP and time  0.1000000E+01\n\n"
         "      9001  0.0E+00  0.0E+00 -2.5E+03\n")
-    u, f = mt.parse_dat(dat, 2)
-    assert np.allclose(u, [[2, 0, 0], [0, 3, 0]]) and f == -2500.0
+    u, f, t = mt.parse_dat(dat, 2)
+    assert np.allclose(u, [[2, 0, 0], [0, 3, 0]]) and f == -2500.0 and t == 1.0
+
+
+def test_body_force_unloads_prone_gravity_and_adds_standing(mt):
+    # model frame x anterior, y superior: prone gravity +x is removed, standing -y added
+    d, g = mt.body_force_direction(mt.model_basis("R"))
+    assert g == pytest.approx(np.sqrt(2.0))
+    assert np.allclose(d * g, [-1.0, -1.0, 0.0])
+
+
+def test_plate_travel_follows_the_schedule(mt):
+    # the upper plate's amplitude: HOLD of the way at T_G0, still until T_G1, then the rest
+    assert mt.plate_travel(None) == 0.0
+    assert mt.plate_travel(mt.T_G0) == pytest.approx(mt.HOLD)
+    assert mt.plate_travel(0.5 * (mt.T_G0 + mt.T_G1)) == pytest.approx(mt.HOLD)
+    assert mt.plate_travel(1.0) == pytest.approx(1.0)
+    t = mt.T_G1 + 0.5 * (1.0 - mt.T_G1)
+    assert mt.plate_travel(t) == pytest.approx(mt.HOLD + 0.5 * (1.0 - mt.HOLD))
 
 
 def test_rotation_sense_is_the_registrations(mt):
