@@ -26,12 +26,12 @@ script builds, *without regtrack's model, mechanics or virtual-mammogram stages*
    plates rotated about the antero-posterior axis by an angle drawn in 40-60 deg (no MLO
    has converged yet: docs/truth-cases.md).
 3. **A cone-beam rendering** (point source SID 650-660 mm above the detector, detector
-   15-25 mm below the lower plate, the source's foot at the middle of the chest-wall
-   edge) of fat / gland / tumour path lengths through the 8 linear sub-tets of every tet10
-   (``regtrack.virtual.xray.path_lengths``, a geometric helper), Poisson noise, a random in-plane rotation (-10..10 deg) about the
-   projected nipple, written as DICOM MG (``regtrack.phantom.dicom_mg.write_mg_dicom``)
-   with BodyPartThickness, CompressionForce (N), PositionerPrimaryAngle (MLO),
-   DistanceSourceToDetector, DistanceSourceToPatient,
+   15-25 mm below the lower plate, the source's foot at the middle of the chest-wall edge)
+   of fat / gland / tumour path lengths through the 8 linear sub-tets of every tet10
+   (``regtrack.virtual.xray.path_lengths``, a geometric helper), Poisson noise, a random
+   in-plane rotation (-10..10 deg) about the projected nipple, written as DICOM MG
+   (``regtrack.phantom.dicom_mg.write_mg_dicom``) with BodyPartThickness, CompressionForce
+   (N), PositionerPrimaryAngle (MLO), DistanceSourceToDetector, DistanceSourceToPatient,
    EstimatedRadiographicMagnificationFactor and ImagerPixelSpacing.
 
 Frames.  The plate frame of a view is :func:`regtrack.virtual.frames.plate_frame` (a
@@ -229,7 +229,8 @@ def lps_to_index(A: np.ndarray, pts: np.ndarray) -> np.ndarray:
 
 # ------------------------------------------------------------------------- meshing
 
-def surface_from_mask(geo: dict, step_mm: float = 2.0, sigma: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+def surface_from_mask(geo: dict, step_mm: float = 2.0,
+                      sigma: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
     """Marching-cubes surface (LPS mm) of the smoothed breast mask resampled to step_mm."""
     from skimage import measure
 

@@ -39,7 +39,7 @@ given in the model frame (``x`` the chest-wall normal, ``y`` superior) or, with
 prone, so its gravity is LPS anterior ``(0, -1, 0)`` and the unloading step applies
 ``(0, 1, 0)``; standing gravity is LPS inferior ``(0, 0, -1)`` for both views (the MLO
 rotates the plates, not the patient).  In the model frame these would turn with the
-chest wall, which faces 15-30 degrees laterally of anterior on real breasts.
+chest wall, which faces 17-27 degrees laterally of anterior on the Pelicano breasts.
 """
 
 from __future__ import annotations
