@@ -348,24 +348,41 @@ def test_a_stopped_view_keeps_its_balanced_steps_and_names_them(tmp_path, monkey
     assert not (tmp_path / "hemi_cc.vtu").exists()
 
 
-def test_multipliers_failing_at_the_end_of_a_step_stop_it_without_cut_backs(monkeypatch):
-    """The last increment's multiplier loop ends at t = 1 whatever the increment: when it
-    does not converge, the step stops at once (a cut-back would only repeat it)."""
+def test_multipliers_failing_in_the_last_increment_halve_it(monkeypatch):
+    """A multiplier loop that fails in the last increment of a step halves it, as in any
+    other increment: with friction the end state depends on the path, and the shorter
+    increment starts its lag closer to the answer.  Here the full increment fails and both
+    halves converge, so the step completes at t = 1; a loop that keeps failing stops the
+    step once the increment is down to 1/64 (7 tries)."""
     import regtrack.mechanics.minimise as minimise
     from regtrack.errors import ContactDidNotConvergeError, SolverDidNotConvergeError
 
     prob, contacts = _box_between_plates(mu=0.0)
+    real = minimise._increment
     calls = []
 
-    def failing(m, u, t, *a, **k):
+    def first_fails(m, starts, t, *a, **k):
+        calls.append(t)
+        if len(calls) == 1:
+            raise ContactDidNotConvergeError("contact multipliers not converged in 20 updates")
+        return real(m, starts, t, *a, **k)
+
+    monkeypatch.setattr(minimise, "_increment", first_fails)
+    u, st, _ = minimise_step(prob, np.zeros_like(prob.X), gravity=lambda t: np.zeros(3),
+                             contacts=contacts, n_increments=1, options=SolverOptions())
+    assert calls == [1.0, 0.5, 1.0] and st.cutbacks == 1 and st.increments == 2
+
+    calls.clear()
+
+    def always_fails(m, starts, t, *a, **k):
         calls.append(t)
         raise ContactDidNotConvergeError("contact multipliers not converged in 20 updates")
 
-    monkeypatch.setattr(minimise, "_increment", failing)
+    monkeypatch.setattr(minimise, "_increment", always_fails)
     with pytest.raises(SolverDidNotConvergeError) as err:
         minimise_step(prob, np.zeros_like(prob.X), gravity=lambda t: np.zeros(3),
                       contacts=contacts, n_increments=1, options=SolverOptions())
-    assert calls == [1.0] and err.value.load_fraction == 0.0
+    assert calls == [1.0 / 2 ** k for k in range(7)] and err.value.load_fraction == 0.0
     assert "multipliers not converged" in str(err.value)
 
 

@@ -52,8 +52,11 @@ augmented-Lagrangian multipliers and the friction lag of every increment are ite
 ``friction_tol`` of the plate's normal force (or of the load scale ``F_ref`` when that is
 larger: a plate that barely touches): each increment is a backward-Euler step of Coulomb's
 law at its own pressure, so the frictional path does not carry a lag from one increment
-into the next. An increment that does not converge in ``4 max_iterations`` is halved (a
-shorter path to the same state: no tolerance is relaxed).
+into the next. An increment that does not converge, in ``4 max_iterations`` Newton
+iterations or in ``max_augmentations`` multiplier updates, is halved (down to 1/64 of its
+length), the last one of a step too: no tolerance is relaxed. With friction the state at
+the end of a step depends on the path, and a shorter increment is a different, closer lag
+problem whose start is nearer its fixed point.
 """
 
 from __future__ import annotations
@@ -375,10 +378,7 @@ def minimise_step(problem: Problem, u0: np.ndarray, *, gravity: Callable[[float]
             except SolverDidNotConvergeError as exc:
                 for pl in plates:
                     pl.begin(u)
-                # multipliers failing at t = 1: a shorter increment ends at the same
-                # state, so it cannot help
-                at_end = t_new >= 1.0 - 1e-12 and isinstance(exc, ContactDidNotConvergeError)
-                if dt / 2 < min_dt or at_end:
+                if dt / 2 < min_dt:
                     raise SolverDidNotConvergeError(
                         f"step '{step_name}': no equilibrium at t = {t_new:.4g} from t = {t:.4g} "
                         f"(increments down to {dt:.3g}): {exc}", load_fraction=t,
