@@ -368,7 +368,7 @@ def test_multipliers_failing_in_the_last_increment_halve_it(monkeypatch):
         return real(m, starts, t, *a, **k)
 
     monkeypatch.setattr(minimise, "_increment", first_fails)
-    u, st, _ = minimise_step(prob, np.zeros_like(prob.X), gravity=lambda t: np.zeros(3),
+    _, st, _ = minimise_step(prob, np.zeros_like(prob.X), gravity=lambda t: np.zeros(3),
                              contacts=contacts, n_increments=1, options=SolverOptions())
     assert calls == [1.0, 0.5, 1.0] and st.cutbacks == 1 and st.increments == 2
 
