@@ -8,7 +8,8 @@ import pytest
 
 from regtrack.mechanics.config import MechanicsConfig, SolverOptions
 from regtrack.mechanics.meshes import box_model
-from regtrack.mechanics.minimise import Minimiser, minimise_step
+from regtrack.mechanics.minimise import minimise_step
+from regtrack.mechanics.newton import Minimiser
 from regtrack.mechanics.problem import body_force, build_problem, chest_wall_reaction
 
 C1_KPA = 1.0

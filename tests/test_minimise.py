@@ -31,7 +31,8 @@ import pytest
 from regtrack.mechanics.config import MechanicsConfig, SolverOptions
 from regtrack.mechanics.contact import ContactConfig, PlateContact, tributary_areas
 from regtrack.mechanics.meshes import box_model
-from regtrack.mechanics.minimise import Minimiser, minimise_step
+from regtrack.mechanics.minimise import minimise_step
+from regtrack.mechanics.newton import Minimiser
 from regtrack.mechanics.plates import RigidPlate
 from regtrack.mechanics.potential import PlatePotential, friction_terms, normal_terms
 from regtrack.mechanics.problem import body_force

@@ -219,7 +219,7 @@ def test_plates_start_clear_of_a_thick_base_behind_their_edge():
     8 mm taller than the part over the plates: placed from the nodes over the plates only,
     the rounded edges would start inside it; every free skin node must start clearance_mm
     (2 mm) or more from both plates (the closest exactly 2 mm), so the plates back off."""
-    from regtrack.mechanics.protocol_run import make_plates
+    from regtrack.mechanics.placement import make_plates
 
     b = _body()
     X = b.points.copy()
@@ -243,7 +243,7 @@ def test_chest_wall_contact_pushes_tissue_back_in_front_of_the_wall():
     candidates; skin nodes carry their tributary skin area; the runner hands the wall to
     the solver with the plates."""
     from regtrack.mechanics.contact import tributary_areas
-    from regtrack.mechanics.protocol_run import chest_wall
+    from regtrack.mechanics.placement import chest_wall
 
     body = _body()
     assert chest_wall(body, ContactConfig(chest_wall_contact=False)) is None
@@ -275,7 +275,7 @@ def test_chest_wall_contact_pushes_tissue_back_in_front_of_the_wall():
 
 def test_behind_chest_wall_depth_is_measured_from_the_most_posterior_node():
     """Known answer: the plane is x = min X (here -40 mm); node depths x_cw - (X + u)_x."""
-    from regtrack.mechanics.protocol_run import behind_chest_wall
+    from regtrack.mechanics.placement import behind_chest_wall
 
     X = np.array([[-40.0, 0, 0], [-35.0, 0, 0], [-30.0, 0, 0], [0.0, 0, 0]])
     fixed = np.array([True, False, False, False])

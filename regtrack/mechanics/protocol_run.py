@@ -11,23 +11,8 @@ which must return an equilibrium ``u`` (N, 3) mm after ramping the gravity vecto
 :func:`regtrack.mechanics.minimise.minimiser_from_problem` adapts the mechanics core's
 ``minimise_step``; tests use small mock solvers.
 
-Plate placement (plate frame ``n, e_x`` of :func:`regtrack.virtual.frames.plate_frame`):
-both plates have their chest-wall (posterior) edge rounded with ``edge_radius_mm``, at
-``x_cw + posterior_edge_mm`` where ``x_cw`` is the mean ``x`` of the chest-wall nodes, and
-are unbounded elsewhere.  The lower plate faces ``+n``, the upper one ``-n``; both start
-``clearance_mm`` away from every free skin node, measured against the whole plate surface
-(rounded edge included: a thick chest-wall base behind the edge would otherwise start
-inside the plate, 6.5 mm deep on the phantom's MLO with ``posterior_edge_mm = 10``).
-
-Chest wall: the chest-wall nodes slide on the wall over a soft layer (``[contact]
-chest_wall_layer_mm``, :mod:`.support`): held normal to it, tangentially by the layer's
-shear stiffness.  Clamped (layer 0, the paper's model), they cannot follow the plates,
-whose rounded edges reach to within ``posterior_edge_mm`` of them: the fixed section is
-taller than the final plate gap on every exam, and the tissue between a plate's edge and
-the clamped nodes is squeezed without limit (docs/performance.md).  ``[contact]
-chest_wall_contact`` (on by default) adds a frictionless rigid wall at the chest-wall
-plane (:func:`chest_wall`): no node passes behind it into the torso.  The force carried by
-the skin near the wall is reported apart (``edge_band_mm``; ``upper_body_force_N`` in
+Plate placement and the chest wall: :mod:`.placement`.  The force carried by the skin
+near the wall is reported apart (``edge_band_mm``; ``upper_body_force_N`` in
 :func:`regtrack.mechanics.run_view.summarise`).
 
 Targets of an upper-plate move: the plate is first brought to touch the breast (no
@@ -47,21 +32,18 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Callable
-from dataclasses import dataclass, field, replace
-from typing import Any
+from dataclasses import dataclass, field
 
 import numpy as np
 
 from regtrack.errors import ConfigError, ResultCheckError, SolverDidNotConvergeError
 from regtrack.mechanics import compression as comp
-from regtrack.mechanics.contact import (ContactConfig, PlateContact, automatic_penalty,
-                                        mean_edge_length, tributary_areas)
+from regtrack.mechanics.contact import ContactConfig, PlateContact
 from regtrack.mechanics.linsolve import serial_openblas
-from regtrack.mechanics.plates import RigidPlate
+from regtrack.mechanics.placement import BodySetup, behind_chest_wall, chest_wall, make_plates
 from regtrack.mechanics.protocol import G_STANDARD, Protocol, Step
 
 log = logging.getLogger(__name__)
-
 
 
 @dataclass(frozen=True)
@@ -83,45 +65,6 @@ class StepControl:
 #: from gravity ``g0`` to ``g1`` (m/s^2) with the contacts' plates moving over it.
 StepSolver = Callable[[np.ndarray, np.ndarray, np.ndarray, list, str, StepControl],
                       tuple[np.ndarray, dict]]
-
-
-@dataclass
-class BodySetup:
-    """What the engine needs to know about the body (mm, model frame).
-
-    Attributes
-    ----------
-    points : (N, 3) float
-        Reference node coordinates.
-    tets : (E, 4) int
-    skin : (S, 3) int
-        Skin triangles (contact surface).
-    fixed : (N,) bool
-        Chest-wall nodes.
-    side : {"L", "R"}
-    young_mpa : float
-        Small-strain Young modulus of the tissue (MPa), for the automatic penalty.
-    clamped : bool
-        The chest-wall nodes are held in every direction (else they slide on the wall,
-        :mod:`.support`, and are plate contact candidates like the skin's).
-    target : (3,) float or None
-        The lesion's centroid (mm), on which a plate opening is centred; None: the
-        breast's skin centroid.
-    axes : (3, 3) float or None
-        Rows: the model x, y, z axes in the MRI's LPS axes, for gravity given in the
-        patient frame (``frame = "patient"``); None: the model frame is LPS-aligned
-        (x = anterior, y = superior).
-    """
-
-    points: np.ndarray
-    tets: np.ndarray
-    skin: np.ndarray
-    fixed: np.ndarray
-    side: str
-    young_mpa: float
-    clamped: bool = True
-    target: np.ndarray | None = None
-    axes: np.ndarray | None = None
 
 
 def gravity_direction(step: Step, axes: np.ndarray | None) -> np.ndarray:
@@ -184,120 +127,6 @@ class ProtocolResult:
     @property
     def u(self) -> np.ndarray:
         return self.steps[-1].u
-
-
-def chest_wall(body: BodySetup, config: ContactConfig) -> PlateContact | None:
-    """Frictionless rigid wall at the chest-wall plane, facing ``+x``: no free node may
-    pass behind it (the torso is there).  The plane is ``x = min x`` of the model, the
-    most posterior node (the chest-wall nodes of a model cut from an MRI lie within 0.3 mm
-    of it), so that no node starts behind it.  Every free node is a contact candidate: a
-    skin node with its tributary skin area, an interior node with the area ``V_i / h`` of
-    its nodal volume ``V_i`` (mm^3) over the mean skin edge ``h`` (mm), so the wall's
-    penalty stiffness per node is of the same order inside as on the skin.  None when
-    ``chest_wall_contact`` is off or the body has no fixed node."""
-
-    if not config.chest_wall_contact or not body.fixed.any():
-        return None
-    skin_nodes, skin_areas, eps = _skin_contact(body, config)
-    X = body.points
-    e = X[body.tets]
-    vol = np.abs(np.einsum("ij,ij->i", np.cross(e[:, 1] - e[:, 0], e[:, 2] - e[:, 0]),
-                           e[:, 3] - e[:, 0])) / 6.0
-    areas = np.bincount(body.tets.reshape(-1), weights=np.repeat(vol / 4.0, 4),
-                        minlength=len(X)) / mean_edge_length(X, body.skin)
-    areas[skin_nodes] = skin_areas
-    nodes = np.flatnonzero(~body.fixed & (areas > 0))
-    wall = RigidPlate(name="chest-wall", origin=(float(X[:, 0].min()), 0.0, 0.0),
-                      normal=(1.0, 0.0, 0.0), e1=(0.0, 1.0, 0.0))
-    return PlateContact(wall, X, nodes, areas[nodes], config=replace(config, friction=0.0),
-                        penalty=eps)
-
-
-def behind_chest_wall(points: np.ndarray, u: np.ndarray, fixed: np.ndarray,
-                      *, over_mm: float = 1.0) -> tuple[float | None, int | None]:
-    """How far the deformed body lies behind the chest-wall plane: ``(depth_mm, nodes)``.
-
-    The plane is the one :func:`chest_wall` uses, ``x_cw = min_i X_i`` (model frame, ``x``
-    posterior -> anterior; the chest-wall nodes of a model cut from an MRI lie within
-    0.3 mm of it).  With ``x_i = X_i + u_i``,
-
-    .. math::
-
-        \\mathrm{depth} = \\max\\bigl(0, \\max_i (x_{cw} - x_{i,x})\\bigr),
-
-    and ``nodes`` counts the nodes more than ``over_mm`` behind it.  Tissue there would be
-    inside the torso: the paper's model (fixed chest wall, no wall contact) lets the tissue
-    pinched by a plate's rounded edge go there.  ``(None, None)`` for a body without
-    chest-wall nodes (no wall to be behind)."""
-    if not np.any(fixed):
-        return None, None
-    x_cw = float(np.min(points[:, 0]))
-    behind = x_cw - (points[:, 0] + u[:, 0])
-    return max(0.0, float(behind.max())), int(np.count_nonzero(behind > over_mm))
-
-
-def _skin_contact(body: BodySetup, config: ContactConfig) -> tuple[np.ndarray, np.ndarray, float]:
-    """Contact candidates of the body: its free skin nodes, their tributary skin areas
-    (mm^2) and the automatic normal penalty (MPa/mm)."""
-    X = body.points
-    nodes = np.unique(body.skin)
-    if body.clamped:
-        nodes = nodes[~body.fixed[nodes]]
-    if len(nodes) == 0:
-        raise ConfigError("model has no free skin node: contact needs skin triangles")
-    eps = automatic_penalty(config, young_mpa=body.young_mpa, h_mm=mean_edge_length(X, body.skin))
-    return nodes, tributary_areas(X, body.skin)[nodes], eps
-
-
-def make_plates(body: BodySetup, protocol: Protocol, *, config: ContactConfig
-                ) -> tuple[dict[str, PlateContact], Any]:
-    """The lower and upper :class:`PlateContact` of a protocol, placed around the body."""
-    from regtrack.virtual.frames import plate_frame
-
-    frame = plate_frame(protocol.view, body.side, angle_deg=protocol.angle_deg)
-    X = body.points
-    nodes, areas, eps = _skin_contact(body, config)
-    geo = protocol.plates
-    x_cw = float(X[body.fixed, 0].mean()) if body.fixed.any() else float(X[:, 0].min())
-    s_edge = x_cw + geo.posterior_edge_mm
-    n = frame.normal
-    over = X[nodes, 0] >= s_edge
-    if not over.any():
-        raise ConfigError(f"plates: no skin node anterior to the plate edge x = {s_edge:.1f} mm; "
-                          "lower [plates] posterior_edge_mm")
-    h = X[nodes] @ n
-    lo = float(h[over].min()) - geo.clearance_mm
-    hi = float(h[over].max()) + geo.clearance_mm
-    plates = {}
-    for name, normal, height in (("lower", n, lo), ("upper", -n, hi)):
-        pl = RigidPlate(name=name, origin=height * n, normal=normal, e1=frame.e_x,
-                        s_range=(s_edge, np.inf), edge_radius=geo.edge_radius_mm)
-        if geo.window_mm and name == geo.window_plate:
-            centre = body.target if body.target is not None else X[nodes][over].mean(axis=0)
-            pl = replace(pl, window=_opening(pl, centre, geo.window_mm))
-        for _ in range(50):  # back off until the rounded edge clears the base behind it too
-            short = geo.clearance_mm - float(pl.query(X[nodes]).gap.min())
-            if short <= 1e-9:
-                break
-            pl = pl.translated(-(short + 1e-9) * pl.normal)
-        plates[name] = PlateContact(pl, X, nodes, areas, config=config, penalty=eps)
-    log.info("plates: normal %s, chest-wall edge x = %.1f mm, eps_N = %.3g MPa/mm",
-             np.round(n, 3).tolist(), s_edge, eps)
-    return plates, frame
-
-
-def _opening(plate: RigidPlate, centre: np.ndarray, size_mm) -> tuple[float, float, float, float]:
-    """The window ``(s0, s1, t0, t1)`` (plate-local mm) of size ``size_mm`` = [along e_x,
-    across], centred on the projection of ``centre`` on the face; moved anteriorly, when the
-    lesion lies near the chest wall, to start 1 mm in front of the plate's chest-wall edge
-    (an opening must lie inside the face)."""
-    s, t, _ = plate.to_local(centre[None])[0]
-    w, h = (float(v) for v in size_mm)
-    s0 = max(s - w / 2.0, plate.s_range[0] + 1.0)
-    if s0 > s - w / 2.0:
-        log.info("plate %s: opening moved %.1f mm anteriorly to clear the chest-wall edge",
-                 plate.name, s0 - (s - w / 2.0))
-    return (s0, s0 + w, t - h / 2.0, t + h / 2.0)
 
 
 def _merge_stats(a: dict, b: dict) -> dict:

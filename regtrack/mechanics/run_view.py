@@ -29,7 +29,8 @@ from regtrack.config import parse_section, to_table
 from regtrack.errors import ConfigError, ResultCheckError, SolverDidNotConvergeError
 from regtrack.mechanics.contact import ContactConfig
 from regtrack.mechanics.protocol import Protocol, protocol_for_view
-from regtrack.mechanics.protocol_run import BodySetup, ProtocolResult, ProtocolRunner
+from regtrack.mechanics.placement import BodySetup
+from regtrack.mechanics.protocol_run import ProtocolResult, ProtocolRunner
 from regtrack.model.types import BreastModel
 
 log = logging.getLogger(__name__)
@@ -154,7 +155,7 @@ def summarise(result: ProtocolResult, timing: dict | None = None) -> dict:
     the rest, ``upper_force_N - upper_edge_force_N``: the force of the breast between the
     plates, the part that does not grow with mesh refinement.  ``behind_chest_wall_mm``: the
     deepest any node ended a step behind the chest-wall plane
-    (:func:`regtrack.mechanics.protocol_run.behind_chest_wall`); ``warnings``: every step's
+    (:func:`regtrack.mechanics.placement.behind_chest_wall`); ``warnings``: every step's
     warnings (``[contact] behind_wall_warn_mm``).
     ``force_imbalance_rel``: the largest over the steps of the global force imbalance
     (the residual's resultant over the free nodes) relative to the step's largest load
