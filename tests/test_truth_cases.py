@@ -149,3 +149,39 @@ def test_bench_matches_the_lesion_on_the_mri_side(ba):
                {"mri_lps_mm": [50, 0, 0], "centroid_px_rc": [9, 9]}]
     m = ba.match_lesion(lesions, {"centroid_lps_mm": [48, 1, 0]})
     assert m["centroid_px_rc"] == [9, 9] and m["mri_match_mm"] == pytest.approx(np.hypot(2, 1))
+
+
+@pytest.mark.parametrize("side", ["L", "R"])
+def test_error_parts_remove_exactly_the_rotation_error(ba, side):
+    """A prediction that is the true lesion turned about the nipple by the registration's
+    rotation error (an exact model, a wrong theta) has no error left once that rotation is
+    undone, whichever way the stored image is flipped; an offset along the chest wall ->
+    nipple axis stays, with its sign."""
+    from regtrack.phantom.dicom_mg import canonical_to_stored_rc
+    from regtrack.registration.geometry import rotation
+
+    px, shape = 0.1, (1000, 800)
+    n_can = np.array([400.0, 700.0])   # canonical (row, col) px: nipple to the right
+    t_can = np.array([520.0, 350.0])
+    theta, theta_b = 6.0, 9.5          # truth rotation, registration's breast optimum
+
+    def stored(rc):
+        return canonical_to_stored_rc(rc, shape=shape, laterality=side).tolist()
+
+    def turned(rc, deg):               # rotate canonical (row, col) about the nipple, y down
+        xy = (rc - n_can)[::-1]
+        return (rotation(deg) @ xy)[::-1] + n_can
+
+    tv = {"image_shape": list(shape), "pixel_mm": px, "nipple_dicom_rc": stored(n_can),
+          "rotation_deg": theta}
+    tumour = {"centroid_dicom_rc": stored(t_can)}
+    lesion = {"centroid_px_rc": stored(turned(t_can, theta_b - theta)), "theta_p_b_deg": theta_b}
+    parts = ba.error_parts(lesion, tumour, tv, side)
+    r = np.linalg.norm(t_can - n_can) * px
+    assert parts["lesion_r_true_mm"] == pytest.approx(r)
+    assert parts["lesion_error_true_theta_mm"] == pytest.approx(0.0, abs=1e-9)
+    assert parts["theta_error_b_track_deg"] == pytest.approx(3.5)
+    # 2 mm too far towards the nipple (canonical +x) after the rotation is undone
+    lesion["centroid_px_rc"] = stored(turned(t_can + [0.0, 20.0], theta_b - theta))
+    parts = ba.error_parts(lesion, tumour, tv, side)
+    assert parts["lesion_error_x_mm"] == pytest.approx(2.0) and parts["lesion_error_y_mm"] == pytest.approx(0.0, abs=1e-9)
