@@ -29,6 +29,7 @@ import csv
 import json
 import logging
 import os
+import shutil
 import subprocess
 import sys
 import time
@@ -39,6 +40,9 @@ import numpy as np
 log = logging.getLogger("bench_accuracy")
 REPO = Path(__file__).resolve().parents[1]
 VARIANTS = ("paper", "paper_rot0", "track")
+#: not run by default: the tracking case with the nipple marked on the MRI and on every
+#: mammogram, as a user can click it (:func:`marked_case`)
+EXTRA_VARIANTS = ("track_marked",)
 
 
 def run_case(case: Path, out: Path, cache: Path, timeout: int, views: str | None = None) -> dict:
@@ -121,6 +125,32 @@ def match_lesion(lesions: list, truth_tumour: dict) -> dict | None:
     return best
 
 
+def marked_case(root: Path, name: str, truth: dict, dst: Path) -> Path:
+    """``<case>_track`` with the nipple given: ``[mri] nipple_lps_mm`` (the truth's nipple
+    node) and ``[views.<V>] nipple_px`` (its projection on each DICOM), as a radiologist
+    marks it on both images.  The truth's breast has no nipple to see, so regtrack detects
+    its own on each image (a cap centre on the MRI skin, the contour point farthest from
+    the chest wall on the mammogram), and the two detections need not be the same material
+    point; this variant measures the tracking without that ambiguity."""
+    src = root / "cases" / f"{name}_track"
+    if dst.exists():
+        shutil.rmtree(dst)
+    shutil.copytree(src, dst)
+    lines = (src / "case.toml").read_text().splitlines()
+    n = truth["mesh"]["nipple_lps_mm"]
+    out, view = [], None
+    for ln in lines:
+        out.append(ln.replace(f'id = "{name}_track"', f'id = "{name}_track_marked"'))
+        if ln.strip() == "[mri]":
+            out.append(f"nipple_lps_mm = [{n[0]:.3f}, {n[1]:.3f}, {n[2]:.3f}]")
+        if ln.strip().startswith("[views."):
+            view = ln.strip()[7:-1]
+            rc = truth["views"][view]["nipple_dicom_rc"]
+            out.append(f"nipple_px = [{rc[0]:.2f}, {rc[1]:.2f}]")
+    (dst / "case.toml").write_text("\n".join(out) + "\n")
+    return dst
+
+
 def _canonical_mm(rc, tv: dict, side: str) -> np.ndarray:
     """DICOM (row, col) -> canonical (x, y) mm (chest wall left, y down): undo the IHE flip
     of a right breast, then scale by the pixel spacing."""
@@ -133,23 +163,29 @@ def _canonical_mm(rc, tv: dict, side: str) -> np.ndarray:
 def error_parts(lesion: dict, tumour: dict, tv: dict, side: str) -> dict:
     """The tracking error split by its source (canonical mm, x towards the nipple, y down).
 
-    ``lesion_error_true_theta_mm``: the prediction turned about the true nipple by the
-    registration's rotation error, ``R(theta - theta_p,b)``, i.e. what the error would be
-    with a perfect rotation: the error of the mechanics, the projection and the nipple.
+    regtrack places a lesion at ``c = n_r + R(theta_p,b) (v - n_v)``: its virtual position
+    ``v`` relative to the virtual nipple, turned by the registration and put at the nipple
+    ``n_r`` it found on the mammogram.  ``nipple_error_mm`` is ``|n_r - n|`` against the
+    true projected nipple ``n``.  ``lesion_error_true_theta_mm``: the prediction with the
+    true rotation and the true nipple, ``n + R(theta - theta_p,b) (c - n_r)``, against the
+    true lesion: what is left is the mechanics and the projection.
     ``lesion_error_x_mm`` / ``_y_mm``: that error along the chest wall -> nipple axis and
-    across it.  ``lesion_r_true_mm``: the true lesion's distance from the nipple."""
+    across it.  ``lesion_r_true_mm``: the true lesion's distance from the nipple.  Without
+    regtrack's nipple in ``lesions.json`` the true one stands for it."""
     c = _canonical_mm(lesion["centroid_px_rc"], tv, side)
     t = _canonical_mm(tumour["centroid_dicom_rc"], tv, side)
     n = _canonical_mm(tv["nipple_dicom_rc"], tv, side)
+    nr = n if lesion.get("nipple_px_rc") is None else _canonical_mm(lesion["nipple_px_rc"], tv, side)
     th = lesion.get("theta_p_b_deg")
     if th is None:
         return {}
     a = np.deg2rad(tv["rotation_deg"] - th)
     R = np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
-    e = (R @ (c - n) + n) - t
+    e = (R @ (c - nr) + n) - t
     return {"lesion_error_true_theta_mm": float(np.linalg.norm(e)), "lesion_error_x_mm": float(e[0]),
             "lesion_error_y_mm": float(e[1]), "lesion_r_true_mm": float(np.linalg.norm(t - n)),
-            "theta_error_b_track_deg": float(th - tv["rotation_deg"])}
+            "theta_error_b_track_deg": float(th - tv["rotation_deg"]),
+            "nipple_error_mm": float(np.linalg.norm(nr - n))}
 
 
 def _median(vals):
@@ -157,13 +193,29 @@ def _median(vals):
     return float(np.median(v)) if v else None
 
 
+def _tracking_columns(lesions: list | None, tv: dict, side: str, suffix: str) -> dict:
+    """The tracking error of the largest truth tumour in one view and its parts
+    (:func:`error_parts`), each column name ending in ``suffix``."""
+    row: dict = {"lesion_error_track_mm": None}
+    if tv["tumours"] and lesions:
+        tt = tv["tumours"][0]  # the largest tumour
+        le = match_lesion(lesions, tt)
+        if le is not None:
+            d = np.asarray(le["centroid_px_rc"]) - np.asarray(tt["centroid_dicom_rc"])
+            row.update({"lesion_error_track_mm": float(np.linalg.norm(d) * tv["pixel_mm"]),
+                        "lesion_mri_match_mm": le["mri_match_mm"], "lesion_sigma_mm": le.get("sigma_mm"),
+                        "n_lesions_regtrack": len(lesions)})
+            row.update(error_parts(le, tt, tv, side))
+    return {k + suffix: v for k, v in row.items()}
+
+
 def collect(root: Path, name: str, truth: dict, res: Path) -> list[dict]:
     rows = []
     mp, m0, mt = (_metrics(res / f"{name}_{v}") for v in VARIANTS)
     lt = _lesions(res / f"{name}_track")
+    lm = _lesions(res / f"{name}_track_marked")
     for view, tv in truth["views"].items():
         rot = tv["rotation_deg"]
-        px = tv["pixel_mm"]
         row = {"case": name, "view": view, "rotation_true_deg": rot,
                "D_true": tv["simulation"].get("D_reached", truth["params"]["D"][view]), "gap_true_mm": tv["simulation"]["gap_mm"],
                "angle_true_deg": tv["simulation"]["angle_deg"],
@@ -186,20 +238,10 @@ def collect(root: Path, name: str, truth: dict, res: Path) -> list[dict]:
         c = mt.get(view, {})
         row["mode_track"] = c.get("mode")
         row["theta_p_track"] = c.get("theta_p")
-        err = None
-        if tv["tumours"] and view in lt:
-            tt = tv["tumours"][0]  # the largest tumour
-            le = match_lesion(lt[view], tt)
-            if le is not None:
-                d = np.asarray(le["centroid_px_rc"]) - np.asarray(tt["centroid_dicom_rc"])
-                err = float(np.linalg.norm(d) * px)
-                row["lesion_mri_match_mm"] = le["mri_match_mm"]
-                row["lesion_sigma_mm"] = le.get("sigma_mm")
-                row["n_lesions_regtrack"] = len(lt[view])
-                row.update(error_parts(le, tt, tv, truth["side"]))
-        row["lesion_error_track_mm"] = err
+        row.update(_tracking_columns(lt.get(view), tv, truth["side"], ""))
+        row.update(_tracking_columns(lm.get(view), tv, truth["side"], "_marked"))
         errs = []
-        for var in VARIANTS:
+        for var in VARIANTS + EXTRA_VARIANTS:
             e = _errors(res / f"{name}_{var}")
             msg = e.get(view) or (e.get("both") if view not in (_metrics(res / f"{name}_{var}")) else None)
             if msg:
@@ -212,7 +254,9 @@ def collect(root: Path, name: str, truth: dict, res: Path) -> list[dict]:
 COLS = ["case", "view", "rotation_true_deg", "theta_p_paper", "theta_error_deg", "theta_p_rot0",
         "theta_error_vs_rot0_deg", "d_T_paper", "lesion_error_paper_mm", "lesion_error_track_mm",
         "lesion_sigma_mm", "lesion_error_true_theta_mm", "lesion_error_x_mm", "lesion_error_y_mm",
-        "lesion_r_true_mm", "theta_error_b_track_deg", "n_lesions_regtrack", "lesion_mri_match_mm", "D_true", "D_regtrack", "gap_true_mm",
+        "lesion_r_true_mm", "theta_error_b_track_deg", "nipple_error_mm", "lesion_error_track_mm_marked",
+        "lesion_sigma_mm_marked", "lesion_error_true_theta_mm_marked", "theta_error_b_track_deg_marked",
+        "nipple_error_mm_marked", "n_lesions_regtrack", "lesion_mri_match_mm", "D_true", "D_regtrack", "gap_true_mm",
         "gap_regtrack_mm", "gap_source", "angle_true_deg", "angle_regtrack_deg", "projection", "friction_true",
         "theta_p_b_paper", "theta_p_t_paper", "theta_p_track", "mode_track", "BS_Av_track", "d_B_track",
         "d_T_rot0", "regtrack_errors"]
@@ -238,7 +282,8 @@ def write_tables(rows: list[dict], out: Path) -> None:
     med = {k: _median([r.get(k) for r in rows]) for k in ("theta_error_deg", "theta_error_vs_rot0_deg",
                                                             "d_T_paper", "lesion_error_track_mm",
                                                             "lesion_error_paper_mm", "theta_p_rot0",
-                                                            "lesion_error_true_theta_mm")}
+                                                            "lesion_error_true_theta_mm",
+                                                            "lesion_error_track_mm_marked")}
     absmed = _median([abs(r["theta_error_deg"]) for r in rows if r.get("theta_error_deg") is not None])
     worst = max([r["lesion_error_track_mm"] for r in rows if r.get("lesion_error_track_mm") is not None],
                 default=None)
@@ -246,7 +291,8 @@ def write_tables(rows: list[dict], out: Path) -> None:
               f"theta_p on the unrotated copy {f(med['theta_p_rot0'])} deg, d_T {f(med['d_T_paper'])} mm, "
               f"tracking-mode lesion centroid error {f(med['lesion_error_track_mm'])} mm (worst {f(worst)} mm), "
               f"paper-mode lesion error {f(med['lesion_error_paper_mm'])} mm; "
-              f"tracking error with the true rotation {f(med['lesion_error_true_theta_mm'])} mm."]
+              f"tracking error with the true rotation {f(med['lesion_error_true_theta_mm'])} mm; "
+              f"tracking with the nipple marked {f(med['lesion_error_track_mm_marked'])} mm."]
     (out / "accuracy.md").write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
 
@@ -256,7 +302,8 @@ def main(argv=None) -> int:
     ap.add_argument("--root", default="reports/truth", help="make_truth_cases.py --out")
     ap.add_argument("--out", default=None, help="results folder (default ROOT/bench)")
     ap.add_argument("--only", default="", help="comma-separated case names, e.g. pel03R")
-    ap.add_argument("--variants", default=",".join(VARIANTS))
+    ap.add_argument("--variants", default=",".join(VARIANTS),
+                    help=f"of {', '.join(VARIANTS + EXTRA_VARIANTS)}")
     ap.add_argument("--collect-only", action="store_true", help="do not run regtrack; tabulate what exists")
     ap.add_argument("--timeout", type=int, default=3600)
     a = ap.parse_args(argv)
@@ -274,7 +321,8 @@ def main(argv=None) -> int:
         truth = json.loads((root / "truth" / f"{name}.json").read_text())
         if not a.collect_only:
             for v in variants:
-                case = root / "cases" / f"{name}_{v}"
+                case = (marked_case(root, name, truth, res / "cases" / f"{name}_{v}")
+                        if v == "track_marked" else root / "cases" / f"{name}_{v}")
                 runs[f"{name}_{v}"] = run_case(case, res / f"{name}_{v}", res / "cache" / name, a.timeout)
         rows += collect(root, name, truth, res)
     (res).mkdir(parents=True, exist_ok=True)

@@ -121,6 +121,15 @@ def test_predicted_lesion_against_the_truth(tracking, view):
     assert len(les["outline_px_rc"]) == len(outline)
     row = next(r for r in rows if r["view"] == view)
     assert row["lesion_row_px"] == pytest.approx(les["centroid_px_rc"][0])
+    # the registration's centre, the nipple found on the mammogram, in mm and in pixels:
+    # the lesion's stated distance is measured from it, and it lies on the phantom's
+    # projected nipple within the 3 mm of issue 9
+    nip = np.asarray(les["nipple_mm"])
+    assert les["distance_from_nipple_mm"] == pytest.approx(float(np.linalg.norm(xy - nip)))
+    truth_nip = json.loads(TRUTH.read_text())["views"][view]["nipple"]
+    assert np.linalg.norm(nip - truth_nip["canonical_mm"]) < TOL_MM
+    px = float(json.loads(TRUTH.read_text())["views"][view]["pixel_mm"])
+    assert np.linalg.norm(np.asarray(les["nipple_px_rc"]) - truth_nip["dicom_rc"]) * px < TOL_MM
 
 
 @pytest.fixture(scope="module")

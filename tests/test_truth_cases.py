@@ -185,3 +185,30 @@ def test_error_parts_remove_exactly_the_rotation_error(ba, side):
     lesion["centroid_px_rc"] = stored(turned(t_can + [0.0, 20.0], theta_b - theta))
     parts = ba.error_parts(lesion, tumour, tv, side)
     assert parts["lesion_error_x_mm"] == pytest.approx(2.0) and parts["lesion_error_y_mm"] == pytest.approx(0.0, abs=1e-9)
+    # a nipple found 3 mm low (canonical +y) carries the whole prediction with it: with the
+    # true nipple put back, only the 2 mm remain
+    lesion["centroid_px_rc"] = stored(turned(t_can + [0.0, 20.0], theta_b - theta) + [30.0, 0.0])
+    lesion["nipple_px_rc"] = stored(n_can + [30.0, 0.0])
+    parts = ba.error_parts(lesion, tumour, tv, side)
+    assert parts["nipple_error_mm"] == pytest.approx(3.0)
+    assert parts["lesion_error_x_mm"] == pytest.approx(2.0) and parts["lesion_error_y_mm"] == pytest.approx(0.0, abs=1e-9)
+
+
+def test_marked_case_gives_the_nipple_on_both_images(ba, tmp_path):
+    """The 'track_marked' variant: the tracking case plus the truth's nipple, on the MRI
+    (``[mri] nipple_lps_mm``) and on each mammogram (``[views.<V>] nipple_px``, DICOM row,
+    col), and nothing else of the truth."""
+    import tomllib
+
+    src = tmp_path / "root" / "cases" / "pel07R_track"
+    src.mkdir(parents=True)
+    (src / "case.toml").write_text('[case]\nid = "pel07R_track"\n\n[mri]\nlabels = "mri/l.zip"\n'
+                                   'side = "R"\n\n[views.CC]\nmammogram = "mammo/cc.dcm"\n')
+    truth = {"mesh": {"nipple_lps_mm": [-60.0, -45.5, 12.25]},
+             "views": {"CC": {"nipple_dicom_rc": [812.5, 40.0], "tumours": [{"centroid_dicom_rc": [1, 2]}]}}}
+    dst = ba.marked_case(tmp_path / "root", "pel07R", truth, tmp_path / "out" / "pel07R_track_marked")
+    doc = tomllib.loads((dst / "case.toml").read_text())
+    assert doc["case"]["id"] == "pel07R_track_marked"
+    assert doc["mri"]["nipple_lps_mm"] == [-60.0, -45.5, 12.25] and doc["mri"]["side"] == "R"
+    assert doc["views"]["CC"] == {"nipple_px": [812.5, 40.0], "mammogram": "mammo/cc.dcm"}
+    assert "tumour_polygon" not in (dst / "case.toml").read_text()

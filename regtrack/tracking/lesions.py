@@ -63,7 +63,8 @@ class LesionPrediction:
     uncertainty terms of :func:`lesion_sigma`; ``error_mm`` the distance from the predicted
     centroid to the area centroid of the annotated outline (paper mode; None in tracking
     mode), ``annotated_mm`` that centroid; ``mri_lps_mm`` the lesion's volume centroid in
-    the MRI (DICOM patient frame, LPS mm).
+    the MRI (DICOM patient frame, LPS mm); ``nipple_mm`` / ``nipple_px`` the nipple on the
+    mammogram, the centre of the registration's rotation.
     """
 
     view: str
@@ -82,6 +83,8 @@ class LesionPrediction:
     outline_px: np.ndarray | None = None
     notes: list[str] = field(default_factory=list)
     mri_lps_mm: np.ndarray | None = None
+    nipple_mm: np.ndarray | None = None
+    nipple_px: np.ndarray | None = None
 
     def to_dict(self) -> dict:
         def arr(a):
@@ -94,7 +97,8 @@ class LesionPrediction:
                 "inplane_shift_mm": self.inplane_shift_mm, "error_mm": self.error_mm,
                 "annotated_centroid_mm": arr(self.annotated_mm),
                 "outline_mm": arr(self.outline_mm), "outline_px_rc": arr(self.outline_px),
-                "mri_lps_mm": arr(self.mri_lps_mm), "notes": self.notes}
+                "mri_lps_mm": arr(self.mri_lps_mm), "nipple_mm": arr(self.nipple_mm),
+                "nipple_px_rc": arr(self.nipple_px), "notes": self.notes}
 
 
 def breast_alignment(alignment, real, virtual):
@@ -229,6 +233,8 @@ def predict_lesions(model, *, view: str, positions, virtual, real, alignment, D:
         opx = None if (vm.pixels is None or outline is None) else vm.pixels.mm_to_px(outline)
         err = None if annotated is None else float(np.linalg.norm(xy - annotated))
         lps = model.frame.to_patient((w @ model.points[tets].mean(axis=1))[None])[0]
+        nip = vm.inplane.nipple
         out.append(LesionPrediction(view, int(k), xy, px, outline, sigma, terms, th, sig_th, r,
-                                    shift, err, annotated, opx, mri_lps_mm=lps))
+                                    shift, err, annotated, opx, mri_lps_mm=lps, nipple_mm=nip,
+                                    nipple_px=None if vm.pixels is None else vm.pixels.mm_to_px(nip)))
     return out
