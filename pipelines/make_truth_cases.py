@@ -112,6 +112,12 @@ T_ACCEPT = 0.7
 #: initial overlap of the lowest breast point with the lower plate (removes the free mode
 #: along the plate normal; the chest wall holds the breast in-plane only, see write_ccx)
 OVERLAP_MM = 0.5
+#: the nipple is the centre of the skin cap this deep below the breast's apex along the
+#: chest-wall normal, on the 2 mm surface (the definition of regtrack's
+#: ``[model] nipple_depth_mm``): the label maps have no nipple, and the most anterior node
+#: of a mesh of 13-22 mm elements, the first definition, lay 2.3-8.5 mm from that apex on
+#: the eight exams of docs/truth-cases.md
+NIPPLE_CAP_MM = 3.0
 RENDER_MM = 0.4
 #: gmsh tet10 node order -> Abaqus/CalculiX C3D10 (edges 01,12,20,03,13,23)
 C3D10_EDGES = [(0, 1), (1, 2), (2, 0), (0, 3), (1, 3), (2, 3)]
@@ -368,6 +374,8 @@ def boundary_faces(tets: np.ndarray) -> list[tuple[int, int, tuple[int, int, int
 
 
 def build_mesh(geo: dict, side: str, target_tets: int) -> dict:
+    from regtrack.model.geometry import detect_nipple
+
     vol_mm3 = float(geo["mask"].sum() * np.prod(geo["spacing"]))
     size = float((vol_mm3 / target_tets * 6 * np.sqrt(2)) ** (1 / 3))
     t0 = time.perf_counter()
@@ -384,10 +392,9 @@ def build_mesh(geo: dict, side: str, target_tets: int) -> dict:
             log.warning("gmsh failed on the surface smoothed with sigma %.1f voxels (%s); "
                         "smoothing more", sigma, e)
     B = model_basis(side, geo["plane"]["normal_lps"])
-    # nipple: the most anterior surface node; model frame origin there
-    x_m = nodes_lps @ B.T
-    nip = int(np.argmax(x_m[:, 0]))
-    origin_lps = nodes_lps[nip].copy()
+    # nipple (the model frame's origin): the apex of the smooth breast surface along the
+    # chest-wall normal, the centre of its NIPPLE_CAP_MM cap; a material point, not a node
+    origin_lps = detect_nipple(pts, B[0], depth_mm=NIPPLE_CAP_MM)
     x = (nodes_lps - origin_lps) @ B.T
     tets = fix_orientation(x, tets)
     vol = tet_volumes(x, tets)
@@ -409,7 +416,7 @@ def build_mesh(geo: dict, side: str, target_tets: int) -> dict:
     fixed = on_cut | (dm < 2.5)
     corner = np.zeros(len(x), bool)
     corner[np.unique(tets[:, :4])] = True
-    return {"x": x, "tets": tets, "group": grp, "fixed": fixed, "on_cut": on_cut, "nipple": nip,
+    return {"x": x, "tets": tets, "group": grp, "fixed": fixed, "on_cut": on_cut,
             "origin_lps": origin_lps, "basis": B, "element_size_mm": size, "mesher_s": time.perf_counter() - t0,
             "n_nodes": int(len(x)), "n_tets": int(len(tets)), "min_vol": float(vol.min()),
             "volume_mm3": float(vol.sum()), "corner": corner,
@@ -597,7 +604,10 @@ def run_ccx(work: Path, mesh: dict, view: str, side: str, p: dict, timeout: int)
     if res.exists():  # re-use a finished run of the same mesh (re-rendering only)
         d = np.load(res, allow_pickle=True)
         if d["u"].shape[0] == mesh["n_nodes"]:
-            return json.loads(str(d["meta"])) | {"u": d["u"]}
+            meta = json.loads(str(d["meta"]))
+            # the height origin follows the model frame's origin (the nipple), as in write_ccx
+            meta["h0_mm"] = float((mesh["x"] @ np.asarray(meta["solver_basis"]).T)[:, 2].min()) + OVERLAP_MM
+            return meta | {"u": d["u"]}
         log.warning("%s: mesh changed (%d nodes, run had %d); running CalculiX again", res,
                     mesh["n_nodes"], d["u"].shape[0])
     meta = write_ccx(work / f"{stem}.inp", mesh, view, side, p)
@@ -705,7 +715,10 @@ def render_view(mesh: dict, sim: dict, view: str, side: str, p: dict, tumours_mo
     gr = grid_around(P, spacing=RENDER_MM, margin=6)
     lengths = path_lengths(loc, sub, sub_group, gr, source=src)
     a_c = sum(MU[g] * L for g, L in lengths.items())
-    n_img = P[mesh["nipple"]]
+    nip_loc = deform_points(mesh, sim["u"], np.zeros((1, 3))) @ Bs.T  # the nipple, deformed
+    nip_loc[:, 2] -= sim["h0_mm"]
+    nip_loc[:, 1] *= s
+    n_img = perspective(nip_loc, src)[0, :2]
     R = rot(rotation_deg)
     Q = (P - n_img) @ R.T + n_img
     m = 12.0
@@ -742,7 +755,7 @@ def render_view(mesh: dict, sim: dict, view: str, side: str, p: dict, tumours_mo
         qq = (pp - n_img) @ R.T + n_img - off
         return qq[:, ::-1] / px  # (row, col)
 
-    nip_rc = to_canon_px(loc[[mesh["nipple"]]])[0]
+    nip_rc = to_canon_px(nip_loc)[0]
     truth_t = []
     for t in tumours_model:
         pd = deform_points(mesh, sim["u"], t["points_model"])

@@ -45,8 +45,23 @@ def test_lesion_sigma_terms_add_in_quadrature():
                         D=0.4, sigma_D=0.04, config=cfg)
     rot = 60.0 * math.radians(1.0)               # 1.047 mm
     model = 8.0 * math.hypot(0.04 / 0.4, 0.1)    # 1.131 mm
-    assert t == pytest.approx({"registration_residual": 0.2, "rotation": rot, "model": model})
+    assert t == pytest.approx({"registration_residual": 0.2, "rotation": rot, "model": model,
+                               "nipple": 0.0})
     assert s == pytest.approx(math.sqrt(0.5 ** 2 + rot ** 2 + model ** 2))  # residual floored
+    # a nipple detected anywhere on a 12 mm run of the apex (u = 6 mm): uniform, 6 / sqrt 3
+    s2, t2 = lesion_sigma(residual_mm=0.2, r_mm=60.0, theta_sigma_deg=1.0, shift_mm=8.0,
+                          D=0.4, sigma_D=0.04, nipple_run_mm=6.0, config=cfg)
+    assert t2["nipple"] == pytest.approx(6.0 / math.sqrt(3.0))
+    assert s2 == pytest.approx(math.sqrt(s ** 2 + 12.0))
+
+
+def test_nipple_run_from_the_real_view():
+    from regtrack.tracking.lesions import nipple_run
+
+    detected = SimpleNamespace(meta={"nipple": {"method": "detected", "tangential_uncertainty_mm": 4.5}})
+    given = SimpleNamespace(meta={"nipple": {"method": "given (nipple_px)", "confidence": 1.0}})
+    assert nipple_run(detected) == 4.5
+    assert nipple_run(given) == 0.0 and nipple_run(SimpleNamespace(meta={})) == 0.0
 
 
 def test_view_mode():

@@ -112,7 +112,8 @@ def test_predicted_lesion_against_the_truth(tracking, view):
     # sigma is the quadrature sum of its stated terms (the residual with its floor)
     t = les["uncertainty_terms_mm"]
     assert les["sigma_mm"] == pytest.approx(np.sqrt(max(t["registration_residual"], 0.5) ** 2
-                                                    + t["rotation"] ** 2 + t["model"] ** 2))
+                                                    + t["rotation"] ** 2 + t["model"] ** 2
+                                                    + t["nipple"] ** 2))
     # the outline is a polygon around the centroid, in mm and in DICOM pixels
     outline = np.asarray(les["outline_mm"])
     from shapely.geometry import Point, Polygon

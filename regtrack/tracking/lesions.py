@@ -12,13 +12,13 @@ Per lesion (each tumour of the model, :func:`predict_lesions`):
 * the centroid: the lesion's mass centroid carried by the finite-element deformation
   (:func:`regtrack.tracking.mri_to_view.track_tumour`), projected and registered;
 * the outline: the projected outline of its deformed tetrahedra, registered;
-* a 1-sigma radius :math:`\\sigma` (mm), :func:`lesion_sigma`, from three independent terms
+* a 1-sigma radius :math:`\\sigma` (mm), :func:`lesion_sigma`, from four independent terms
   in quadrature:
 
   .. math::
 
       \\sigma^2 = \\max(\\sigma_{res}, \\sigma_{min})^2 + (r\\,\\sigma_\\theta)^2
-                 + \\sigma_{model}^2
+                 + \\sigma_{model}^2 + \\sigma_{nip}^2
 
   - :math:`\\sigma_{res}`: the locally weighted RMS breast residual around the point
     (:func:`regtrack.tracking.uncertainty.residual_sigma`);
@@ -37,7 +37,14 @@ Per lesion (each tumour of the model, :func:`predict_lesions`):
     to the tissue's :math:`c_1` and :math:`\\nu` (with the plates driven to a gap, a
     homogeneous neo-Hookean breast deforms nearly independently of :math:`c_1`; gravity
     and :math:`\\nu` change the lateral spread): a first, documented estimate, not
-    measured by re-simulation (no extra simulations are run).
+    measured by re-simulation (no extra simulations are run);
+  - :math:`\\sigma_{nip} = u / \\sqrt{3}`: where the nipple was detected on the
+    mammogram.  The detector takes the middle of the run of contour points within
+    ``nipple_delta_mm`` of the farthest from the chest wall (:mod:`regtrack.imaging.
+    mammogram.nipple`); on a flat compressed apex that run is long, any of its points
+    could be the nipple, and the registration carries the whole prediction with it.  With
+    ``u`` half the run's arc length (mm), a position uniform over the run has the standard
+    deviation ``u / sqrt(3)``.  Zero when the nipple is given (``nipple_px``).
 """
 
 from __future__ import annotations
@@ -59,7 +66,7 @@ log = logging.getLogger(__name__)
 class LesionPrediction:
     """One MRI lesion predicted on one real mammogram (mm of the real canonical frame).
 
-    ``centroid_px`` is the (row, col) of the DICOM's own grid; ``terms_mm`` the three
+    ``centroid_px`` is the (row, col) of the DICOM's own grid; ``terms_mm`` the four
     uncertainty terms of :func:`lesion_sigma`; ``error_mm`` the distance from the predicted
     centroid to the area centroid of the annotated outline (paper mode; None in tracking
     mode), ``annotated_mm`` that centroid; ``mri_lps_mm`` the lesion's volume centroid in
@@ -142,16 +149,24 @@ def angular_sigma(objective, theta_deg: float, *, correlation_mm: float, spacing
 
 
 def lesion_sigma(*, residual_mm: float, r_mm: float, theta_sigma_deg: float,
-                 shift_mm: float, D: float | None, sigma_D: float,
+                 shift_mm: float, D: float | None, sigma_D: float, nipple_run_mm: float = 0.0,
                  config: TrackingConfig) -> tuple[float, dict]:
-    """1-sigma radius (mm) and its terms (module docstring)."""
+    """1-sigma radius (mm) and its terms (module docstring); ``nipple_run_mm`` is ``u``."""
     rot = r_mm * math.radians(theta_sigma_deg)
     rel_D = sigma_D / D if D else 0.0
     model = abs(shift_mm) * math.hypot(rel_D, config.material_rel)
     res = max(residual_mm, config.min_residual_mm)
-    sigma = math.sqrt(res ** 2 + rot ** 2 + model ** 2)
+    nip = nipple_run_mm / math.sqrt(3.0)
+    sigma = math.sqrt(res ** 2 + rot ** 2 + model ** 2 + nip ** 2)
     return sigma, {"registration_residual": float(residual_mm), "rotation": float(rot),
-                   "model": float(model)}
+                   "model": float(model), "nipple": float(nip)}
+
+
+def nipple_run(real) -> float:
+    """``u`` (mm) of the nipple on the real view: half the arc length over which the
+    detector found it (0 when given, or when the view does not say)."""
+    info = (getattr(real, "meta", None) or {}).get("nipple") or {}
+    return float(info.get("tangential_uncertainty_mm") or 0.0)
 
 
 def _area_centroid(contours) -> np.ndarray | None:
@@ -228,7 +243,8 @@ def predict_lesions(model, *, view: str, positions, virtual, real, alignment, D:
         res = float(residual_sigma(xy[None], vm.residual, scale_mm=cfg.residual_scale_mm)[0])
         shift = _inplane_shift(model, vm.positions, virtual.frame, tets, w)
         sigma, terms = lesion_sigma(residual_mm=res, r_mm=r, theta_sigma_deg=sig_th,
-                                    shift_mm=shift, D=D, sigma_D=sigma_D, config=cfg)
+                                    shift_mm=shift, D=D, sigma_D=sigma_D,
+                                    nipple_run_mm=nipple_run(real), config=cfg)
         px = None if vm.pixels is None else vm.pixels.mm_to_px(xy)
         opx = None if (vm.pixels is None or outline is None) else vm.pixels.mm_to_px(outline)
         err = None if annotated is None else float(np.linalg.norm(xy - annotated))
