@@ -11,7 +11,11 @@ reads):
 * ``<case>_track``      (rotated DICOMs, no outline): tracking mode; the predicted lesion
   centroid (``lesions.json``, DICOM pixels) against the true projected tumour's area
   centroid, in mm on the detector (pixel spacing of the DICOM).  The regtrack lesion is
-  matched to the truth tumour by its MRI centroid (``mri_lps_mm``), never by the image.
+  matched to the truth tumour by its MRI centroid (``mri_lps_mm``), never by the image;
+  :func:`error_parts` splits that error into the nipple found on the mammogram, the
+  registration's rotation and the rest (the mechanics and the projection);
+* ``<case>_track_marked`` (``--variants track_marked``, not run by default): the tracking
+  case with the truth's nipple given on the MRI and the mammograms (:func:`marked_case`).
 
 Writes ``accuracy.csv`` and ``accuracy.md`` (per case and view, with medians) under
 ``--out``.
