@@ -130,8 +130,8 @@ def match_lesion(lesions: list, truth_tumour: dict) -> dict | None:
 
 
 def marked_case(root: Path, name: str, truth: dict, dst: Path) -> Path:
-    """``<case>_track`` with the nipple given: ``[mri] nipple_lps_mm`` (the truth's nipple
-    node) and ``[views.<V>] nipple_px`` (its projection on each DICOM), as a radiologist
+    """``<case>_track`` with the nipple given: ``[mri] nipple_lps_mm`` (the truth's nipple,
+    the apex of its surface) and ``[views.<V>] nipple_px`` (its projection on each DICOM), as a radiologist
     marks it on both images.  The truth's breast has no nipple to see, so regtrack detects
     its own on each image (a cap centre on the MRI skin, the contour point farthest from
     the chest wall on the mammogram), and the two detections need not be the same material
@@ -176,6 +176,8 @@ def error_parts(lesion: dict, tumour: dict, tv: dict, side: str) -> dict:
     ``lesion_error_x_mm`` / ``_y_mm``: that error along the chest wall -> nipple axis and
     across it.  ``lesion_r_true_mm``: the true lesion's distance from the nipple.  Without
     regtrack's nipple in ``lesions.json`` the true one stands for it."""
+    from regtrack.registration.geometry import rotation
+
     c = _canonical_mm(lesion["centroid_px_rc"], tv, side)
     t = _canonical_mm(tumour["centroid_dicom_rc"], tv, side)
     n = _canonical_mm(tv["nipple_dicom_rc"], tv, side)
@@ -183,9 +185,7 @@ def error_parts(lesion: dict, tumour: dict, tv: dict, side: str) -> dict:
     th = lesion.get("theta_p_b_deg")
     if th is None:
         return {}
-    a = np.deg2rad(tv["rotation_deg"] - th)
-    R = np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
-    e = (R @ (c - nr) + n) - t
+    e = (rotation(tv["rotation_deg"] - th) @ (c - nr) + n) - t
     return {"lesion_error_true_theta_mm": float(np.linalg.norm(e)), "lesion_error_x_mm": float(e[0]),
             "lesion_error_y_mm": float(e[1]), "lesion_r_true_mm": float(np.linalg.norm(t - n)),
             "theta_error_b_track_deg": float(th - tv["rotation_deg"]),

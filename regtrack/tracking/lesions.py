@@ -230,6 +230,8 @@ def predict_lesions(model, *, view: str, positions, virtual, real, alignment, D:
                  InPlane.from_alignment(alignment), PixelFrame.from_view(real), virtual.source,
                  Residual(ob.points(th), ob.distances(th)), real)
     annotated = _area_centroid(real.tumour_contours)
+    nip, u_nip = vm.inplane.nipple, nipple_run(real)
+    nip_px = None if vm.pixels is None else vm.pixels.mm_to_px(nip)
     vol = np.abs(model.tet_volumes())
     out = []
     for k in np.unique(ids[sel]):
@@ -244,13 +246,12 @@ def predict_lesions(model, *, view: str, positions, virtual, real, alignment, D:
         shift = _inplane_shift(model, vm.positions, virtual.frame, tets, w)
         sigma, terms = lesion_sigma(residual_mm=res, r_mm=r, theta_sigma_deg=sig_th,
                                     shift_mm=shift, D=D, sigma_D=sigma_D,
-                                    nipple_run_mm=nipple_run(real), config=cfg)
+                                    nipple_run_mm=u_nip, config=cfg)
         px = None if vm.pixels is None else vm.pixels.mm_to_px(xy)
         opx = None if (vm.pixels is None or outline is None) else vm.pixels.mm_to_px(outline)
         err = None if annotated is None else float(np.linalg.norm(xy - annotated))
         lps = model.frame.to_patient((w @ model.points[tets].mean(axis=1))[None])[0]
-        nip = vm.inplane.nipple
         out.append(LesionPrediction(view, int(k), xy, px, outline, sigma, terms, th, sig_th, r,
                                     shift, err, annotated, opx, mri_lps_mm=lps, nipple_mm=nip,
-                                    nipple_px=None if vm.pixels is None else vm.pixels.mm_to_px(nip)))
+                                    nipple_px=nip_px))
     return out
