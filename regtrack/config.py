@@ -118,7 +118,7 @@ def parse_assignments(items: list[str], *, where: str = "command line") -> dict[
 
 
 def parse_section(cls: type[T], table: dict | None, *, where: str,
-                  base: T | None = None) -> tuple[T, list[str], list[str]]:
+                  base: T | None = None, cross_checks: bool = True) -> tuple[T, list[str], list[str]]:
     """Build ``cls`` from a TOML table; return ``(obj, problems, warnings)``.
 
     Unknown keys are warnings naming the closest valid key.  Wrong types and values out
@@ -126,7 +126,8 @@ def parse_section(cls: type[T], table: dict | None, *, where: str,
     ``base``: an instance of ``cls`` whose values the table's keys replace (a layer of
     overrides on an already parsed section; nested sections merge the same way); default:
     the class defaults.  When there are problems, ``obj`` holds the base values for the
-    offending keys.
+    offending keys.  ``cross_checks=False`` leaves out the class's ``problems()`` (checks
+    between keys), for a table that is one layer of several: its other keys come later.
     """
     table = dict(table or {})
     problems: list[str] = []
@@ -147,7 +148,8 @@ def parse_section(cls: type[T], table: dict | None, *, where: str,
         doc = f" ({md['doc']})" if md.get("doc") else ""
         if dataclasses.is_dataclass(tp) and isinstance(value, dict):
             sub, p, w = parse_section(tp, value, where=f"{where[:-1]}.{key}]" if where.endswith("]") else f"{where}.{key}",
-                                      base=None if base is None else getattr(base, key))
+                                      base=None if base is None else getattr(base, key),
+                                      cross_checks=cross_checks)
             problems += p
             warnings += w
             kwargs[key] = sub
@@ -164,7 +166,7 @@ def parse_section(cls: type[T], table: dict | None, *, where: str,
         kwargs[key] = cv
     obj = cls(**kwargs) if base is None else dataclasses.replace(base, **kwargs)  # type: ignore[type-var]
     post = getattr(obj, "problems", None)
-    if callable(post) and not problems:
+    if cross_checks and callable(post) and not problems:
         problems += [f"{where}: {p}" for p in post()]
     return obj, problems, warnings
 

@@ -84,6 +84,31 @@ def test_run_set_overrides_parse_into_sections():
             parse_sets([bad])
 
 
+def test_run_set_checks_between_keys_see_every_setting():
+    """Two --set items that are only valid together (formulation 'p2' has no skin membrane)
+    pass, and the check between keys is made on the whole configuration (case.toml and
+    every --set) before any work: one of them alone is an error naming the fix."""
+    from pathlib import Path
+
+    from regtrack.case import load_case, resolve_configs
+    from regtrack.cli.run import parse_sets
+    from regtrack.errors import CaseError
+
+    case = load_case(Path(__file__).resolve().parents[1] / "sample_cases" / "phantom01", deep=False)
+    both = parse_sets(["mechanics.skin_enabled=false", 'mechanics.formulation="p2"'])
+    assert both == {"mechanics": {"skin_enabled": False, "formulation": "p2"}}
+    cfg = resolve_configs(case, both)
+    assert cfg.mechanics.formulation == "p2" and not cfg.mechanics.skin_enabled
+    with pytest.raises(CaseError, match="skin_enabled = false"):
+        resolve_configs(case, parse_sets(['mechanics.formulation="p2"']))
+    # and a run refuses it before any stage: the mesh stage makes 4-node tetrahedra
+    from regtrack.errors import ConfigError
+    from regtrack.pipeline.run import open_run
+
+    with pytest.raises(ConfigError, match="10-node tetrahedral model"):
+        open_run(case, cfg)
+
+
 def test_every_dependency_is_pinned_in_constraints():
     """make installs with constraints.txt: each direct dependency (core and test extra) of
     pyproject.toml must be pinned there (==), so a fresh clone cannot pick up an unpinned

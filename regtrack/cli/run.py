@@ -145,7 +145,10 @@ def _check_set(item: str, parts: list[str], value) -> None:
         node = node.setdefault(k, {})
     node[keys[-1]] = value
     where = f"--set {item} [{section}]"
-    _obj, problems, warnings = parse_section(sections[section], table, where=where)
+    # the checks between keys (e.g. formulation 'p2' needs skin_enabled = false) wait for
+    # the whole configuration: case.toml and every --set (resolve_configs, before any work)
+    _obj, problems, warnings = parse_section(sections[section], table, where=where,
+                                             cross_checks=False)
     if warnings:  # an unknown key: an error here, since the value would be ignored
         import re
 

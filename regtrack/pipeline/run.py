@@ -25,7 +25,7 @@ import numpy as np
 
 from regtrack import __version__, _io
 from regtrack.case.configs import Configs
-from regtrack.errors import CaseError, RegtrackError
+from regtrack.errors import CaseError, ConfigError, RegtrackError
 from regtrack.pipeline import stages, workers
 from regtrack.pipeline.cache import DEFAULT_CACHE, StageCache, file_digest, fingerprint
 from regtrack.privacy import (IDENTIFYING_KEYWORDS, Identifiers, identifiers_of_case_folder,
@@ -207,8 +207,15 @@ def open_run(case: Any, configs: Configs, *, cache_dir: str | Path | None = None
 
     The entry point of ``regtrack run`` (:func:`run_case`) and ``regtrack track``
     (:func:`regtrack.tracking.session.open_case`); ``ids`` are the identifiers to keep out
-    of outputs (none by default).
+    of outputs (none by default).  A configuration no stage can run (``formulation =
+    "p2"``: the mesh stage makes 4-node tetrahedra) is a :class:`ConfigError` here,
+    before any stage.
     """
+    if configs.mechanics.formulation == "p2":
+        raise ConfigError("[mechanics] formulation = 'p2' needs a 10-node tetrahedral model, and "
+                          "regtrack's mesh stage makes 4-node ones: use 'p1-anp' (the default) or "
+                          "'p1' here ('p2' is for tet10 models in Python, "
+                          "regtrack.mechanics.p2.model_to_p2)")
     cache = StageCache(Path(cache_dir) if cache_dir else DEFAULT_CACHE)
     return RunContext(case, configs, cache, progress=progress,
                       ids=ids if ids is not None else Identifiers(), sim_progress=sim_progress)
