@@ -34,6 +34,24 @@ def shared():
     return shared_data
 
 
+def stop_at_step(monkeypatch, step: str) -> None:
+    """Make the mechanics' step solver fail at protocol step ``step`` (every other step
+    is solved), as a step that cannot be balanced does: the error keeps the state at the
+    step's start as its last balanced one."""
+    from regtrack.errors import SolverDidNotConvergeError
+    from regtrack.mechanics import minimise
+
+    real = minimise.minimise_step
+
+    def failing(problem, u0, *, step_name="", **kw):
+        if step_name == step:
+            raise SolverDidNotConvergeError("no equilibrium at t = 0.5 (largest residual at node 7)",
+                                            load_fraction=0.25, last_converged=u0)
+        return real(problem, u0, step_name=step_name, **kw)
+
+    monkeypatch.setattr(minimise, "minimise_step", failing)
+
+
 #: Set in the child pytest of an ``isolated`` test (see :func:`pytest_pyfunc_call`).
 _CHILD = "REGTRACK_ISOLATED_TEST_CHILD"
 

@@ -324,20 +324,12 @@ def test_a_stopped_view_keeps_its_balanced_steps_and_names_them(tmp_path, monkey
     step and the file that keeps the steps balanced before it; nothing is lost."""
     import types
 
-    import regtrack.mechanics.minimise as minimise
     from regtrack.errors import SolverDidNotConvergeError
     from regtrack.mechanics.meshes import hemisphere_model
     from regtrack.mechanics.run_view import simulate_view
+    from tests.conftest import stop_at_step
 
-    real = minimise.minimise_step
-
-    def failing(problem, u0, *, step_name="", **kw):
-        if step_name == "standing-gravity":
-            raise SolverDidNotConvergeError("no equilibrium at t = 0.5 (largest residual at node 7)",
-                                            load_fraction=0.25, last_converged=u0)
-        return real(problem, u0, step_name=step_name, **kw)
-
-    monkeypatch.setattr(minimise, "minimise_step", failing)
+    stop_at_step(monkeypatch, "standing-gravity")
     model = hemisphere_model(30.0, 9.0)
     case = types.SimpleNamespace(id="hemi", toml_path="case.toml", overrides={})
     with pytest.raises(SolverDidNotConvergeError) as err:

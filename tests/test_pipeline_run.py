@@ -62,3 +62,33 @@ def test_run_without_mammograms_simulates_and_reports(tmp_path):
     assert not any("at the same time" in m for m in msgs)
     assert sum("found in the cache" in m for m in msgs) == 1  # the mesh; both views simulated
     assert serial == rows
+
+
+def test_a_stopped_simulation_keeps_its_balanced_steps_outside_the_cache(tmp_path, monkeypatch):
+    """The stage cache computes a simulation in a temporary folder that is removed when
+    the stage fails; a view that stops must still keep the steps balanced before it, in
+    the file its error names (``<cache>/simulate/<key>.stopped/``), and that folder is
+    never taken for a cached result."""
+    import re
+    from pathlib import Path
+
+    from regtrack.errors import SolverDidNotConvergeError
+    from tests.conftest import stop_at_step
+
+    stop_at_step(monkeypatch, "standing-gravity")
+    with pytest.raises(SolverDidNotConvergeError) as err:
+        run_case(SAMPLE_CASES / "pelicano_exam03", overrides={"model": {"target_nodes": 1500}},
+                 views=("CC",), cache_dir=tmp_path / "cache", out_dir=tmp_path / "out",
+                 concurrent=False)
+    kept = Path(re.search(r"are kept in (\S+\.vtu)", str(err.value)).group(1))
+    assert kept.is_file() and kept.parent.name.endswith(".stopped")
+    doc = json.loads(kept.with_suffix(".json").read_text())
+    assert [s["name"] for s in doc["steps"]] == ["gravity-unloading", "lower-plate-contact"]
+    assert not list((tmp_path / "cache" / "simulate").glob(".*.part*"))
+    # the next run does not take the stopped folder for a result: it simulates again
+    msgs: list[str] = []
+    with pytest.raises(SolverDidNotConvergeError):
+        run_case(SAMPLE_CASES / "pelicano_exam03", overrides={"model": {"target_nodes": 1500}},
+                 views=("CC",), cache_dir=tmp_path / "cache", out_dir=tmp_path / "out",
+                 concurrent=False, progress=msgs.append)
+    assert any("simulate CC: cc protocol" in m for m in msgs)

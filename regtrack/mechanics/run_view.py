@@ -99,10 +99,14 @@ def _section(case: Any, name: str, cls: type, where: str):
 
 def simulate_view(case: Any, model: BreastModel, view: str, *, out_dir: str | Path,
                   mechanics: Any = None, contact: ContactConfig | None = None,
-                  protocol: Protocol | None = None, progress: Any = None) -> ViewResult:
+                  protocol: Protocol | None = None, progress: Any = None,
+                  partial_dir: str | Path | None = None) -> ViewResult:
     """Simulate the ``view`` ("CC"/"MLO") mammography of a case and write the result files.
 
-    Explicit ``mechanics``/``contact``/``protocol`` replace the case's overrides.
+    Explicit ``mechanics``/``contact``/``protocol`` replace the case's overrides.  A run
+    that stops keeps its balanced steps in ``partial_dir`` (default ``out_dir``; a caller
+    whose ``out_dir`` is discarded on failure, as the stage cache's temporary folder is,
+    gives a lasting one) and names the file in its error.
     """
     from regtrack.mechanics.config import MechanicsConfig
 
@@ -119,7 +123,7 @@ def simulate_view(case: Any, model: BreastModel, view: str, *, out_dir: str | Pa
         result, timing = run_protocol_on_model(model, protocol, mechanics=mechanics, contact=contact,
                                                progress=progress)
     except (SolverDidNotConvergeError, ResultCheckError) as err:
-        _keep_partial(err, model, Path(out_dir), f"{case_id}_{v.lower()}_partial")
+        _keep_partial(err, model, Path(partial_dir or out_dir), f"{case_id}_{v.lower()}_partial")
         raise
     files = write_outputs(result, model, Path(out_dir), stem=f"{case_id}_{v.lower()}",
                           configs={"mechanics": to_table(mechanics), "contact": to_table(contact)},

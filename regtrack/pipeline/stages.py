@@ -116,6 +116,12 @@ def simulate_key(ctx, mesh_key_: str, view: str) -> str:
                        to_table(ctx.configs.contact), ctx.configs.protocols[view].to_dict())
 
 
+def stopped_folder(ctx, key: str) -> Path:
+    """Where a simulation that stopped keeps its balanced steps:
+    ``<cache>/simulate/<key>.stopped/`` (never a cache hit: it has no completion marker)."""
+    return ctx.cache.folder("simulate", key).with_name(f"{key}.stopped")
+
+
 def simulate_stage(ctx, mesh: MeshOutput, view: str) -> SimOutput:
     """Simulate the mammography of ``view`` on the model (or find it in the cache)."""
     protocol = ctx.configs.protocols[view]
@@ -128,8 +134,10 @@ def simulate_stage(ctx, mesh: MeshOutput, view: str) -> SimOutput:
 
         ctx.say(f"simulate {view}: {protocol.name} protocol ({len(protocol.steps)} steps)")
         with ctx.cache.produce("simulate", key, info={"view": view}) as d:
+            # a stopped run's balanced steps outlive the temporary folder, which is removed
             simulate_view(ctx.case, mesh.model, view, out_dir=d, mechanics=mech, contact=contact,
-                          protocol=protocol, progress=increment_hook(ctx, view))
+                          protocol=protocol, progress=increment_hook(ctx, view),
+                          partial_dir=stopped_folder(ctx, key))
             for f in d.iterdir():  # fixed names inside the cache folder
                 suffix = "_steps.png" if f.name.endswith("_steps.png") else f.suffix
                 f.rename(d / f"result{suffix}")
