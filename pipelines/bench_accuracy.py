@@ -15,21 +15,31 @@ reads):
   :func:`error_parts` splits that error into the nipple found on the mammogram, the
   registration's rotation and the rest (the mechanics and the projection);
 * ``<case>_track_marked`` (``--variants track_marked``, not run by default): the tracking
-  case with the truth's nipple given on the MRI and the mammograms (:func:`marked_case`).
+  case with the truth's nipple given on the MRI and the mammograms (:func:`marked_case`);
+* ``<case>_track_c1`` / ``<case>_track_nu`` (``--variants track_c1,track_nu``, not run by
+  default): the tracking case with the tissue's c1 or nu moved by its 1-sigma
+  (``[tracking] c1_rel_sigma``, ``nu_sigma``; :func:`sensitivity_sets`).  They measure the
+  model term of the lesion sigma: how far the predicted centroid moves, against the
+  stated ``alpha |Delta|`` of :func:`regtrack.tracking.lesions.lesion_sigma`
+  (:func:`model_sensitivity`).  Nothing is compared with the truth.
 
 Writes ``accuracy.csv`` and ``accuracy.md`` (per case and view, with medians) under
-``--out``.
+``--out``; ``sensitivity.csv`` / ``.md`` when the sensitivity variants ran; with
+``--field``, ``field.md``: the two models' displacement fields compared at common material
+points, by distance from the chest wall (:func:`field_difference`), a diagnostic of where
+the mechanics differ.
 
 Usage::
 
     .venv/bin/python pipelines/bench_accuracy.py [--root reports/truth] [--only pel03R,...]
-        [--variants paper,paper_rot0,track] [--collect-only]
+        [--variants paper,paper_rot0,track] [--collect-only] [--field]
 """
 
 from __future__ import annotations
 
 import argparse
 import csv
+import itertools
 import json
 import logging
 import os
@@ -46,11 +56,15 @@ REPO = Path(__file__).resolve().parents[1]
 VARIANTS = ("paper", "paper_rot0", "track")
 #: not run by default: the tracking case with the nipple marked on the MRI and on every
 #: mammogram, as a user can click it (:func:`marked_case`)
-EXTRA_VARIANTS = ("track_marked",)
+EXTRA_VARIANTS = ("track_marked", "track_c1", "track_nu")
+#: the sensitivity variants: the perturbation of regtrack.tracking.sensitivity they apply
+SENSITIVITY = {"track_c1": "c1", "track_nu": "nu"}
 
 
-def run_case(case: Path, out: Path, cache: Path, timeout: int, views: str | None = None) -> dict:
-    """``regtrack run`` at the defaults; returns {rc, seconds, log tail}.
+def run_case(case: Path, out: Path, cache: Path, timeout: int, views: str | None = None,
+             sets: list[str] | None = None) -> dict:
+    """``regtrack run`` at the defaults (or with ``--set`` of each of ``sets``); returns
+    {rc, seconds, log tail}.
 
     When the run of both views fails, each view is run alone (``--views``; the stage cache
     re-uses the simulations) into ``<out>_<view>``, so that one failing view does not hide
@@ -60,6 +74,8 @@ def run_case(case: Path, out: Path, cache: Path, timeout: int, views: str | None
         return {"rc": 0, "seconds": None, "reused": True}
     cmd = [str(REPO / ".venv" / "bin" / "regtrack"), "run", str(case), "--out", str(out), "--cache", str(cache),
            "--no-report", "--serial-views"] + (["--views", views] if views else [])
+    for st in sets or []:
+        cmd += ["--set", st]
     env = dict(os.environ, OMP_NUM_THREADS="1")
     t0 = time.perf_counter()
     with open(out.parent / f"{out.name}.log", "w") as fh:
@@ -73,7 +89,8 @@ def run_case(case: Path, out: Path, cache: Path, timeout: int, views: str | None
     log.info("%s%s: rc %d in %.0f s", case.name, f" ({views})" if views else "", rc, dt)
     res = {"rc": rc, "seconds": dt, "tail": tail}
     if rc != 0 and views is None:
-        res["per_view"] = {v: run_case(case, out.parent / f"{out.name}_{v}", cache, timeout, views=v)
+        res["per_view"] = {v: run_case(case, out.parent / f"{out.name}_{v}", cache, timeout, views=v,
+                                       sets=sets)
                            for v in ("CC", "MLO")}
     return res
 
@@ -153,6 +170,115 @@ def marked_case(root: Path, name: str, truth: dict, dst: Path) -> Path:
             out.append(f"nipple_px = [{rc[0]:.2f}, {rc[1]:.2f}]")
     (dst / "case.toml").write_text("\n".join(out) + "\n")
     return dst
+
+
+def sensitivity_sets(case: Path, variant: str) -> list[str]:
+    """``--set`` arguments of a sensitivity variant: the 1-sigma perturbation of its
+    parameter as :func:`regtrack.tracking.sensitivity.perturbations` makes it from the
+    case's own settings (c1 times ``1 + c1_rel_sigma``, nu minus ``nu_sigma``)."""
+    from regtrack.case import load_case, resolve_configs
+    from regtrack.tracking.sensitivity import perturbations
+
+    over = perturbations(resolve_configs(load_case(case, deep=False)), "CC", None)[SENSITIVITY[variant]]
+    return [f"{sec}.{k}={v:.6g}" for sec, tab in over.items() for k, v in tab.items()]
+
+
+def model_sensitivity(base: list | None, moved: dict[str, list | None]) -> list[dict]:
+    """Per lesion of ``base`` (``lesions.json`` of the tracking run): how far each
+    perturbed run moved its predicted centroid (mm, on the same mammogram), their
+    quadrature sum ``model_shift_mm``, the compression shift ``|Delta|``
+    (``inplane_shift_mm``), the stated model term ``sigma_model_mm`` and the measured
+    ``alpha_measured = model_shift_mm / |Delta|`` that would make the two equal."""
+    out = []
+    for le in base or []:
+        row = {"lesion": le["lesion"], "inplane_shift_mm": le["inplane_shift_mm"],
+               "sigma_model_mm": le["uncertainty_terms_mm"].get("model")}
+        parts = []
+        for name, lesions in moved.items():
+            m = next((x for x in lesions or [] if x["lesion"] == le["lesion"]), None)
+            d = None if m is None else float(np.linalg.norm(np.subtract(m["centroid_mm"], le["centroid_mm"])))
+            row[f"shift_{name}_mm"] = d
+            parts.append(d)
+        if parts and None not in parts:
+            row["model_shift_mm"] = float(np.hypot.reduce(parts))
+            if le["inplane_shift_mm"] > 0:
+                row["alpha_measured"] = row["model_shift_mm"] / le["inplane_shift_mm"]
+        out.append(row)
+    return out
+
+
+#: bands of distance anterior of the chest wall (mm) of :func:`band_table`
+FIELD_BANDS_MM = (0.0, 20.0, 40.0, 60.0, np.inf)
+
+
+def band_table(anterior_mm: np.ndarray, u_truth: np.ndarray, u_regtrack: np.ndarray,
+               bands=FIELD_BANDS_MM) -> list[dict]:
+    """Per band of distance from the chest wall: the number of points, each model's mean
+    displacement and the mean and RMS of their difference (regtrack - truth), mm."""
+    rows = []
+    d = u_regtrack - u_truth
+    for lo, hi in itertools.pairwise(bands):
+        s = (anterior_mm >= lo) & (anterior_mm < hi)
+        if s.any():
+            rows.append({"band_mm": (lo, hi), "n": int(s.sum()), "u_truth": u_truth[s].mean(0),
+                         "u_regtrack": u_regtrack[s].mean(0), "mean_diff": d[s].mean(0),
+                         "rms_diff": float(np.sqrt((d[s] ** 2).sum(1).mean()))})
+    return rows
+
+
+def field_difference(root: Path, name: str, view: str, case: Path, cache: Path,
+                     target_tets: int = 1200) -> list[dict]:
+    """The truth's and regtrack's displacement (LPS mm) at common material points: the
+    corner centroids of the truth's tet10 that lie in regtrack's MRI breast, carried by the
+    truth's field (its mesh rebuilt by ``make_truth_cases``, which must give the node
+    count of its CalculiX run: ``target_tets`` as there) and by regtrack's simulation of
+    ``view`` from the stage cache (never simulated here), by :func:`band_table`."""
+    import importlib.util
+
+    from regtrack.errors import TrackingError
+    from regtrack.tracking.compressed import map_points, open_compressed
+
+    spec = importlib.util.spec_from_file_location("make_truth_cases", REPO / "pipelines" / "make_truth_cases.py")
+    mt = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = mt
+    spec.loader.exec_module(mt)
+    exam, side = name[3:-1], name[-1]
+    mesh = mt.build_mesh(mt.breast_geometry(exam, side), side, target_tets)
+    u = np.load(root / "work" / name / f"ccx_{view.lower()}.npz")["u"]
+    if len(u) != mesh["n_nodes"]:
+        raise RuntimeError(f"{name}: the rebuilt truth mesh has {mesh['n_nodes']} nodes, its "
+                           f"CalculiX run {len(u)}; give the --target-tets of make_truth_cases")
+    B, o, x = mesh["basis"], mesh["origin_lps"], mesh["x"]
+    cen = x[mesh["tets"][:, :4]].mean(1)
+    dmap = open_compressed(case, view, cache_dir=cache, simulate=False).dmap
+    keep, moved = [], []
+    for i, p in enumerate(o + cen @ B):
+        try:
+            moved.append(map_points(dmap, ["p"], p[None]).mapped_lps_mm[0])
+            keep.append(i)
+        except TrackingError:  # outside regtrack's breast (the two surfaces differ by a voxel)
+            continue
+    cen = cen[keep]
+    u_truth = mt.deform_points(mesh, u, cen) @ B - cen @ B
+    u_reg = np.asarray(moved) - (o + cen @ B)
+    return band_table(cen[:, 0] - x[:, 0].min(), u_truth, u_reg)
+
+
+def write_field(res: dict[tuple[str, str], list[dict]], out: Path) -> None:
+    """``field.md``: :func:`field_difference` per case-view."""
+    def v(a):
+        return "(" + ", ".join(f"{c:+.1f}" for c in a) + ")"
+    lines = [("Displacement (mm, LPS axes: x left, y posterior, z superior) of common material points, "
+              "by distance anterior of the chest wall; difference = regtrack - truth."), "",
+             "| case | view | band (mm) | points | truth mean u | regtrack mean u | mean difference | RMS difference |",
+             "|---|---|---|---|---|---|---|---|"]
+    for key, rows in res.items():
+        for r in rows:
+            lo, hi = r["band_mm"]
+            lines.append(f"| {key[0]} | {key[1]} | {lo:.0f}-{'' if np.isinf(hi) else f'{hi:.0f}'} | {r['n']} | "
+                         f"{v(r['u_truth'])} | {v(r['u_regtrack'])} | {v(r['mean_diff'])} | {r['rms_diff']:.1f} |")
+    (out / "field.md").write_text("\n".join(lines) + "\n")
+    print("\n".join(lines))
 
 
 def _canonical_mm(rc, tv: dict, side: str) -> np.ndarray:
@@ -301,6 +427,29 @@ def write_tables(rows: list[dict], out: Path) -> None:
     print("\n".join(lines))
 
 
+SENS_COLS = ["case", "view", "lesion", "inplane_shift_mm", "shift_c1_mm", "shift_nu_mm", "model_shift_mm",
+             "sigma_model_mm", "alpha_measured"]
+
+
+def write_sensitivity(rows: list[dict], out: Path) -> None:
+    """``sensitivity.csv`` / ``.md``: the measured model term per lesion, with medians."""
+    with open(out / "sensitivity.csv", "w", newline="") as fh:
+        w = csv.DictWriter(fh, fieldnames=SENS_COLS, extrasaction="ignore")
+        w.writeheader()
+        w.writerows(rows)
+    lines = ["| " + " | ".join(SENS_COLS) + " |", "|" + "---|" * len(SENS_COLS)]
+    for r in rows:
+        lines.append("| " + " | ".join("-" if r.get(k) is None else
+                                       (f"{r[k]:.2f}" if isinstance(r[k], float) else str(r[k]))
+                                       for k in SENS_COLS) + " |")
+    med = {k: _median([r.get(k) for r in rows]) for k in ("model_shift_mm", "sigma_model_mm", "alpha_measured")}
+    m = {k: "-" if v is None else f"{v:.2f}" for k, v in med.items()}
+    lines += ["", (f"Medians over {len(rows)} lesions: measured model shift {m['model_shift_mm']} mm, "
+                   f"stated model term {m['sigma_model_mm']} mm, alpha measured {m['alpha_measured']}.")]
+    (out / "sensitivity.md").write_text("\n".join(lines) + "\n")
+    print("\n".join(lines))
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--root", default="reports/truth", help="make_truth_cases.py --out")
@@ -310,6 +459,8 @@ def main(argv=None) -> int:
                     help=f"of {', '.join(VARIANTS + EXTRA_VARIANTS)}")
     ap.add_argument("--collect-only", action="store_true", help="do not run regtrack; tabulate what exists")
     ap.add_argument("--timeout", type=int, default=3600)
+    ap.add_argument("--field", action="store_true",
+                    help="also compare the displacement fields of the tracking runs (field.md)")
     a = ap.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
     root = Path(a.root)
@@ -320,19 +471,38 @@ def main(argv=None) -> int:
         names = [n for n in names if n in keep]
     variants = [v for v in a.variants.split(",") if v]
     runs = {}
-    rows = []
+    rows, sens, field = [], [], {}
     for name in names:
         truth = json.loads((root / "truth" / f"{name}.json").read_text())
         if not a.collect_only:
             for v in variants:
                 case = (marked_case(root, name, truth, res / "cases" / f"{name}_{v}")
                         if v == "track_marked" else root / "cases" / f"{name}_{v}")
-                runs[f"{name}_{v}"] = run_case(case, res / f"{name}_{v}", res / "cache" / name, a.timeout)
+                sets = None
+                if v in SENSITIVITY:
+                    case = root / "cases" / f"{name}_track"
+                    sets = sensitivity_sets(case, v)
+                runs[f"{name}_{v}"] = run_case(case, res / f"{name}_{v}", res / "cache" / name, a.timeout,
+                                               sets=sets)
         rows += collect(root, name, truth, res)
+        if a.field:
+            for view in truth["views"]:
+                field[(name, view)] = field_difference(root, name, view, root / "cases" / f"{name}_track",
+                                                       res / "cache" / name)
+        base = _lesions(res / f"{name}_track")
+        moved = {v: _lesions(res / f"{name}_{v}") for v in SENSITIVITY}
+        for view in base:
+            if any(m for m in moved.values()):
+                sens += [{"case": name, "view": view} | r for r in model_sensitivity(
+                    base[view], {SENSITIVITY[v]: m.get(view) for v, m in moved.items()})]
     (res).mkdir(parents=True, exist_ok=True)
     if runs:
         (res / "runs.json").write_text(json.dumps(runs, indent=1))
     write_tables(rows, res)
+    if sens:
+        write_sensitivity(sens, res)
+    if field:
+        write_field(field, res)
     return 0
 
 

@@ -212,3 +212,47 @@ def test_marked_case_gives_the_nipple_on_both_images(ba, tmp_path):
     assert doc["mri"]["nipple_lps_mm"] == [-60.0, -45.5, 12.25] and doc["mri"]["side"] == "R"
     assert doc["views"]["CC"] == {"nipple_px": [812.5, 40.0], "mammogram": "mammo/cc.dcm"}
     assert "tumour_polygon" not in (dst / "case.toml").read_text()
+
+
+def test_model_sensitivity_is_the_quadrature_of_the_measured_moves(ba):
+    """The sensitivity variants: c1 moved the lesion 3 mm, nu 4 mm, so the measured model
+    shift is 5 mm and alpha = 5 / |Delta| (|Delta| = 10 mm); a lesion a variant lost is
+    reported without a total."""
+    base = [{"lesion": 1, "centroid_mm": [10.0, 20.0], "inplane_shift_mm": 10.0,
+             "uncertainty_terms_mm": {"model": 1.0}},
+            {"lesion": 2, "centroid_mm": [0.0, 0.0], "inplane_shift_mm": 4.0,
+             "uncertainty_terms_mm": {"model": 0.4}}]
+    moved = {"c1": [{"lesion": 1, "centroid_mm": [13.0, 20.0]}, {"lesion": 2, "centroid_mm": [0.0, 1.0]}],
+             "nu": [{"lesion": 1, "centroid_mm": [10.0, 24.0]}]}
+    r1, r2 = ba.model_sensitivity(base, moved)
+    assert r1["shift_c1_mm"] == pytest.approx(3.0) and r1["shift_nu_mm"] == pytest.approx(4.0)
+    assert r1["model_shift_mm"] == pytest.approx(5.0) and r1["alpha_measured"] == pytest.approx(0.5)
+    assert r1["sigma_model_mm"] == 1.0
+    assert r2["shift_c1_mm"] == pytest.approx(1.0) and r2["shift_nu_mm"] is None
+    assert "model_shift_mm" not in r2 and "alpha_measured" not in r2
+
+
+def test_sensitivity_sets_are_the_trackers_one_sigma_moves(ba, tmp_path):
+    """The variants move c1 by (1 + c1_rel_sigma) and nu by -nu_sigma of the case's own
+    settings, as ``regtrack track --uncertainty`` does."""
+    case = tmp_path / "c"
+    case.mkdir()
+    (case / "l.zip").write_bytes(b"")
+    (case / "case.toml").write_text('[case]\nid = "c"\n\n[mri]\nlabels = "l.zip"\nscheme = "pelicano-simple"\n\n'
+                                    '[mechanics]\ntissue_c1_kpa = 1.0\nnu = 0.45\n\n'
+                                    '[tracking]\nc1_rel_sigma = 0.5\nnu_sigma = 0.05\n')
+    assert ba.sensitivity_sets(case, "track_c1") == ["mechanics.tissue_c1_kpa=1.5"]
+    assert ba.sensitivity_sets(case, "track_nu") == ["mechanics.nu=0.4"]
+
+
+def test_band_table_averages_each_band_and_the_difference(ba):
+    """Two points 10 mm and one 50 mm from the chest wall: per band, each model's mean
+    displacement and the mean / RMS of regtrack - truth."""
+    ant = np.array([5.0, 15.0, 50.0])
+    ut = np.array([[0.0, 0, 0], [0, 0, 0], [1, 2, 3]])
+    ur = np.array([[3.0, 0, 0], [0, 4, 0], [1, 2, 3]])
+    rows = ba.band_table(ant, ut, ur)
+    assert [r["band_mm"] for r in rows] == [(0.0, 20.0), (40.0, 60.0)]
+    assert rows[0]["n"] == 2 and np.allclose(rows[0]["mean_diff"], [1.5, 2.0, 0.0])
+    assert rows[0]["rms_diff"] == pytest.approx(np.sqrt((9 + 16) / 2))
+    assert rows[1]["n"] == 1 and rows[1]["rms_diff"] == 0.0 and np.allclose(rows[1]["u_truth"], [1, 2, 3])

@@ -33,11 +33,15 @@ Per lesion (each tumour of the model, :func:`predict_lesions`):
     :math:`\\sigma_D` of ``D`` moves the lesion by :math:`|\\Delta| \\sigma_D / D`
     (``sigma_D`` from the thickness's source: the DICOM's BodyPartThickness with
     ``thickness_sigma_mm``, or the protocol's nominal ``D`` with ``degree_sigma``).
-    :math:`\\alpha` (``material_rel``) is a stated relative sensitivity of :math:`\\Delta`
-    to the tissue's :math:`c_1` and :math:`\\nu` (with the plates driven to a gap, a
+    :math:`\\alpha` (``material_rel``) is the relative sensitivity of the prediction to
+    the tissue's :math:`c_1` and :math:`\\nu` (with the plates driven to a gap, a
     homogeneous neo-Hookean breast deforms nearly independently of :math:`c_1`; gravity
-    and :math:`\\nu` change the lateral spread): a first, documented estimate, not
-    measured by re-simulation (no extra simulations are run);
+    and :math:`\\nu` change the lateral spread).  No extra simulation is run per case: the
+    default 0.16 is the median that re-simulation measured on the Pelicano exams of
+    docs/truth-cases.md (``pipelines/bench_accuracy.py --variants track_c1,track_nu``:
+    c1 times 1.3 and nu - 0.02, the 1-sigma of ``[tracking]``, moved the predicted
+    centroid by 0.5 to 2.4 mm in quadrature, 0.08 to 0.39 of :math:`|\\Delta|` over seven
+    lesions of six exams);
   - :math:`\\sigma_{nip} = u / \\sqrt{3}`: where the nipple was detected on the
     mammogram.  The detector takes the middle of the run of contour points within
     ``nipple_delta_mm`` of the farthest from the chest wall (:mod:`regtrack.imaging.
