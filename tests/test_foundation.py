@@ -109,6 +109,24 @@ def test_run_set_checks_between_keys_see_every_setting():
         open_run(case, cfg)
 
 
+def test_a_plate_edge_that_pinches_the_base_is_refused_before_any_work():
+    """``--set protocol.CC.posterior_edge_mm=5`` (the rounded edge 5 mm in front of the chest
+    wall) is refused by resolve_configs, naming case.toml's section and the fix; with the
+    chest-wall contact off it is accepted (no wall to make a wedge with)."""
+    from pathlib import Path
+
+    from regtrack.case import load_case, resolve_configs
+    from regtrack.cli.run import parse_sets
+    from regtrack.errors import CaseError
+
+    case = load_case(Path(__file__).resolve().parents[1] / "sample_cases" / "phantom01", deep=False)
+    with pytest.raises(CaseError, match=r"case.toml \[protocol.CC\]: posterior_edge_mm = 5 .* 60 deg"):
+        resolve_configs(case, parse_sets(["protocol.CC.posterior_edge_mm=5.0"]))
+    cfg = resolve_configs(case, parse_sets(["protocol.CC.posterior_edge_mm=5.0",
+                                            "contact.chest_wall_contact=false"]))
+    assert cfg.protocols["CC"].plates.posterior_edge_mm == 5.0
+
+
 def test_every_dependency_is_pinned_in_constraints():
     """make installs with constraints.txt: each direct dependency (core and test extra) of
     pyproject.toml must be pinned there (==), so a fresh clone cannot pick up an unpinned

@@ -236,6 +236,52 @@ def test_plates_start_clear_of_a_thick_base_behind_their_edge():
     assert plates["upper"].plate.query(X[over]).gap.min() > 2.0 + 1.0  # backed off for the base
 
 
+@pytest.mark.parametrize("view", ["cc", "mlo"])
+def test_shipped_plates_are_flat_in_front_of_the_chest_wall(view):
+    """The shipped CC and MLO plates end their flat face at the chest-wall plane, so every
+    point in front of the wall that touches a plate meets its face: gap = height over the
+    face and normal = the face normal (a half-space).  With the edge 5 mm in front of the
+    wall (radius 10 mm) the point 1 mm in front of the wall would meet the rounded edge,
+    its normal tilted by asin(4/10) = 24 deg towards the wall."""
+    from regtrack.mechanics.placement import make_plates
+
+    body = _body()
+    plates, _ = make_plates(body, shipped_protocol(view), config=ContactConfig())
+    x_wall = body.points[:, 0].min()
+    for pc in plates.values():
+        pl = pc.plate
+        # points 0.01 to 30 mm in front of the wall, on and 1 mm inside the face
+        s = np.linspace(0.01, 30.0, 12)
+        for depth in (0.0, -1.0):
+            pts = np.array([pl.origin + depth * pl.normal + (x_wall + si - pl.origin @ pl.e1) * pl.e1
+                            for si in s])
+            q = pl.query(pts)
+            np.testing.assert_allclose(q.normal, np.tile(pl.normal, (len(s), 1)), atol=1e-12)
+            np.testing.assert_allclose(q.gap, depth, atol=1e-9)
+
+
+@pytest.mark.parametrize("edge, radius, wall, refused", [
+    (5.0, 10.0, True, True), (0.5, 10.0, True, True), (9.9, 10.0, True, True),
+    (0.0, 10.0, True, False), (-20.0, 10.0, True, False), (10.0, 10.0, True, False),
+    (20.0, 10.0, True, False), (5.0, 10.0, False, False)])
+def test_a_rounded_edge_in_front_of_the_chest_wall_is_refused(edge, radius, wall, refused):
+    """With the chest-wall contact on, a plate edge 0 < e < r in front of the wall meets it
+    at the acute angle 90 - asin(e / r) deg and pinches the base: make_plates refuses it
+    naming the angle and the fix; e <= 0, e >= r, or no wall contact are accepted."""
+    from regtrack.mechanics.placement import make_plates
+
+    proto = apply_overrides(shipped_protocol("cc"), ProtocolOverrides(posterior_edge_mm=edge,
+                                                                      edge_radius_mm=radius))
+    config = ContactConfig(chest_wall_contact=wall)
+    if refused:
+        angle = 90.0 - np.degrees(np.arcsin(edge / radius))
+        with pytest.raises(ConfigError, match=rf"meets the wall at {angle:.0f} deg.*<= 0.*>= 10"):
+            make_plates(_body(), proto, config=config)
+    else:
+        plates, _ = make_plates(_body(), proto, config=config)
+        assert plates["upper"].plate.s_range[0] == pytest.approx(-40.0 + edge)
+
+
 def test_chest_wall_contact_pushes_tissue_back_in_front_of_the_wall():
     """``[contact] chest_wall_contact`` (on by default): a frictionless rigid wall at the
     chest-wall plane (x = -40 mm here) on every free node.  A node moved 0.1 mm behind the

@@ -117,4 +117,11 @@ def resolve_configs(case: Any, overrides: dict | None = None) -> Configs:
               for v in SIMULATED_VIEWS}
     protocols = {v: protocol_for_view(v, tables[v] or None, where=where, base_dir=case.root)
                  for v in SIMULATED_VIEWS}
+    from regtrack.mechanics.placement import edge_wedge_problem
+
+    wedge = [f"{where} [protocol.{v}]: {msg}" for v, pr in protocols.items()
+             if (msg := edge_wedge_problem(pr.plates.posterior_edge_mm, pr.plates.edge_radius_mm,
+                                           values["contact"]))]
+    if wedge:
+        raise CaseError(wedge)
     return Configs(**values, protocols=protocols, protocol_tables=tables, overrides=overrides)

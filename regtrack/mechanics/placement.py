@@ -2,9 +2,9 @@
 body and the rigid chest wall behind it.
 
 Plate placement (plate frame ``n, e_x`` of :func:`regtrack.virtual.frames.plate_frame`):
-both plates have their chest-wall (posterior) edge rounded with ``edge_radius_mm``, at
-``x_cw + posterior_edge_mm`` where ``x_cw`` is the mean ``x`` of the chest-wall nodes, and
-are unbounded elsewhere.  The lower plate faces ``+n``, the upper one ``-n``; both start
+both plates have their chest-wall (posterior) edge rounded with ``edge_radius_mm`` ``r``,
+their flat face ending at ``x_cw + e`` (``e = posterior_edge_mm``, ``x_cw = min x`` the
+chest-wall plane), and are unbounded elsewhere.  The lower plate faces ``+n``, the upper one ``-n``; both start
 ``clearance_mm`` away from every free skin node, measured against the whole plate surface
 (rounded edge included: a thick chest-wall base behind the edge would otherwise start
 inside the plate, 6.5 mm deep on the phantom's MLO with ``posterior_edge_mm = 10``).
@@ -17,6 +17,22 @@ taller than the final plate gap on every exam, and the tissue between a plate's 
 the clamped nodes is squeezed without limit (docs/performance.md).  ``[contact]
 chest_wall_contact`` (on by default) adds a frictionless rigid wall at the chest-wall
 plane (:func:`chest_wall`): no node passes behind it into the torso.
+
+**The plates' edge and the wall** (:func:`edge_wedge_problem`).  With the wall, a plate
+whose rounded edge reaches in front of the wall, ``0 < e < r``, meets it at the angle
+
+.. math::
+
+    \alpha = 90^\circ - \arcsin(e / r)
+
+(60 deg at ``e = 5`` mm, ``r = 10`` mm): an acute wedge that squeezes the tissue of the
+breast base between two rigid surfaces.  The nodes pinched there carry more than ten times
+the mean pressure under the plate, and their contact multipliers can cycle without
+converging at any increment length (docs/performance.md).  The shipped CC and MLO plates therefore end their flat face at the
+wall (``e = 0``; a paddle's face reaches the chest wall): every constraint a node in front
+of the wall can meet is then a half-space (the face, the wall, at right angles), the
+admissible set is convex there, and the method of multipliers has its convex convergence.
+``e >= r`` (the biopsy coil's plates, 20 mm) clears the wall entirely.
 """
 
 from __future__ import annotations
@@ -147,8 +163,10 @@ def make_plates(body: BodySetup, protocol: Protocol, *, config: ContactConfig
     X = body.points
     nodes, areas, eps = _skin_contact(body, config)
     geo = protocol.plates
-    x_cw = float(X[body.fixed, 0].mean()) if body.fixed.any() else float(X[:, 0].min())
-    s_edge = x_cw + geo.posterior_edge_mm
+    problem = edge_wedge_problem(geo.posterior_edge_mm, geo.edge_radius_mm, config, fixed=body.fixed.any())
+    if problem:
+        raise ConfigError(f"protocol '{protocol.name}' [plates]: {problem}")
+    s_edge = float(X[:, 0].min()) + geo.posterior_edge_mm  # the chest-wall plane of chest_wall()
     n = frame.normal
     over = X[nodes, 0] >= s_edge
     if not over.any():
@@ -173,6 +191,22 @@ def make_plates(body: BodySetup, protocol: Protocol, *, config: ContactConfig
     log.info("plates: normal %s, chest-wall edge x = %.1f mm, eps_N = %.3g MPa/mm",
              np.round(n, 3).tolist(), s_edge, eps)
     return plates, frame
+
+
+def edge_wedge_problem(posterior_edge_mm: float, edge_radius_mm: float, config: ContactConfig,
+                       *, fixed: bool = True) -> str | None:
+    """Why a plate edge ``posterior_edge_mm`` (mm anterior to the chest-wall plane) of
+    radius ``edge_radius_mm`` cannot be used with ``config``'s chest wall, or None: with
+    the wall contact on, ``0 < e < r`` puts the rounded edge in front of the wall at an
+    acute angle (module docstring)."""
+    e, r = float(posterior_edge_mm), float(edge_radius_mm)
+    if not (config.chest_wall_contact and fixed and 0.0 < e < r):
+        return None
+    angle = 90.0 - np.degrees(np.arcsin(e / r))
+    return (f"posterior_edge_mm = {e:g} puts the plates' rounded edge (edge_radius_mm = {r:g}) "
+            f"{e:g} mm in front of the chest wall, where it meets the wall at {angle:.0f} deg and "
+            "pinches the breast base (the contact cannot converge there); use posterior_edge_mm "
+            f"<= 0 (the flat face reaches the wall) or >= {r:g} (the edge clears it)")
 
 
 def _opening(plate: RigidPlate, centre: np.ndarray, size_mm) -> tuple[float, float, float, float]:

@@ -8,7 +8,7 @@ A protocol is an ordered list of steps (Lapuebla-Ferri et al., four-step protoco
 
     [plates]                     # geometry of both plates (mm)
     edge_radius_mm = 10.0        # rounded (cylindrical) chest-wall edge
-    posterior_edge_mm = 5.0      # chest-wall edge, anterior to the mean chest-wall x
+    posterior_edge_mm = 0.0      # chest-wall edge, anterior to the chest-wall plane
     clearance_mm = 2.0           # initial distance of a plate from the breast
     # window_mm = [40.0, 40.0]   # an opening in one plate (the biopsy grid's compression
     # window_plate = "lower"     # window), centred on the lesion's projection
@@ -67,8 +67,13 @@ class PlateGeometry:
     """Geometry of the compression plates (``[plates]`` of a protocol)."""
 
     edge_radius_mm: float = param(10.0, "mm", "radius of the rounded chest-wall edge", gt=0, le=200)
-    posterior_edge_mm: float = param(5.0, "mm", "chest-wall edge of the plates: distance "
-                                     "anterior to the mean chest-wall x", ge=-200, le=200)
+    posterior_edge_mm: float = param(0.0, "mm", "chest-wall edge of the plates: where their "
+                                     "flat face ends, anterior to the chest-wall plane (0: the "
+                                     "face reaches the wall, as a paddle's does). With the "
+                                     "chest-wall contact on, a value between 0 and "
+                                     "edge_radius_mm is refused: the rounded edge would make an "
+                                     "acute wedge with the wall (regtrack.mechanics.placement)",
+                                     ge=-200, le=200)
     clearance_mm: float = param(2.0, "mm", "initial distance of a plate from the breast",
                                 ge=0, le=100)
     window_mm: list[float] | None = param(None, "mm", "[along e_x, across] opening of the grid "
