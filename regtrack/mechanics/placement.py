@@ -23,15 +23,16 @@ whose rounded edge reaches in front of the wall, ``0 < e < r``, meets it at the 
 
 .. math::
 
-    \alpha = 90^\circ - \arcsin(e / r)
+    \\alpha = 90^\\circ - \\arcsin(e / r)
 
 (60 deg at ``e = 5`` mm, ``r = 10`` mm): an acute wedge that squeezes the tissue of the
 breast base between two rigid surfaces.  The nodes pinched there carry more than ten times
 the mean pressure under the plate, and their contact multipliers can cycle without
-converging at any increment length (docs/performance.md).  The shipped CC and MLO plates therefore end their flat face at the
-wall (``e = 0``; a paddle's face reaches the chest wall): every constraint a node in front
-of the wall can meet is then a half-space (the face, the wall, at right angles), the
-admissible set is convex there, and the method of multipliers has its convex convergence.
+converging at any increment length (docs/performance.md).  The shipped CC and MLO plates
+therefore end their flat face at the wall (``e = 0``; a paddle's face reaches the chest
+wall): every constraint a node in front of the wall can meet is then a half-space (the face
+and the wall, at right angles), so the contact constraints are convex there.  The friction
+lag is not, and the right-angled corner still concentrates the pressure on the base.
 ``e >= r`` (the biopsy coil's plates, 20 mm) clears the wall entirely.
 """
 
