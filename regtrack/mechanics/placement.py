@@ -19,21 +19,22 @@ chest_wall_contact`` (on by default) adds a frictionless rigid wall at the chest
 plane (:func:`chest_wall`): no node passes behind it into the torso.
 
 **The plates' edge and the wall** (:func:`edge_wedge_problem`).  With the wall, a plate
-whose rounded edge reaches in front of the wall, ``0 < e < r``, meets it at the angle
+whose rounded edge reaches in front of the wall, ``0 < e <= r``, meets it at the angle
 
 .. math::
 
     \\alpha = 90^\\circ - \\arcsin(e / r)
 
-(60 deg at ``e = 5`` mm, ``r = 10`` mm): an acute wedge that squeezes the tissue of the
-breast base between two rigid surfaces.  The nodes pinched there carry more than ten times
+(60 deg at ``e = 5`` mm, ``r = 10`` mm; at ``e = r`` the edge is tangent to the wall, a
+crevice of zero angle): an acute wedge that squeezes the tissue of the breast base between
+two rigid surfaces.  The nodes pinched there carry more than ten times
 the mean pressure under the plate, and their contact multipliers can cycle without
 converging at any increment length (docs/performance.md).  The shipped CC and MLO plates
 therefore end their flat face at the wall (``e = 0``; a paddle's face reaches the chest
 wall): every constraint a node in front of the wall can meet is then a half-space (the face
 and the wall, at right angles), so the contact constraints are convex there.  The friction
 lag is not, and the right-angled corner still concentrates the pressure on the base.
-``e >= r`` (the biopsy coil's plates, 20 mm) clears the wall entirely.
+``e > r`` (the biopsy coil's plates, 20 mm: a 10 mm slot) clears the wall.
 """
 
 from __future__ import annotations
@@ -198,16 +199,16 @@ def edge_wedge_problem(posterior_edge_mm: float, edge_radius_mm: float, config: 
                        *, fixed: bool = True) -> str | None:
     """Why a plate edge ``posterior_edge_mm`` (mm anterior to the chest-wall plane) of
     radius ``edge_radius_mm`` cannot be used with ``config``'s chest wall, or None: with
-    the wall contact on, ``0 < e < r`` puts the rounded edge in front of the wall at an
+    the wall contact on, ``0 < e <= r`` puts the rounded edge in front of the wall at an
     acute angle (module docstring)."""
     e, r = float(posterior_edge_mm), float(edge_radius_mm)
-    if not (config.chest_wall_contact and fixed and 0.0 < e < r):
+    if not (config.chest_wall_contact and fixed and 0.0 < e <= r):
         return None
     angle = 90.0 - np.degrees(np.arcsin(e / r))
     return (f"posterior_edge_mm = {e:g} puts the plates' rounded edge (edge_radius_mm = {r:g}) "
             f"{e:g} mm in front of the chest wall, where it meets the wall at {angle:.0f} deg and "
             "pinches the breast base (the contact cannot converge there); use posterior_edge_mm "
-            f"<= 0 (the flat face reaches the wall) or >= {r:g} (the edge clears it)")
+            f"<= 0 (the flat face reaches the wall) or > {r:g} (the edge clears it)")
 
 
 def _opening(plate: RigidPlate, centre: np.ndarray, size_mm) -> tuple[float, float, float, float]:

@@ -70,7 +70,7 @@ class PlateGeometry:
     posterior_edge_mm: float = param(0.0, "mm", "chest-wall edge of the plates: where their "
                                      "flat face ends, anterior to the chest-wall plane (0: the "
                                      "face reaches the wall, as a paddle's does). With the "
-                                     "chest-wall contact on, a value between 0 and "
+                                     "chest-wall contact on, 0 < value <= "
                                      "edge_radius_mm is refused: the rounded edge would make an "
                                      "acute wedge with the wall (regtrack.mechanics.placement)",
                                      ge=-200, le=200)
