@@ -4,8 +4,8 @@ body and the rigid chest wall behind it.
 Plate placement (plate frame ``n, e_x`` of :func:`regtrack.virtual.frames.plate_frame`):
 both plates have their chest-wall (posterior) edge rounded with ``edge_radius_mm`` ``r``,
 their flat face ending at ``x_cw + e`` (``e = posterior_edge_mm``, ``x_cw = min x`` the
-chest-wall plane), and are unbounded elsewhere.  The lower plate faces ``+n``, the upper one ``-n``; both start
-``clearance_mm`` away from every free skin node, measured against the whole plate surface
+chest-wall plane), and are unbounded elsewhere.  The lower plate faces ``+n``, the upper
+one ``-n``; both start ``clearance_mm`` away from every free skin node, measured against the whole plate surface
 (rounded edge included: a thick chest-wall base behind the edge would otherwise start
 inside the plate, 6.5 mm deep on the phantom's MLO with ``posterior_edge_mm = 10``).
 
@@ -165,7 +165,8 @@ def make_plates(body: BodySetup, protocol: Protocol, *, config: ContactConfig
     X = body.points
     nodes, areas, eps = _skin_contact(body, config)
     geo = protocol.plates
-    problem = edge_wedge_problem(geo.posterior_edge_mm, geo.edge_radius_mm, config, fixed=body.fixed.any())
+    problem = edge_wedge_problem(geo.posterior_edge_mm, geo.edge_radius_mm, config,
+                                 fixed=body.fixed.any())
     if problem:
         raise ConfigError(f"protocol '{protocol.name}' [plates]: {problem}")
     s_edge = float(X[:, 0].min()) + geo.posterior_edge_mm  # the chest-wall plane of chest_wall()
