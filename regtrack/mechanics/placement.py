@@ -5,9 +5,10 @@ Plate placement (plate frame ``n, e_x`` of :func:`regtrack.virtual.frames.plate_
 both plates have their chest-wall (posterior) edge rounded with ``edge_radius_mm`` ``r``,
 their flat face ending at ``x_cw + e`` (``e = posterior_edge_mm``, ``x_cw = min x`` the
 chest-wall plane), and are unbounded elsewhere.  The lower plate faces ``+n``, the upper
-one ``-n``; both start ``clearance_mm`` away from every free skin node, measured against the whole plate surface
-(rounded edge included: a thick chest-wall base behind the edge would otherwise start
-inside the plate, 6.5 mm deep on the phantom's MLO with ``posterior_edge_mm = 10``).
+one ``-n``; both start ``clearance_mm`` away from every free skin node, measured against
+the whole plate surface (rounded edge included: a thick chest-wall base behind the edge
+would otherwise start inside the plate, 6.5 mm deep on the phantom's MLO with
+``posterior_edge_mm = 10``).
 
 Chest wall: the chest-wall nodes slide on the wall over a soft layer (``[contact]
 chest_wall_layer_mm``, :mod:`.support`): held normal to it, tangentially by the layer's
