@@ -29,8 +29,8 @@ def _body(side="R"):
     tets = Delaunay(g).simplices
     hull = Delaunay(g).convex_hull
     fixed = np.isclose(g[:, 0], -40)
-    skin = hull[~fixed[hull].all(axis=1)]
-    return BodySetup(points=g, tets=tets, skin=skin, fixed=fixed, side=side, young_mpa=1e-3)
+    surface = hull[~fixed[hull].all(axis=1)]
+    return BodySetup(points=g, tets=tets, surface=surface, fixed=fixed, side=side, young_mpa=1e-3)
 
 
 def mock_solver(X, fixed, *, increments=4, fail_at=None, augment=True):
@@ -217,7 +217,7 @@ def test_case_overrides_validation():
 def test_plates_start_clear_of_a_thick_base_behind_their_edge():
     """The block's chest-wall base (x < -30, behind the plates' edge at -40 + 10) is made
     8 mm taller than the part over the plates: placed from the nodes over the plates only,
-    the rounded edges would start inside it; every free skin node must start clearance_mm
+    the rounded edges would start inside it; every free surface node must start clearance_mm
     (2 mm) or more from both plates (the closest exactly 2 mm), so the plates back off."""
     from regtrack.mechanics.placement import make_plates
 
@@ -225,10 +225,10 @@ def test_plates_start_clear_of_a_thick_base_behind_their_edge():
     X = b.points.copy()
     base = X[:, 0] < -30.0
     X[base, 1] *= 1.0 + 8.0 / 15.0  # y in [-23, 23] behind the edge, [-15, 15] over the plates
-    body = BodySetup(points=X, tets=b.tets, skin=b.skin, fixed=b.fixed, side="R", young_mpa=1e-3)
+    body = BodySetup(points=X, tets=b.tets, surface=b.surface, fixed=b.fixed, side="R", young_mpa=1e-3)
     proto = apply_overrides(shipped_protocol("cc"), ProtocolOverrides(posterior_edge_mm=10.0))
     plates, _ = make_plates(body, proto, config=ContactConfig(chest_wall_contact=False))
-    free = np.unique(body.skin)
+    free = np.unique(body.surface)
     free = free[~body.fixed[free]]
     for pc in plates.values():
         assert pc.plate.query(X[free]).gap.min() == pytest.approx(2.0, abs=1e-6)
@@ -287,7 +287,7 @@ def test_chest_wall_contact_pushes_tissue_back_in_front_of_the_wall():
     """``[contact] chest_wall_contact`` (on by default): a frictionless rigid wall at the
     chest-wall plane (x = -40 mm here) on every free node.  A node moved 0.1 mm behind the
     plane feels the penalty force eps_N * 0.1 mm * A, along +x only; the fixed nodes are no
-    candidates; skin nodes carry their tributary skin area; the runner hands the wall to
+    candidates; surface nodes carry their tributary surface area; the runner hands the wall to
     the solver with the plates."""
     from regtrack.mechanics.contact import tributary_areas
     from regtrack.mechanics.placement import chest_wall
@@ -298,10 +298,10 @@ def test_chest_wall_contact_pushes_tissue_back_in_front_of_the_wall():
     assert wall.mu == 0.0 and wall.name == "chest-wall"
     assert not body.fixed[wall.nodes].any()
     np.testing.assert_array_equal(wall.nodes, np.flatnonzero(~body.fixed))
-    skin = np.unique(body.skin)
-    on_skin = np.isin(wall.nodes, skin)
-    np.testing.assert_allclose(wall.areas[on_skin],
-                               tributary_areas(body.points, body.skin)[wall.nodes[on_skin]])
+    surface = np.unique(body.surface)
+    on_surface = np.isin(wall.nodes, surface)
+    np.testing.assert_allclose(wall.areas[on_surface],
+                               tributary_areas(body.points, body.surface)[wall.nodes[on_surface]])
     assert np.all(wall.areas > 0)
     assert np.allclose(wall.plate.origin[0], -40.0) and np.allclose(wall.plate.normal, [1, 0, 0])
     i = int(np.flatnonzero(np.isclose(body.points[wall.nodes, 0], -35.0))[0])

@@ -75,3 +75,41 @@ def test_plate_travel_per_increment_is_capped(model):
         travel = last.T0_mm - last.gap_mm
     assert out[2.5][0] >= np.ceil((travel - 2.0) / 2.5) + 1 > out[0.0][0]
     assert out[2.5][1] == pytest.approx(out[0.0][1], rel=2e-3)
+
+
+def test_plates_press_the_faces_where_the_mri_cut_the_breast():
+    """A breast cut by the MRI's field of view ends in flat faces without skin; on a CC the
+    cranial and caudal cuts at the base are the first tissue the plates meet.  A 40 mm box
+    on a fixed chest wall (x = 0) whose top and bottom faces (y = +-20 mm, parallel to the
+    CC plates) are such cuts goes through the shipped CC protocol (skin membrane off, so
+    that the skin triangles only say where the surface is): no node of any outer face ends
+    inside a plate by more than the 0.1 mm acceptance bound, and the plate force is that
+    of the same box with every outer face skin, to the solver's tolerance (0.5 % asked).
+    Contact on the skin alone let the plates pass 14 mm into the cuts of a real CC."""
+    from dataclasses import replace
+
+    from regtrack.mechanics.meshes import boundary_faces, box_model
+    from regtrack.model.checks import cut_faces
+
+    base = box_model((40.0, 40.0, 40.0), (4, 4, 4), origin=(0.0, -20.0, -20.0))
+    P = base.points
+    fixed = np.isclose(P[:, 0], 0.0)
+    faces = boundary_faces(P, base.tets)
+    outer = faces[~fixed[faces].all(axis=1)]
+    on_cut = np.isclose(np.abs(P[outer][:, :, 1]), 20.0).all(axis=1)
+    nipple = int(np.argmax(P[:, 0] - np.abs(P[:, 1]) - np.abs(P[:, 2])))
+    mech = MechanicsConfig(skin_enabled=False)
+    force = {}
+    for name, skin in (("cut", outer[~on_cut]), ("skin", outer)):
+        model = replace(base, skin=skin, fixed=fixed, nipple=nipple)
+        res, _ = run_protocol_on_model(model, shipped_protocol("cc"), mechanics=mech)
+        last = res.steps[-1]
+        assert res.complete and last.D == pytest.approx(0.38, abs=1e-9)
+        x = P + last.u
+        nodes = np.unique(outer)
+        for pl in last.plates.values():
+            gap = (x[nodes] - np.asarray(pl["origin_mm"])) @ np.asarray(pl["normal"])
+            assert gap.min() > -0.1, (name, pl["name"])
+        force[name] = last.contact["upper"]["normal_force_N"]
+    assert len(cut_faces(base.tets, outer[~on_cut], fixed)) == 2 * 32
+    assert force["cut"] == pytest.approx(force["skin"], rel=5e-3)

@@ -5,7 +5,7 @@ Plate placement (plate frame ``n, e_x`` of :func:`regtrack.virtual.frames.plate_
 both plates have their chest-wall (posterior) edge rounded with ``edge_radius_mm`` ``r``,
 their flat face ending at ``x_cw + e`` (``e = posterior_edge_mm``, ``x_cw = min x`` the
 chest-wall plane), and are unbounded elsewhere.  The lower plate faces ``+n``, the upper
-one ``-n``; both start ``clearance_mm`` away from every free skin node, measured against
+one ``-n``; both start ``clearance_mm`` away from every free surface node, measured against
 the whole plate surface (rounded edge included: a thick chest-wall base behind the edge
 would otherwise start inside the plate, 6.5 mm deep on the phantom's MLO with
 ``posterior_edge_mm = 10``).
@@ -64,8 +64,10 @@ class BodySetup:
     points : (N, 3) float
         Reference node coordinates.
     tets : (E, 4) int
-    skin : (S, 3) int
-        Skin triangles (contact surface).
+    surface : (S, 3) int
+        The outer triangles a plate can touch: the skin, the faces where the MRI's field of
+        view or the inframammary fold cut the breast (tissue like any other, without a
+        skin membrane), and the chest-wall face when its nodes slide.
     fixed : (N,) bool
         Chest-wall nodes.
     side : {"L", "R"}
@@ -73,10 +75,10 @@ class BodySetup:
         Small-strain Young modulus of the tissue (MPa), for the automatic penalty.
     clamped : bool
         The chest-wall nodes are held in every direction (else they slide on the wall,
-        :mod:`.support`, and are plate contact candidates like the skin's).
+        :mod:`.support`, and are plate contact candidates like the rest of the surface).
     target : (3,) float or None
         The lesion's centroid (mm), on which a plate opening is centred; None: the
-        breast's skin centroid.
+        breast's surface centroid.
     axes : (3, 3) float or None
         Rows: the model x, y, z axes in the MRI's LPS axes, for gravity given in the
         patient frame (``frame = "patient"``); None: the model frame is LPS-aligned
@@ -85,7 +87,7 @@ class BodySetup:
 
     points: np.ndarray
     tets: np.ndarray
-    skin: np.ndarray
+    surface: np.ndarray
     fixed: np.ndarray
     side: str
     young_mpa: float
@@ -99,21 +101,22 @@ def chest_wall(body: BodySetup, config: ContactConfig) -> PlateContact | None:
     pass behind it (the torso is there).  The plane is ``x = min x`` of the model, the
     most posterior node (the chest-wall nodes of a model cut from an MRI lie within 0.3 mm
     of it), so that no node starts behind it.  Every free node is a contact candidate: a
-    skin node with its tributary skin area, an interior node with the area ``V_i / h`` of
-    its nodal volume ``V_i`` (mm^3) over the mean skin edge ``h`` (mm), so the wall's
-    penalty stiffness per node is of the same order inside as on the skin.  None when
+    surface node with its tributary surface area, an interior node with the area
+    ``V_i / h`` of its nodal volume ``V_i`` (mm^3) over the mean surface edge ``h`` (mm),
+    so the wall's penalty stiffness per node is of the same order inside as on the
+    surface.  None when
     ``chest_wall_contact`` is off or the body has no fixed node."""
 
     if not config.chest_wall_contact or not body.fixed.any():
         return None
-    skin_nodes, skin_areas, eps = _skin_contact(body, config)
+    surf_nodes, surf_areas, eps = _surface_contact(body, config)
     X = body.points
     e = X[body.tets]
     vol = np.abs(np.einsum("ij,ij->i", np.cross(e[:, 1] - e[:, 0], e[:, 2] - e[:, 0]),
                            e[:, 3] - e[:, 0])) / 6.0
     areas = np.bincount(body.tets.reshape(-1), weights=np.repeat(vol / 4.0, 4),
-                        minlength=len(X)) / mean_edge_length(X, body.skin)
-    areas[skin_nodes] = skin_areas
+                        minlength=len(X)) / mean_edge_length(X, body.surface)
+    areas[surf_nodes] = surf_areas
     nodes = np.flatnonzero(~body.fixed & (areas > 0))
     wall = RigidPlate(name="chest-wall", origin=(float(X[:, 0].min()), 0.0, 0.0),
                       normal=(1.0, 0.0, 0.0), e1=(0.0, 1.0, 0.0))
@@ -144,17 +147,18 @@ def behind_chest_wall(points: np.ndarray, u: np.ndarray, fixed: np.ndarray,
     return max(0.0, float(behind.max())), int(np.count_nonzero(behind > over_mm))
 
 
-def _skin_contact(body: BodySetup, config: ContactConfig) -> tuple[np.ndarray, np.ndarray, float]:
-    """Contact candidates of the body: its free skin nodes, their tributary skin areas
-    (mm^2) and the automatic normal penalty (MPa/mm)."""
+def _surface_contact(body: BodySetup, config: ContactConfig) -> tuple[np.ndarray, np.ndarray, float]:
+    """Contact candidates of the body: its free surface nodes (:attr:`BodySetup.surface`),
+    their tributary areas (mm^2) and the automatic normal penalty (MPa/mm)."""
     X = body.points
-    nodes = np.unique(body.skin)
+    nodes = np.unique(body.surface)
     if body.clamped:
         nodes = nodes[~body.fixed[nodes]]
     if len(nodes) == 0:
-        raise ConfigError("model has no free skin node: contact needs skin triangles")
-    eps = automatic_penalty(config, young_mpa=body.young_mpa, h_mm=mean_edge_length(X, body.skin))
-    return nodes, tributary_areas(X, body.skin)[nodes], eps
+        raise ConfigError("model has no free surface node: contact needs outer triangles")
+    eps = automatic_penalty(config, young_mpa=body.young_mpa,
+                            h_mm=mean_edge_length(X, body.surface))
+    return nodes, tributary_areas(X, body.surface)[nodes], eps
 
 
 def make_plates(body: BodySetup, protocol: Protocol, *, config: ContactConfig
@@ -164,7 +168,7 @@ def make_plates(body: BodySetup, protocol: Protocol, *, config: ContactConfig
 
     frame = plate_frame(protocol.view, body.side, angle_deg=protocol.angle_deg)
     X = body.points
-    nodes, areas, eps = _skin_contact(body, config)
+    nodes, areas, eps = _surface_contact(body, config)
     geo = protocol.plates
     problem = edge_wedge_problem(geo.posterior_edge_mm, geo.edge_radius_mm, config,
                                  fixed=body.fixed.any())
@@ -174,7 +178,7 @@ def make_plates(body: BodySetup, protocol: Protocol, *, config: ContactConfig
     n = frame.normal
     over = X[nodes, 0] >= s_edge
     if not over.any():
-        raise ConfigError(f"plates: no skin node anterior to the plate edge x = {s_edge:.1f} mm; "
+        raise ConfigError(f"plates: no surface node anterior to the plate edge x = {s_edge:.1f} mm; "
                           "lower [plates] posterior_edge_mm")
     h = X[nodes] @ n
     lo = float(h[over].min()) - geo.clearance_mm

@@ -11,7 +11,7 @@ which must return an equilibrium ``u`` (N, 3) mm after ramping the gravity vecto
 :func:`regtrack.mechanics.minimise.minimiser_from_problem` adapts the mechanics core's
 ``minimise_step``; tests use small mock solvers.
 
-Plate placement and the chest wall: :mod:`.placement`.  The force carried by the skin
+Plate placement and the chest wall: :mod:`.placement`.  The force carried by the surface
 near the wall is reported apart (``edge_band_mm``; ``upper_body_force_N`` in
 :func:`regtrack.mechanics.run_view.summarise`).
 
@@ -292,7 +292,7 @@ class ProtocolRunner:
         pen, reps = self._penetration()
         if pen > self.config.max_penetration_mm:
             raise ResultCheckError(
-                f"step '{step.name}': a skin node is {pen:.3f} mm inside a plate (limit "
+                f"step '{step.name}': a surface node is {pen:.3f} mm inside a plate (limit "
                 f"{self.config.max_penetration_mm} mm); lower [contact] penetration_tol_mm "
                 "or raise penalty_factor")
         gap = _gap(self.plates, self.n)
@@ -321,8 +321,8 @@ class ProtocolRunner:
         x = b.points + self.u
         edge = self.plates["lower"].plate.s_range[0]
         tmask = b.points[b.tets].mean(axis=1)[:, 0] >= edge
-        smask = b.points[b.skin].mean(axis=1)[:, 0] >= edge
-        return comp.mean_thickness(x, b.tets, b.skin, self.n, tet_mask=tmask, skin_mask=smask)
+        smask = b.points[b.surface].mean(axis=1)[:, 0] >= edge
+        return comp.mean_thickness(x, b.tets, b.surface, self.n, tet_mask=tmask, skin_mask=smask)
 
     @serial_openblas()
     def run(self) -> ProtocolResult:

@@ -48,17 +48,21 @@ class ViewResult:
 
 def body_from_model(model: BreastModel, young_mpa: float, *, sliding: bool = False) -> BodySetup:
     """:class:`BodySetup` of a model whose tissue has the small-strain Young's modulus
-    ``young_mpa`` (MPa; :attr:`.materials.ElementMaterials.tissue_young_mpa`).  With a
-    ``sliding`` chest wall (:mod:`.support`) its nodes move along the wall, so the
-    chest-wall face joins the skin as a plate contact surface.  A plate opening is centred
-    on the first tumour's centroid."""
-    skin = model.skin
-    if sliding:
-        from regtrack.mechanics.support import wall_face
+    ``young_mpa`` (MPa; :attr:`.materials.ElementMaterials.tissue_young_mpa`).
 
-        skin = np.concatenate([skin, wall_face(model.points, model.tets, model.fixed)])
+    The plates' contact surface is every outer face of the model: the skin, the faces
+    where the MRI's field of view or the fold cut the breast (on a CC these are the
+    base's top and bottom, the first tissue the plates meet), and, with a ``sliding``
+    chest wall (:mod:`.support`) whose nodes move along the wall, the chest-wall face.
+    Only a clamped chest-wall face, which cannot move, is left out.  A plate opening is
+    centred on the first tumour's centroid."""
+    from regtrack.mechanics.meshes import boundary_faces
+
+    surface = boundary_faces(model.points, np.asarray(model.tets)[:, :4])
+    if not sliding:
+        surface = surface[~np.asarray(model.fixed, bool)[surface].all(axis=1)]
     lesions = model.tumour_centroids()
-    return BodySetup(points=model.points, tets=model.tets, skin=skin, fixed=model.fixed,
+    return BodySetup(points=model.points, tets=model.tets, surface=surface, fixed=model.fixed,
                      side=model.frame.side, young_mpa=young_mpa, clamped=not sliding,
                      target=lesions[min(lesions)] if lesions else None, axes=model.frame.axes)
 
