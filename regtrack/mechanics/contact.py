@@ -1,6 +1,6 @@
 """Node-to-rigid-plate contact: the plates' geometry and committed contact state.
 
-Every skin node ``i`` with tributary (reference) skin area ``A_i`` (mm^2) is a contact
+Every surface node ``i`` with tributary (reference) area ``A_i`` (mm^2) is a contact
 candidate against one rigid plate (:mod:`regtrack.mechanics.plates`: signed gap ``g_i``
 in mm, outward normal ``n_i``).  :class:`PlateContact` holds what persists between the
 increments of a simulation: the plate and its motion over a step, the augmented-Lagrangian
