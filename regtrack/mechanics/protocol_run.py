@@ -54,15 +54,11 @@ class StepControl:
     max_increment : the largest pseudo-time increment (a plate move's travel cap / its
         distance), or None for the solver's own gravity increments.
     T0_mm : the uncompressed thickness, for the progress's ``D = 1 - gap / T0``.
-    plate_normal : the plates' normal (3,) (model frame) once both plates hold the breast
-        (from the upper plate's touch on): the chest-wall base then follows them along it
-        (:meth:`.support.WallSupport.following`); None while the breast hangs free.
     """
 
     single: bool = False
     max_increment: float | None = None
     T0_mm: float | None = None
-    plate_normal: tuple[float, float, float] | None = None
 
 
 #: ``solve(u0, g0, g1, contacts, step_name, control) -> (u, stats)``: one protocol step
@@ -172,7 +168,6 @@ class ProtocolRunner:
         self.loads: dict[str, np.ndarray] = {}
         self.records: list[StepRecord] = []
         self._tmean0: float | None = None
-        self._held = False  # both plates hold the breast (the upper one has touched it)
 
     # -- one solve ------------------------------------------------------------------
     def _solve(self, g_end: np.ndarray, name: str, *, single: bool = False,
@@ -181,8 +176,7 @@ class ProtocolRunner:
         for c in contribs:
             c.begin_step(name)
         control = StepControl(single=single, T0_mm=T0_mm, max_increment=(
-            max_increment if max_increment is not None and max_increment < 1.0 else None),
-            plate_normal=tuple(float(v) for v in self.n) if self._held else None)
+            max_increment if max_increment is not None and max_increment < 1.0 else None))
         u, stats = self.solve(self.u, self.g, g_end, contribs, name, control)
         self.u = np.asarray(u, float).reshape(-1, 3)
         self.g = np.asarray(g_end, float)
@@ -280,7 +274,6 @@ class ProtocolRunner:
                 stats = self._move(pc, float(step.distance_mm), step.name)
             else:
                 _touch(pc, self.u)
-                self._held = self._held or step.plate == "upper"
                 if step.to != "contact":
                     if step.plate != "upper":
                         raise ConfigError(f"step '{step.name}': to = '{step.to}' moves the upper "
