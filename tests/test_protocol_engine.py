@@ -225,7 +225,8 @@ def test_plates_start_clear_of_a_thick_base_behind_their_edge():
     X = b.points.copy()
     base = X[:, 0] < -30.0
     X[base, 1] *= 1.0 + 8.0 / 15.0  # y in [-23, 23] behind the edge, [-15, 15] over the plates
-    body = BodySetup(points=X, tets=b.tets, surface=b.surface, fixed=b.fixed, side="R", young_mpa=1e-3)
+    body = BodySetup(points=X, tets=b.tets, surface=b.surface, fixed=b.fixed, side="R",
+                     young_mpa=1e-3)
     proto = apply_overrides(shipped_protocol("cc"), ProtocolOverrides(posterior_edge_mm=10.0))
     plates, _ = make_plates(body, proto, config=ContactConfig(chest_wall_contact=False))
     free = np.unique(body.surface)

@@ -104,8 +104,7 @@ def chest_wall(body: BodySetup, config: ContactConfig) -> PlateContact | None:
     surface node with its tributary surface area, an interior node with the area
     ``V_i / h`` of its nodal volume ``V_i`` (mm^3) over the mean surface edge ``h`` (mm),
     so the wall's penalty stiffness per node is of the same order inside as on the
-    surface.  None when
-    ``chest_wall_contact`` is off or the body has no fixed node."""
+    surface.  None when ``chest_wall_contact`` is off or the body has no fixed node."""
 
     if not config.chest_wall_contact or not body.fixed.any():
         return None
@@ -147,7 +146,8 @@ def behind_chest_wall(points: np.ndarray, u: np.ndarray, fixed: np.ndarray,
     return max(0.0, float(behind.max())), int(np.count_nonzero(behind > over_mm))
 
 
-def _surface_contact(body: BodySetup, config: ContactConfig) -> tuple[np.ndarray, np.ndarray, float]:
+def _surface_contact(body: BodySetup, config: ContactConfig
+                     ) -> tuple[np.ndarray, np.ndarray, float]:
     """Contact candidates of the body: its free surface nodes (:attr:`BodySetup.surface`),
     their tributary areas (mm^2) and the automatic normal penalty (MPa/mm)."""
     X = body.points
@@ -178,8 +178,8 @@ def make_plates(body: BodySetup, protocol: Protocol, *, config: ContactConfig
     n = frame.normal
     over = X[nodes, 0] >= s_edge
     if not over.any():
-        raise ConfigError(f"plates: no surface node anterior to the plate edge x = {s_edge:.1f} mm; "
-                          "lower [plates] posterior_edge_mm")
+        raise ConfigError(f"plates: no surface node anterior to the plate edge x = "
+                          f"{s_edge:.1f} mm; lower [plates] posterior_edge_mm")
     h = X[nodes] @ n
     lo = float(h[over].min()) - geo.clearance_mm
     hi = float(h[over].max()) + geo.clearance_mm
