@@ -6,7 +6,7 @@ plates of an MR biopsy coil; Chung et al. (2008) by 32 %.  The shipped ``biopsy`
 lateral plate to contact and moves the medial plate to the target.  Checked on the phantom
 (``sample_cases/phantom01`` meshed coarsely, ~1.8k nodes, as the other protocol tests): the
 run completes at each of the three degrees at the defaults; D equals the target (the gap
-is set from the measured uncompressed thickness, so D is exact to round-off); no skin node
+is set from the measured uncompressed thickness, so D is exact to round-off); no surface node
 is more than the 0.1 mm acceptance bound inside a plate; the force balance closes within
 the solver's 0.5 % (``[mechanics.solver] stall_force_tol``, the issue's acceptance); the
 plates are sagittal (normal medial) and only the medial plate moved.  The same on the real

@@ -8,7 +8,7 @@ shipped protocols run at their defaults (friction 0.1, D = 38 % / 28 %).
 Checked (and again at D = 50 %, issue 5's large compression): the run completes
 without manual intervention; the final degree equals the
 target (the plate gap is set from the measured uncompressed thickness T0, so D is exact
-to round-off); no skin node is more than the 0.1 mm acceptance bound inside a plate at
+to round-off); no surface node is more than the 0.1 mm acceptance bound inside a plate at
 the end of any step; the global force balance closes (chest-wall reaction + plate
 forces + weight = 0 to 1e-4 of the plate force, or to the solver's stall tolerance
 5e-3 in a step that accepted a stalled increment); and the plates carry a compressive

@@ -8,7 +8,7 @@ thickness between the undeformed and the deformed configuration)
     D = \\frac{T_0 - T}{T_0}
 
 * ``T_0`` (mm): thickness of the *uncompressed* breast between the plates: the extent,
-  along the plate normal ``n``, of the skin nodes lying over the plate (anterior to its
+  along the plate normal ``n``, of the surface nodes lying over the plate (anterior to its
   chest-wall edge) above the lower plate face, taken when the compression plate first
   touches the breast (standing, resting on the lower plate);
 * ``T`` (mm): the compressed thickness = the gap between the two plate faces.
@@ -18,8 +18,8 @@ it counts only the compressed part of the breast, never the chest-wall base (doc
 "Thickness means the compressed part").  A second, volumetric measure is reported
 beside it: the *mean* thickness ``T_mean = V / A_n`` of the breast over the plate, with
 ``V`` its volume and ``A_n`` its area projected along ``n``
-(``A_n = 1/2 sum_skin |a_f . n|`` for the skin triangle area vectors ``a_f``: each line
-along ``n`` crosses the skin twice), giving ``D_mean = 1 - T_mean / T_mean,0``.
+(``A_n = 1/2 sum_f |a_f . n|`` for the outer triangle area vectors ``a_f``: each line
+along ``n`` crosses the surface twice), giving ``D_mean = 1 - T_mean / T_mean,0``.
 """
 
 from __future__ import annotations
@@ -55,7 +55,7 @@ def thickness_between_plates(points: np.ndarray, nodes: np.ndarray, *, lower_ori
     nodes = np.asarray(nodes)
     sel = nodes if over_plate is None else nodes[np.asarray(over_plate, bool)]
     if len(sel) == 0:
-        raise ResultCheckError("compression: no skin node lies over the plates; move the "
+        raise ResultCheckError("compression: no surface node lies over the plates; move the "
                                "plates' chest-wall edge ([protocol] posterior_edge_mm)")
     return float(heights(points[sel], lower_origin, normal).max())
 
@@ -72,19 +72,20 @@ def gap_for_degree(t0_mm: float, degree: float) -> float:
     return float((1.0 - degree) * t0_mm)
 
 
-def mean_thickness(points: np.ndarray, tets: np.ndarray, skin: np.ndarray, normal, *,
+def mean_thickness(points: np.ndarray, tets: np.ndarray, surface: np.ndarray, normal, *,
                    tet_mask: np.ndarray | None = None,
-                   skin_mask: np.ndarray | None = None) -> float:
+                   surface_mask: np.ndarray | None = None) -> float:
     """Mean thickness ``T_mean = V / A_n`` (mm) of the (masked) breast along ``normal``.
 
     ``V`` is the volume of the selected tetrahedra and ``A_n`` the projected area of the
-    selected skin triangles, ``1/2 sum |a_f . n|``.
+    selected outer triangles, ``1/2 sum |a_f . n|``.
     """
     x = np.asarray(points, float)
     n = np.asarray(normal, float)
     n = n / np.linalg.norm(n)
     t = np.asarray(tets) if tet_mask is None else np.asarray(tets)[np.asarray(tet_mask, bool)]
-    s = np.asarray(skin) if skin_mask is None else np.asarray(skin)[np.asarray(skin_mask, bool)]
+    s = (np.asarray(surface) if surface_mask is None
+         else np.asarray(surface)[np.asarray(surface_mask, bool)])
     p = x[t]
     vol = np.abs(np.einsum("ij,ij->i", np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]),
                            p[:, 3] - p[:, 0])).sum() / 6.0
@@ -92,6 +93,6 @@ def mean_thickness(points: np.ndarray, tets: np.ndarray, skin: np.ndarray, norma
     av = 0.5 * np.cross(q[:, 1] - q[:, 0], q[:, 2] - q[:, 0])
     area = 0.5 * np.abs(av @ n).sum()
     if not area > 0:
-        raise ResultCheckError("compression: the skin has no projected area along the plate "
-                               "normal; check the model's skin triangles")
+        raise ResultCheckError("compression: the surface has no projected area along the plate "
+                               "normal; check the model's outer triangles")
     return float(vol / area)

@@ -322,7 +322,8 @@ class ProtocolRunner:
         edge = self.plates["lower"].plate.s_range[0]
         tmask = b.points[b.tets].mean(axis=1)[:, 0] >= edge
         smask = b.points[b.surface].mean(axis=1)[:, 0] >= edge
-        return comp.mean_thickness(x, b.tets, b.surface, self.n, tet_mask=tmask, skin_mask=smask)
+        return comp.mean_thickness(x, b.tets, b.surface, self.n, tet_mask=tmask,
+                                   surface_mask=smask)
 
     @serial_openblas()
     def run(self) -> ProtocolResult:
