@@ -1,5 +1,6 @@
-"""The sliding chest wall (regtrack.mechanics.support): the base held normal to the wall
-and tangentially by a layer of the tissue's shear stiffness ``mu / h`` per unit area."""
+"""The chest-wall support (regtrack.mechanics.support): the base held normal to the wall
+and tangentially by a layer of the tissue's shear stiffness ``mu / h`` per unit area while
+the breast hangs free, and following the plates along their normal once they hold it."""
 
 from __future__ import annotations
 
@@ -77,12 +78,40 @@ def test_a_thin_layer_tends_to_the_clamped_wall_and_zero_is_clamped():
     assert np.abs(ut[base]).max() < 1e-3 * np.abs(uc[tip]).max()
 
 
-def test_the_layer_is_part_of_the_potential():
-    """The layer's energy, gradient and stiffness enter ``Pi`` consistently: the residual
+def test_following_the_plates_frees_the_base_along_their_normal_and_holds_it_across():
+    """``WallSupport.following(n)``: no energy for a base moved along ``n`` projected on
+    the wall (an MLO-like normal at 50 deg, with a component along the wall's normal that
+    the projection drops), ``1/2 F_h sum k_i s^2`` for a move ``s`` across it, and the layer
+    unchanged for a normal along the wall's own."""
+    from regtrack.mechanics.support import HELD_FACTOR
+
+    model, prob = _block(5.0)
+    layer = prob.support
+    a = np.radians(50.0)
+    n = np.array([0.3, np.cos(a), np.sin(a)])
+    follow = layer.following(n)
+    base = model.fixed
+    along = np.zeros_like(prob.X)
+    along[base, 1:] = 0.7 * np.array([np.cos(a), np.sin(a)])
+    assert follow.energy(along) == pytest.approx(0.0, abs=1e-12 * layer.energy(along))
+    assert np.abs(follow.gradient(along)).max() < 1e-12 * np.abs(layer.gradient(along)).max()
+    across = np.zeros_like(prob.X)
+    across[base, 1:] = 0.7 * np.array([-np.sin(a), np.cos(a)])
+    assert follow.energy(across) == pytest.approx(0.5 * HELD_FACTOR * layer.k.sum() * 0.49, rel=1e-12)
+    assert layer.energy(across) == pytest.approx(0.5 * layer.k.sum() * 0.49, rel=1e-12)
+    assert layer.following([1.0, 0.0, 0.0]) is layer
+
+
+@pytest.mark.parametrize("follow", [False, True])
+def test_the_layer_is_part_of_the_potential(follow):
+    """The support's energy, gradient and stiffness enter ``Pi`` consistently: the residual
     is the derivative of the potential, and the tangent that of the residual (central
     differences, 1e-6 and 1e-5 relative), at a random state in which the base has slid
-    (plain P1, whose tangent is the assembled matrix itself)."""
+    (plain P1, whose tangent is the assembled matrix itself); on the layer and following
+    an oblique plate normal (a full 2 x 2 block per node)."""
     _, prob = _block(5.0, divisions=(2, 2, 2), formulation="p1")
+    if follow:
+        prob.support = prob.support.following([0.0, np.cos(0.8), np.sin(0.8)])
     m = Minimiser(prob, SolverOptions())
     rng = np.random.default_rng(3)
     u = 0.2 * rng.standard_normal(prob.X.shape)
@@ -99,3 +128,43 @@ def test_the_layer_is_part_of_the_potential():
     dR = (m.state(u + eps * d, fext, [], hessian=False).R - m.state(u - eps * d, fext, [], hessian=False).R) / (2 * eps)
     K = prob.pattern.matrix(s.ev.data)
     assert np.allclose(K @ d.reshape(-1), dR, rtol=1e-5, atol=1e-9 * np.abs(dR).max())
+
+
+@pytest.mark.slow
+def test_T0_is_measured_on_the_breast_settled_with_its_base_free():
+    """At the upper plate's first touch the base is freed along the plates' normal, the
+    breast settles on the lower plate, and the plate touches it again, so that ``T0`` is
+    the extent above the lower plate of the breast as it is then compressed.  On the
+    phantom's MLO (coarse, ~1.8k nodes): a run that stops at that touch has ``T0`` as its
+    gap (to 1e-9 mm) and its surface's highest point there (within the contact tolerance,
+    0.05 mm), the upper plate carries no force there (below 1e-3 of the breast's weight),
+    and the breast settled lower than it stood on the layer (by more than 1 mm)."""
+    from dataclasses import replace
+    from pathlib import Path
+
+    from regtrack.case import load_case
+    from regtrack.mechanics.protocol import shipped_protocol
+    from regtrack.mechanics.run_view import run_protocol_on_model
+    from tests._models import coarse_model
+
+    phantom = Path(__file__).resolve().parents[1] / "sample_cases" / "phantom01"
+    case = load_case(phantom, deep=False)
+    model = coarse_model(phantom)
+    full = shipped_protocol("mlo")
+    touch = replace(full, steps=(*full.steps[:-1], replace(full.steps[-1], to="contact",
+                                                            target_D=None)))
+    cfg = {"mechanics": case.config("mechanics"), "contact": case.config("contact")}
+    res_t, _ = run_protocol_on_model(model, touch, **cfg)
+    res_f, _ = run_protocol_on_model(model, full, **cfg)
+    assert res_t.complete and res_f.complete
+    standing, settled = res_t.steps[-2], res_t.steps[-1]
+
+    def extent(rec):
+        low = rec.plates["lower"]
+        return float(((model.points + rec.u - low["origin_mm"]) @ np.asarray(low["normal"])).max())
+
+    weight = case.config("mechanics").density_kg_m3 * model.tet_volumes().sum() * 1e-9 * 9.81
+    assert res_f.steps[-1].T0_mm == pytest.approx(settled.gap_mm, abs=1e-9)
+    assert extent(settled) == pytest.approx(settled.gap_mm, abs=0.05)
+    assert abs(settled.contact["upper"]["normal_force_N"]) < 1e-3 * weight
+    assert extent(settled) < extent(standing) - 1.0

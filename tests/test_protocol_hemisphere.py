@@ -46,6 +46,17 @@ def test_shipped_protocol_runs_on_hemisphere(model, view, target, tmp_path):
     for rec in res.steps:
         if "chest_wall_reaction_N" in rec.solver:
             assert np.abs(_balance(model, rec)).max() < MechanicsConfig().solver.balance_tol * max(up, 1.0), rec.name
+    # once both plates hold the breast its base follows them along their normal and is held
+    # across it (regtrack.mechanics.support): the wall carries nothing along the normal, and
+    # the base moves across it by at most 1/HELD_FACTOR of what the layer would let it
+    n = np.asarray(last.plates["lower"]["normal"])
+    t = np.cross([1.0, 0.0, 0.0], n)
+    t /= np.linalg.norm(t)
+    react = np.asarray(last.solver["chest_wall_reaction_N"])
+    assert abs(react @ n) < 1e-3 * up
+    base = model.fixed
+    assert np.abs(last.u[base] @ n).max() > 2.0
+    assert np.abs(last.u[base] @ t).max() < 0.05
     files = write_outputs(res, model, tmp_path, stem=f"hemi_{view}")
     doc = json.loads(files["json"].read_text())
     assert doc["summary"]["D"] == pytest.approx(target)

@@ -10,7 +10,8 @@ thickness between the undeformed and the deformed configuration)
 * ``T_0`` (mm): thickness of the *uncompressed* breast between the plates: the extent,
   along the plate normal ``n``, of the surface nodes lying over the plate (anterior to its
   chest-wall edge) above the lower plate face, taken when the compression plate first
-  touches the breast (standing, resting on the lower plate);
+  touches the breast (standing, resting on the lower plate with its chest-wall base free
+  along the plates' normal, as it is compressed: :mod:`regtrack.mechanics.protocol_run`);
 * ``T`` (mm): the compressed thickness = the gap between the two plate faces.
 
 This is the clinical definition (the compressed breast thickness read on the unit) and

@@ -89,14 +89,15 @@ class ContactConfig:
                                      "the tissue pinched between a plate's rounded edge and the "
                                      "wall is squeezed 5 to 12 mm behind that plane (Pelicano "
                                      "exams 03 and 10): inside the torso")
-    chest_wall_layer_mm: float = param(5.0, "mm", "protocols: the breast base slides on the "
-                                       "chest wall over a layer of its tissue this thick (the "
-                                       "retromammary fat): the chest-wall nodes are held normal "
-                                       "to the wall and tangentially by the layer's shear "
-                                       "stiffness 2 c1 / h per unit area (regtrack.mechanics."
-                                       "support).  0 clamps them (the paper's model), which "
-                                       "pinches the tissue between the plates' edges and the "
-                                       "wall", ge=0.0, le=100.0)
+    chest_wall_layer_mm: float = param(5.0, "mm", "protocols: the chest-wall nodes are held "
+                                       "normal to the wall; while the breast hangs free, "
+                                       "tangentially by the shear stiffness 2 c1 / h per unit "
+                                       "area of a layer of its tissue this thick (the "
+                                       "retromammary fat); once both plates hold it, they follow "
+                                       "the plates along their normal and are held across it "
+                                       "(regtrack.mechanics.support).  0 clamps them (the "
+                                       "paper's model), which the plates cannot compress: the "
+                                       "base is taller than the final gap", ge=0.0, le=100.0)
     behind_wall_warn_mm: float = param(10.0, "mm", "reports: warn (log and the step's "
                                        "'warnings') when a node ends a protocol step deeper "
                                        "than this behind the chest-wall plane (the torso is "

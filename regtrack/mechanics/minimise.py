@@ -207,7 +207,9 @@ def minimiser_from_problem(problem: Problem, *, options=None, progress: Progress
     """The protocol engine's step solver (:data:`.protocol_run.StepSolver`) with
     :func:`minimise_step`: as the :class:`.protocol_run.StepControl` asks, a plate move in
     increments of ``max_increment`` (its plate travel cap), a single increment, or a
-    gravity change in ``1 / initial_increment`` increments.  The stats carry the chest-wall
+    gravity change in ``1 / initial_increment`` increments.  Once both plates hold the
+    breast (``control.plate_normal``) the chest-wall base follows them
+    (:meth:`.support.WallSupport.following`).  The stats carry the chest-wall
     reaction (N) and the force balance; a state whose balance misses ``stall_force_tol``
     (0.5 % by default) is never returned."""
     o = options or problem.config.solver
@@ -222,19 +224,24 @@ def minimiser_from_problem(problem: Problem, *, options=None, progress: Progress
         else:
             n = int(np.ceil(1.0 / o.initial_increment - 1e-9))
         cfg = contribs[0].config if contribs else None
-        u, st, r = minimise_step(problem, u0, gravity=lambda t: g0 + t * (g1 - g0), contacts=contribs,
-                                 n_increments=n, options=o, config=cfg, progress=progress,
-                                 step_name=name, T0_mm=control.T0_mm)
-        out = st.to_dict()
-        fixed = problem.model.fixed
-        if fixed.any():
-            out["chest_wall_reaction_N"] = chest_wall_reaction(problem, u, r).tolist()
-            fb = force_balance(problem, u, r, g1, contribs, o.stall_force_tol)
-            out["force_balance"] = fb
-            if not fb["ok"]:
-                raise SolverDidNotConvergeError(
-                    f"step '{name}': the forces do not balance ({100 * fb['relative']:.2g} % of "
-                    f"{fb['load_N']:.3g} N; allowed {100 * fb['tol']:.2g} %)", load_fraction=1.0,
-                    last_converged=u)
+        layer = problem.support
+        if layer is not None and control.plate_normal is not None:
+            problem.support = layer.following(control.plate_normal)
+        try:
+            u, st, r = minimise_step(problem, u0, gravity=lambda t: g0 + t * (g1 - g0), contacts=contribs,
+                                     n_increments=n, options=o, config=cfg, progress=progress,
+                                     step_name=name, T0_mm=control.T0_mm)
+            out = st.to_dict()
+            if problem.model.fixed.any():
+                out["chest_wall_reaction_N"] = chest_wall_reaction(problem, u, r).tolist()
+                fb = force_balance(problem, u, r, g1, contribs, o.stall_force_tol)
+                out["force_balance"] = fb
+                if not fb["ok"]:
+                    raise SolverDidNotConvergeError(
+                        f"step '{name}': the forces do not balance ({100 * fb['relative']:.2g} % of "
+                        f"{fb['load_N']:.3g} N; allowed {100 * fb['tol']:.2g} %)", load_fraction=1.0,
+                        last_converged=u)
+        finally:
+            problem.support = layer
         return u, out
     return solve

@@ -46,8 +46,9 @@ import scipy.sparse as sp
 from regtrack.errors import SolverDidNotConvergeError
 from regtrack.mechanics.linsolve import LinearSolveError, LinearSolver
 from regtrack.mechanics.potential import PlateEval, PlatePotential
-from regtrack.mechanics.problem import (Problem, chest_wall_reaction, constraint_positions, dof_nodes,
-                                        evaluate, scatter_add, system_matrix)
+from regtrack.mechanics.problem import (FORCE_FLOOR_N, Problem, chest_wall_reaction,
+                                        constraint_positions, dof_nodes, evaluate, scatter_add,
+                                        system_matrix)
 from regtrack.mechanics.types import StepStats
 
 log = logging.getLogger(__name__)
@@ -60,8 +61,6 @@ EXPAND_RATIO = 1.5
 #: Relative tolerance of a Newton correction solved on an earlier factorisation (inexact
 #: Newton: GMRES stops at 1 % of the residual; a fresh factorisation solves to 1e-10).
 FORCING = 1e-2
-#: Absolute floor (N) of the force reference, so that an unloaded state still has one.
-FORCE_FLOOR_N = 1e-9
 
 
 @dataclass

@@ -41,6 +41,9 @@ from regtrack.mechanics.materials import (G_SCALE, ElementMaterials, SkinMateria
 from regtrack.mechanics.support import WallSupport, wall_support
 from regtrack.model.types import BreastModel
 
+#: Absolute floor (N) of a force reference, so that an unloaded state still has one.
+FORCE_FLOOR_N = 1e-9
+
 log = logging.getLogger(__name__)
 
 
@@ -70,7 +73,7 @@ class Problem:
     tissue_c1: TissueStiffness | None = None  # c1 of the tissue elements (tissue_model), summary
     parts: list[parallel.Part] | None = None  # the element kernel's threads (P1, P1-ANP)
     support: WallSupport | None = None  # the sliding chest wall's layer (None: clamped)
-    support_pos: np.ndarray | None = None  # its dofs' diagonal positions in the pattern
+    support_pos: np.ndarray | None = None  # positions of its (y, z) blocks in the pattern
 
     @property
     def n_nodes(self) -> int:
@@ -145,8 +148,8 @@ def build_problem(model: BreastModel, config: MechanicsConfig | None = None, *,
     """Precompute geometry, per-element materials and the fixed tangent pattern.
 
     ``wall_layer_mm``: the chest-wall nodes slide on the wall over a layer that thick
-    (:mod:`.support`: held in ``x`` only, tangentially by the layer's shear stiffness);
-    0 clamps them.
+    (:mod:`.support`: held in ``x``, tangentially by the layer's shear stiffness until
+    the plates hold the breast); 0 clamps them.
 
     Raises :class:`InputFileError` for inverted/degenerate tetrahedra and
     :class:`ConfigError` for an unknown formulation.
@@ -199,7 +202,7 @@ def build_problem(model: BreastModel, config: MechanicsConfig | None = None, *,
     prob = Problem(model, config, X, tets, G, V if W is None else W, mats, skin, sG, sA,
                    skin_material(config) if use_skin else None, pattern, tet_base, skin_pos, groups, w,
                    fixed_dofs, layout, support=support,
-                   support_pos=None if support is None else pattern.diagonal_positions()[support.dofs])
+                   support_pos=None if support is None else pattern.dof_positions(*support.entries()[:2]))
     if not quadratic:
         threads = parallel.thread_count(config.solver.assembly_threads)
         prob.parts = parallel.node_partition(len(X), tets, threads)
@@ -278,7 +281,7 @@ def evaluate(problem: Problem, u: np.ndarray, *, want_k: bool = True, project: b
         ev.f += s.gradient(u)
         ev.energy += s.energy(u)
         if ev.data is not None and want_k:
-            ev.data[problem.support_pos] += s.k
+            ev.data[problem.support_pos] += s.entries()[2]
     return ev
 
 
@@ -310,8 +313,8 @@ def force_balance(problem: Any, u: np.ndarray, r: np.ndarray, g_ms2: np.ndarray,
              float(np.linalg.norm(problem.body_weight.sum() * np.asarray(g_ms2, float)))]
     for c in contribs:
         loads.append(float(np.linalg.norm(c.nodal_forces(u)[0].sum(axis=0))))
-    load = max(loads)
-    rel = imbalance / load if load > 0 else 0.0
+    load = max(*loads, FORCE_FLOOR_N)
+    rel = imbalance / load
     return {"imbalance_N": imbalance, "load_N": load, "relative": rel, "tol": float(tol),
             "ok": bool(rel <= tol)}
 

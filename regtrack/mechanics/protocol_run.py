@@ -16,7 +16,10 @@ near the wall is reported apart (``edge_band_mm``; ``upper_body_force_N`` in
 :func:`regtrack.mechanics.run_view.summarise`).
 
 Targets of an upper-plate move: the plate is first brought to touch the breast (no
-force), which measures the uncompressed thickness ``T_0`` (plate gap at first touch);
+force).  At the upper plate's first touch both plates hold the breast, so its chest-wall
+base is freed along their normal (:mod:`.support`) and the breast settles on the lower
+plate under its weight; the plate then touches it again, which measures the uncompressed
+thickness ``T_0`` (plate gap at that touch) in the condition it is compressed in;
 then it travels to the gap ``(1 - D) T_0`` (degree), the given gap (gap), or until the
 plate force reaches the target within ``force_tol`` (force: marching + secant, each trial
 solved from the last accepted state).  After every step the penetration guard rail
@@ -54,11 +57,15 @@ class StepControl:
     max_increment : the largest pseudo-time increment (a plate move's travel cap / its
         distance), or None for the solver's own gravity increments.
     T0_mm : the uncompressed thickness, for the progress's ``D = 1 - gap / T0``.
+    plate_normal : the plates' normal (3,) (model frame) once both plates hold the breast
+        (from the upper plate's touch on): the chest-wall base then follows them along it
+        (:meth:`.support.WallSupport.following`); None while the breast hangs free.
     """
 
     single: bool = False
     max_increment: float | None = None
     T0_mm: float | None = None
+    plate_normal: tuple[float, float, float] | None = None
 
 
 #: ``solve(u0, g0, g1, contacts, step_name, control) -> (u, stats)``: one protocol step
@@ -168,6 +175,7 @@ class ProtocolRunner:
         self.loads: dict[str, np.ndarray] = {}
         self.records: list[StepRecord] = []
         self._tmean0: float | None = None
+        self._held = False  # both plates hold the breast (the upper one has touched it)
 
     # -- one solve ------------------------------------------------------------------
     def _solve(self, g_end: np.ndarray, name: str, *, single: bool = False,
@@ -176,7 +184,8 @@ class ProtocolRunner:
         for c in contribs:
             c.begin_step(name)
         control = StepControl(single=single, T0_mm=T0_mm, max_increment=(
-            max_increment if max_increment is not None and max_increment < 1.0 else None))
+            max_increment if max_increment is not None and max_increment < 1.0 else None),
+            plate_normal=tuple(float(v) for v in self.n) if self._held else None)
         u, stats = self.solve(self.u, self.g, g_end, contribs, name, control)
         self.u = np.asarray(u, float).reshape(-1, 3)
         self.g = np.asarray(g_end, float)
@@ -274,6 +283,13 @@ class ProtocolRunner:
                 stats = self._move(pc, float(step.distance_mm), step.name)
             else:
                 _touch(pc, self.u)
+                if step.plate == "upper" and not self._held:
+                    # both plates hold the breast from here on: its base is freed along
+                    # their normal, the breast settles on the lower plate, and the upper
+                    # plate touches it again, so that T0 is measured as it is compressed
+                    self._held = True
+                    stats = self._solve(self.g, step.name)
+                    _touch(pc, self.u)
                 if step.to != "contact":
                     if step.plate != "upper":
                         raise ConfigError(f"step '{step.name}': to = '{step.to}' moves the upper "
@@ -281,14 +297,15 @@ class ProtocolRunner:
                     T0 = _gap(self.plates, self.n)
                     self._tmean0 = self._mean_thickness()
                     if step.to == "force":
-                        stats = self._force_target(pc, step, T0)
+                        stats = _merge_stats(stats, self._force_target(pc, step, T0))
                     else:
                         gap = (comp.gap_for_degree(T0, step.target_D) if step.to == "degree"
                                else float(step.target_gap_mm))
                         if not 0 < gap < T0:
                             raise ConfigError(f"step '{step.name}': target gap {gap:.2f} mm must "
                                               f"be below the uncompressed thickness {T0:.2f} mm")
-                        stats = self._move(pc, T0 - gap, step.name, T0_mm=T0)
+                        stats = _merge_stats(stats, self._move(pc, T0 - gap, step.name,
+                                                               T0_mm=T0))
         pen, reps = self._penetration()
         if pen > self.config.max_penetration_mm:
             raise ResultCheckError(
