@@ -102,6 +102,26 @@ def test_following_the_plates_frees_the_base_along_their_normal_and_holds_it_acr
     assert layer.following([1.0, 0.0, 0.0]) is layer
 
 
+@pytest.mark.parametrize("s", [0.0, 0.25, 0.5, 1.0])
+def test_a_partial_release_ramps_the_stiffness_along_the_normal_to_zero(s):
+    """``following(n, released=s)``: the base's stiffness along the plates' normal is the
+    layer's times ``1 - s`` and across it the layer's times ``1 - s + s F_h`` (energies of
+    a unit move, exact to rounding); ``s = 0`` is the layer, ``s = 1`` the full release."""
+    from regtrack.mechanics.support import HELD_FACTOR
+
+    model, prob = _block(5.0)
+    layer = prob.support
+    a = np.radians(40.0)
+    part = layer.following([0.0, np.cos(a), np.sin(a)], released=s)
+    base = model.fixed
+    along, across = np.zeros_like(prob.X), np.zeros_like(prob.X)
+    along[base, 1:] = [np.cos(a), np.sin(a)]
+    across[base, 1:] = [-np.sin(a), np.cos(a)]
+    full = 0.5 * layer.k.sum()
+    assert part.energy(along) == pytest.approx((1 - s) * full, rel=1e-12, abs=1e-12 * full)
+    assert part.energy(across) == pytest.approx((1 - s + s * HELD_FACTOR) * full, rel=1e-12)
+
+
 @pytest.mark.parametrize("follow", [False, True])
 def test_the_layer_is_part_of_the_potential(follow):
     """The support's energy, gradient and stiffness enter ``Pi`` consistently: the residual

@@ -59,6 +59,7 @@ def minimise_step(problem: Problem, u0: np.ndarray, *, gravity: Callable[[float]
                   contacts: Sequence = (), n_increments: int = 1, options=None, config=None,
                   dirichlet: Callable[[float], tuple] | None = None,
                   forces: Callable[[float], np.ndarray] | None = None, T0_mm: float | None = None,
+                  support: Callable[[float], object] | None = None,
                   progress: Progress | None = None, step_name: str = ""
                   ) -> tuple[np.ndarray, StepStats, np.ndarray]:
     """Run one load step from ``u0`` (N, 3) mm over ``n_increments`` equal increments of
@@ -71,7 +72,9 @@ def minimise_step(problem: Problem, u0: np.ndarray, *, gravity: Callable[[float]
     prescribed besides the model's fixed nodes (which keep their ``u0``), set at the start
     of each increment.  ``forces(t)``: dead (non-follower) nodal forces (N, 3) in N, a
     prescribed point, edge or traction load (:func:`.loads.traction_forces`), whose
-    potential ``-f . u`` joins the weight's.  ``progress(step_name, t, force_N=..., D=...)`` after each increment:
+    potential ``-f . u`` joins the weight's.  ``support(t)``: the chest-wall support
+    (:class:`.support.WallSupport`) at pseudo-time ``t``, a support released over the step
+    as a load is applied (None: the problem's own, unchanged).  ``progress(step_name, t, force_N=..., D=...)`` after each increment:
     the upper plate's force (N) and, given the uncompressed thickness ``T0_mm``, the
     compression degree ``1 - gap / T0``.  Raises :class:`SolverDidNotConvergeError` with
     ``load_fraction`` and ``last_converged`` when an increment fails at the smallest
@@ -89,9 +92,12 @@ def minimise_step(problem: Problem, u0: np.ndarray, *, gravity: Callable[[float]
     lagged: list = []  # each plate's multipliers and bound pressures at that start
     t, dt = 0.0, 1.0 / max(int(n_increments), 1)
     base, min_dt = dt, dt / 64.0
+    own_support = problem.support
     with serial_openblas():
         while t < 1.0 - 1e-12:
             t_new = min(1.0, t + dt)
+            if support is not None:
+                problem.support = support(t_new)
             try:
                 starts = [u]
                 if previous is not None:  # the path so far, extrapolated linearly
@@ -125,6 +131,7 @@ def minimise_step(problem: Problem, u0: np.ndarray, *, gravity: Callable[[float]
                 pl.commit(u)
             if progress is not None:
                 progress(step_name, t, **_progress_info(plates, s, T0_mm))
+    problem.support = own_support
     m.stats.t_total = time.perf_counter() - t_start
     return u, m.stats, R.reshape(-1, 3)
 
@@ -209,7 +216,8 @@ def minimiser_from_problem(problem: Problem, *, options=None, progress: Progress
     increments of ``max_increment`` (its plate travel cap), a single increment, or a
     gravity change in ``1 / initial_increment`` increments.  Once both plates hold the
     breast (``control.plate_normal``) the chest-wall base follows them
-    (:meth:`.support.WallSupport.following`).  The stats carry the chest-wall
+    (:meth:`.support.WallSupport.following`), released over the step from the layer when
+    ``control.release``.  The stats carry the chest-wall
     reaction (N) and the force balance; a state whose balance misses ``stall_force_tol``
     (0.5 % by default) is never returned."""
     o = options or problem.config.solver
@@ -225,12 +233,16 @@ def minimiser_from_problem(problem: Problem, *, options=None, progress: Progress
             n = int(np.ceil(1.0 / o.initial_increment - 1e-9))
         cfg = contribs[0].config if contribs else None
         layer = problem.support
+        ramp = None
         if layer is not None and control.plate_normal is not None:
             problem.support = layer.following(control.plate_normal)
+            if control.release:
+                def ramp(t):
+                    return layer.following(control.plate_normal, released=t)
         try:
             u, st, r = minimise_step(problem, u0, gravity=lambda t: g0 + t * (g1 - g0), contacts=contribs,
                                      n_increments=n, options=o, config=cfg, progress=progress,
-                                     step_name=name, T0_mm=control.T0_mm)
+                                     step_name=name, T0_mm=control.T0_mm, support=ramp)
             out = st.to_dict()
             if problem.model.fixed.any():
                 out["chest_wall_reaction_N"] = chest_wall_reaction(problem, u, r).tolist()

@@ -60,12 +60,15 @@ class StepControl:
     plate_normal : the plates' normal (3,) (model frame) once both plates hold the breast
         (from the upper plate's touch on): the chest-wall base then follows them along it
         (:meth:`.support.WallSupport.following`); None while the breast hangs free.
+    release : the step releases the base: its support goes from the layer to following
+        the plates over the step's pseudo-time (the settle after the upper plate's touch).
     """
 
     single: bool = False
     max_increment: float | None = None
     T0_mm: float | None = None
     plate_normal: tuple[float, float, float] | None = None
+    release: bool = False
 
 
 #: ``solve(u0, g0, g1, contacts, step_name, control) -> (u, stats)``: one protocol step
@@ -179,13 +182,15 @@ class ProtocolRunner:
 
     # -- one solve ------------------------------------------------------------------
     def _solve(self, g_end: np.ndarray, name: str, *, single: bool = False,
-               max_increment: float | None = None, T0_mm: float | None = None) -> dict:
+               max_increment: float | None = None, T0_mm: float | None = None,
+               release: bool = False) -> dict:
         contribs = list(self.contacts.values())
         for c in contribs:
             c.begin_step(name)
         control = StepControl(single=single, T0_mm=T0_mm, max_increment=(
             max_increment if max_increment is not None and max_increment < 1.0 else None),
-            plate_normal=tuple(float(v) for v in self.n) if self._held else None)
+            plate_normal=tuple(float(v) for v in self.n) if self._held else None,
+            release=release)
         u, stats = self.solve(self.u, self.g, g_end, contribs, name, control)
         self.u = np.asarray(u, float).reshape(-1, 3)
         self.g = np.asarray(g_end, float)
@@ -284,11 +289,12 @@ class ProtocolRunner:
             else:
                 _touch(pc, self.u)
                 if step.plate == "upper" and not self._held:
-                    # both plates hold the breast from here on: its base is freed along
-                    # their normal, the breast settles on the lower plate, and the upper
-                    # plate touches it again, so that T0 is measured as it is compressed
+                    # both plates hold the breast from here on: its base is released along
+                    # their normal over a step in which the breast settles on the lower
+                    # plate, and the upper plate touches it again, so that T0 is measured
+                    # as it is compressed
                     self._held = True
-                    stats = self._solve(self.g, step.name)
+                    stats = self._solve(self.g, step.name, release=True)
                     _touch(pc, self.u)
                 if step.to != "contact":
                     if step.plate != "upper":

@@ -15,7 +15,9 @@ the torso is rigid) and, tangentially:
 
 * **once both plates hold the breast** (from the upper plate's first touch, after which
   the breast settles on the lower plate before its uncompressed thickness is measured:
-  :mod:`.protocol_run`; :meth:`WallSupport.following`): free along
+  :mod:`.protocol_run`; :meth:`WallSupport.following`; the settle releases the base
+  gradually, its stiffness along the normal ramped from the layer's to zero over the
+  step's pseudo-time, as any load is applied): free along
   ``n_w``, the plates' normal in the wall's plane, and held across it, along
   ``t = x \times n_w``:
 
@@ -93,16 +95,20 @@ class WallSupport:
         cols = np.tile(d, (1, 2)).reshape(-1)
         return rows, cols, (self.k[:, None, None] * self.unit[None]).reshape(-1)
 
-    def following(self, plate_normal) -> WallSupport:
+    def following(self, plate_normal, released: float = 1.0) -> WallSupport:
         """The support once both plates hold the breast: free along the plates' normal
-        (3,) (model frame) projected on the wall, held across it.  A normal along the
-        wall's own (no in-wall component) leaves the layer as it is."""
+        (3,) (model frame) projected on the wall, held across it.  ``released`` in [0, 1]
+        blends it with this layer, ``U = (1 - s) I + s F_h t t^T``: the release as a load
+        applied over a step (the stiffness along the normal goes from the layer's to 0).  A
+        normal along the wall's own (no in-wall component) leaves the layer as it is."""
         n = np.asarray(plate_normal, float)[1:]
         norm = float(np.linalg.norm(n))
         if norm < 1e-6:
             return self
         t = np.array([-n[1], n[0]]) / norm
-        return WallSupport(self.nodes, self.k, self.layer_mm, HELD_FACTOR * np.outer(t, t))
+        s = float(np.clip(released, 0.0, 1.0))
+        return WallSupport(self.nodes, self.k, self.layer_mm,
+                           (1.0 - s) * self.unit + s * HELD_FACTOR * np.outer(t, t))
 
 
 def wall_face(points: np.ndarray, tets: np.ndarray, fixed: np.ndarray) -> np.ndarray:
