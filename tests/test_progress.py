@@ -55,6 +55,19 @@ def test_the_live_lines_come_and_go():
         assert p.bar.tasks == [] and p.tasks == {}
 
 
+def test_a_stage_line_is_not_wrapped_in_a_log_file(tmp_path):
+    """A stage line longer than the console's width (80 columns without a terminal) is
+    written on one line."""
+    from rich.console import Console
+
+    log = tmp_path / "run.log"
+    msg = "register CC (paper mode): golden-section search of the in-plane rotation " * 2
+    with open(log, "w") as fh, SimulationProgress(Console(file=fh, force_terminal=False)) as p:
+        p.say(msg)
+    lines = [ln for ln in log.read_text().splitlines() if ln.strip()]
+    assert len(lines) == 1 and msg.strip() in lines[0]
+
+
 class _Cache:
     def lookup(self, stage, key):
         return None

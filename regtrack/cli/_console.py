@@ -87,8 +87,10 @@ class SimulationProgress:
             h.removeFilter(self.once)
 
     def say(self, msg: str) -> None:
-        """A stage line, with the seconds since the start."""
-        self.console.print(f"[dim]{time.perf_counter() - self.t0:7.1f} s[/dim]  {msg}")
+        """A stage line, with the seconds since the start; never wrapped (a log file or a
+        pipe has no width, and a wrapped line splits a message a user greps for)."""
+        self.console.print(f"[dim]{time.perf_counter() - self.t0:7.1f} s[/dim]  {msg}",
+                           soft_wrap=True)
 
     def increment(self, view: str, step: str | None, t: float, **info: Any) -> None:
         """A converged increment of ``view``'s ``step`` at load fraction ``t``; ``step``
