@@ -93,45 +93,47 @@ def minimise_step(problem: Problem, u0: np.ndarray, *, gravity: Callable[[float]
     t, dt = 0.0, 1.0 / max(int(n_increments), 1)
     base, min_dt = dt, dt / 64.0
     own_support = problem.support
-    with serial_openblas():
-        while t < 1.0 - 1e-12:
-            t_new = min(1.0, t + dt)
-            if support is not None:
-                problem.support = support(t_new)
-            try:
-                starts = [u]
-                if previous is not None:  # the path so far, extrapolated linearly
-                    starts.append(u + (t_new - t) / previous[1] * (u - previous[0]))
-                    _predict(plates, lagged, (t_new - t) / previous[1])
-                if dirichlet is not None:
-                    dofs, vals = dirichlet(t_new)
-                    for k, v in enumerate(starts):
-                        v = v.copy().reshape(-1)
-                        v[np.asarray(dofs, np.int64)] = vals
-                        starts[k] = v.reshape(-1, 3)
-                s = _increment(m, starts, t_new, _external(problem, gravity, forces), contacts, plates, cfg)
-            except SolverDidNotConvergeError as exc:
+    try:
+        with serial_openblas():
+            while t < 1.0 - 1e-12:
+                t_new = min(1.0, t + dt)
+                if support is not None:
+                    problem.support = support(t_new)
+                try:
+                    starts = [u]
+                    if previous is not None:  # the path so far, extrapolated linearly
+                        starts.append(u + (t_new - t) / previous[1] * (u - previous[0]))
+                        _predict(plates, lagged, (t_new - t) / previous[1])
+                    if dirichlet is not None:
+                        dofs, vals = dirichlet(t_new)
+                        for k, v in enumerate(starts):
+                            v = v.copy().reshape(-1)
+                            v[np.asarray(dofs, np.int64)] = vals
+                            starts[k] = v.reshape(-1, 3)
+                    s = _increment(m, starts, t_new, _external(problem, gravity, forces), contacts, plates, cfg)
+                except SolverDidNotConvergeError as exc:
+                    for pl in plates:
+                        pl.begin(u)
+                    if dt / 2 < min_dt:
+                        raise SolverDidNotConvergeError(
+                            f"step '{step_name}': no equilibrium at t = {t_new:.4g} from t = {t:.4g} "
+                            f"(increments down to {dt:.3g}): {exc}", load_fraction=t,
+                            last_converged=u) from exc
+                    dt /= 2
+                    m.stats.cutbacks += 1
+                    log.info("%s: increment to t = %.4g cut back (%s)", step_name, t_new, exc)
+                    continue
+                previous = (u, t_new - t)
+                u, t, R = s.u, t_new, s.R
+                dt = min(2.0 * dt, base)
+                m.stats.increments += 1
+                lagged = [(st["lam"], st["pconv"]) for st in (pl.c.get_state() for pl in plates)]
                 for pl in plates:
-                    pl.begin(u)
-                if dt / 2 < min_dt:
-                    raise SolverDidNotConvergeError(
-                        f"step '{step_name}': no equilibrium at t = {t_new:.4g} from t = {t:.4g} "
-                        f"(increments down to {dt:.3g}): {exc}", load_fraction=t,
-                        last_converged=u) from exc
-                dt /= 2
-                m.stats.cutbacks += 1
-                log.info("%s: increment to t = %.4g cut back (%s)", step_name, t_new, exc)
-                continue
-            previous = (u, t_new - t)
-            u, t, R = s.u, t_new, s.R
-            dt = min(2.0 * dt, base)
-            m.stats.increments += 1
-            lagged = [(st["lam"], st["pconv"]) for st in (pl.c.get_state() for pl in plates)]
-            for pl in plates:
-                pl.commit(u)
-            if progress is not None:
-                progress(step_name, t, **_progress_info(plates, s, T0_mm))
-    problem.support = own_support
+                    pl.commit(u)
+                if progress is not None:
+                    progress(step_name, t, **_progress_info(plates, s, T0_mm))
+    finally:
+        problem.support = own_support
     m.stats.t_total = time.perf_counter() - t_start
     return u, m.stats, R.reshape(-1, 3)
 

@@ -17,8 +17,8 @@ near the wall is reported apart (``edge_band_mm``; ``upper_body_force_N`` in
 
 Targets of an upper-plate move: the plate is first brought to touch the breast (no
 force).  At the upper plate's first touch both plates hold the breast, so its chest-wall
-base is freed along their normal (:mod:`.support`) and the breast settles on the lower
-plate under its weight; the plate then touches it again, which measures the uncompressed
+base is released along their normal (:mod:`.support`), gradually over a step in which the
+breast settles on the lower plate under its weight; the plate then touches it again, which measures the uncompressed
 thickness ``T_0`` (plate gap at that touch) in the condition it is compressed in;
 then it travels to the gap ``(1 - D) T_0`` (degree), the given gap (gap), or until the
 plate force reaches the target within ``force_tol`` (force: marching + secant, each trial
