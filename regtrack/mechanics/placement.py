@@ -10,9 +10,9 @@ the whole plate surface (rounded edge included: a thick chest-wall base behind t
 would otherwise start inside the plate, 6.5 mm deep on the phantom's MLO with
 ``posterior_edge_mm = 10``).
 
-Chest wall: the chest-wall nodes slide on the wall over a soft layer (``[contact]
-chest_wall_layer_mm``, :mod:`.support`): held normal to it, tangentially by the layer's
-shear stiffness.  Clamped (layer 0, the paper's model), they cannot follow the plates,
+Chest wall: the chest-wall nodes are held normal to the wall and tangentially by a soft
+layer while the breast hangs free, and follow the plates along their normal once both hold
+it (``[contact] chest_wall_layer_mm``, :mod:`.support`).  Clamped (layer 0, the paper's model), they cannot follow the plates,
 whose rounded edges reach to within ``posterior_edge_mm`` of them: the fixed section is
 taller than the final plate gap on every exam, and the tissue between a plate's edge and
 the clamped nodes is squeezed without limit (docs/performance.md).  ``[contact]

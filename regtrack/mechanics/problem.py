@@ -147,7 +147,7 @@ def build_problem(model: BreastModel, config: MechanicsConfig | None = None, *,
                   wall_layer_mm: float = 0.0) -> Problem:
     """Precompute geometry, per-element materials and the fixed tangent pattern.
 
-    ``wall_layer_mm``: the chest-wall nodes slide on the wall over a layer that thick
+    ``wall_layer_mm``: the chest-wall nodes lie on the wall on a layer that thick
     (:mod:`.support`: held in ``x``, tangentially by the layer's shear stiffness until
     the plates hold the breast); 0 clamps them.
 
