@@ -48,6 +48,7 @@ from regtrack.mechanics.linsolve import serial_openblas
 from regtrack.mechanics.newton import Minimiser, NewtonState
 from regtrack.mechanics.potential import PlatePotential
 from regtrack.mechanics.problem import Problem, body_force, chest_wall_reaction, force_balance
+from regtrack.mechanics.support import WallSupport
 from regtrack.mechanics.types import StepStats
 
 log = logging.getLogger(__name__)
@@ -59,7 +60,7 @@ def minimise_step(problem: Problem, u0: np.ndarray, *, gravity: Callable[[float]
                   contacts: Sequence = (), n_increments: int = 1, options=None, config=None,
                   dirichlet: Callable[[float], tuple] | None = None,
                   forces: Callable[[float], np.ndarray] | None = None, T0_mm: float | None = None,
-                  support: Callable[[float], object] | None = None,
+                  support: Callable[[float], WallSupport] | None = None,
                   progress: Progress | None = None, step_name: str = ""
                   ) -> tuple[np.ndarray, StepStats, np.ndarray]:
     """Run one load step from ``u0`` (N, 3) mm over ``n_increments`` equal increments of
