@@ -27,7 +27,8 @@ What is read from the children (nothing else: the solver's internals may change)
   ``meta.preparation.tumour_volume_by_side_mm3`` (to mesh the other breast too);
 * ``regtrack simulate``: its exit code and the result JSON's ``summary`` fields
   ``complete``, ``D``, ``upper_force_N``, ``force_imbalance_rel``, ``iterations``,
-  ``max_penetration_mm``, ``plate_gap_mm``, the plate normal of ``plate_frame`` and the
+  ``max_penetration_mm``, ``skin_overlap_mm`` (the deepest skin node inside the tissue,
+  :mod:`regtrack.mechanics.overlap`), ``plate_gap_mm``, the plate normal of ``plate_frame`` and the
   top-level ``error``; from the model, the fixed (chest-wall) nodes, for the height of the
   chest-wall section along the plate normal over the final gap (``wall_section_to_gap``).  Every field is optional: a missing
   one is left empty in the table.
@@ -225,6 +226,7 @@ def simulate_model(m: Model, view: str, D: float | None, *, timeout_s: float, th
         "force_balance_rel": s.get("force_imbalance_rel"), "D": s.get("D"),
         "plate_force_N": s.get("upper_force_N"), "iterations": s.get("iterations"),
         "max_penetration_mm": s.get("max_penetration_mm"),
+        "skin_overlap_mm": s.get("skin_overlap_mm"),
         "wall_s": r.wall_s, "cpu_s": r.cpu_s, "peak_rss_mb": r.peak_rss_mb, "error": err,
     }
     out.mkdir(parents=True, exist_ok=True)
@@ -253,7 +255,8 @@ MESH_COLS = ["exam", "side", "completed", "nodes", "tets", "min_dihedral_deg", "
              "wall_s", "cpu_s", "peak_rss_mb", "exit_code", "error"]
 SIM_COLS = ["exam", "side", "view", "D_setting", "nodes", "completed", "wall_section_to_gap",
             "force_balance_rel", "D", "plate_force_N",
-            "iterations", "max_penetration_mm", "wall_s", "cpu_s", "peak_rss_mb", "error"]
+            "iterations", "max_penetration_mm", "skin_overlap_mm", "wall_s", "cpu_s", "peak_rss_mb",
+            "error"]
 
 
 def fmt(v, col: str = "") -> str:
@@ -293,8 +296,8 @@ def summary_lines(rows: list[dict], groups: list[str], *, worst_abs: tuple[str, 
     """Median and worst (largest; largest magnitude for ``worst_abs``) per group of ``groups``
     keys, over the completed runs; the count of completed runs."""
     keys = sorted({tuple(r[g] for g in groups) for r in rows})
-    metrics = ["nodes", "force_balance_rel", "iterations", "wall_s", "cpu_s", "peak_rss_mb",
-               "worst_tumour_volume_error", "volume_error"]
+    metrics = ["nodes", "force_balance_rel", "iterations", "skin_overlap_mm", "wall_s", "cpu_s",
+               "peak_rss_mb", "worst_tumour_volume_error", "volume_error"]
     out = ["| " + " | ".join(groups) + " | completed | " + " | ".join(f"{m} median / worst" for m in metrics if any(m in r for r in rows)) + " |"]
     out.append("|" + "---|" * (len(groups) + 1 + sum(any(m in r for r in rows) for m in metrics)))
     for k in keys:

@@ -103,6 +103,12 @@ class ContactConfig:
                                        "than this behind the chest-wall plane (the torso is "
                                        "there; see chest_wall_contact); every step reports the "
                                        "depth as behind_chest_wall_mm", gt=0.0)
+    skin_overlap_warn_mm: float = param(1.0, "mm", "reports: warn (log and the step's "
+                                        "'warnings') when a skin node ends a protocol step "
+                                        "deeper than this inside the tissue: the skin folded "
+                                        "through itself, which the model (no self-contact) does "
+                                        "not prevent; every step reports the depth as "
+                                        "skin_overlap_mm (regtrack.mechanics.overlap)", gt=0.0)
     edge_band_mm: float = param(10.0, "mm", "reports: the plate force carried by the skin "
                                 "that lay (reference configuration) within this distance in "
                                 "front of the plate's chest-wall edge, or behind it, is "

@@ -43,6 +43,7 @@ from regtrack.errors import ConfigError, ResultCheckError, SolverDidNotConvergeE
 from regtrack.mechanics import compression as comp
 from regtrack.mechanics.contact import ContactConfig, PlateContact
 from regtrack.mechanics.linsolve import serial_openblas
+from regtrack.mechanics.overlap import skin_overlap
 from regtrack.mechanics.placement import BodySetup, behind_chest_wall, chest_wall, make_plates
 from regtrack.mechanics.protocol import G_STANDARD, Protocol, Step
 
@@ -107,6 +108,8 @@ class StepRecord:
     solver: dict = field(default_factory=dict)
     behind_chest_wall_mm: float | None = None
     behind_chest_wall_nodes: int | None = None
+    skin_overlap_mm: float | None = None
+    skin_overlap_nodes: int | None = None
     warnings: list[str] = field(default_factory=list)
 
     def to_dict(self) -> dict:
@@ -117,6 +120,8 @@ class StepRecord:
                 "max_penetration_mm": self.max_penetration_mm,
                 "behind_chest_wall_mm": self.behind_chest_wall_mm,
                 "behind_chest_wall_nodes": self.behind_chest_wall_nodes,
+                "skin_overlap_mm": self.skin_overlap_mm,
+                "skin_overlap_nodes": self.skin_overlap_nodes,
                 "warnings": self.warnings, "solver": self.solver}
 
 
@@ -330,6 +335,16 @@ class ProtocolRunner:
                    f"{self.config.behind_wall_warn_mm:g}): tissue inside the torso; its plate "
                    "force and shape near the wall are not physical (see [contact] "
                    "chest_wall_contact)")
+            log.warning(msg)
+            rec.warnings.append(msg)
+        depth, count = skin_overlap(self.body.points, self.body.tets, self.u, self.body.surface)
+        rec.skin_overlap_mm, rec.skin_overlap_nodes = depth, count
+        if depth > self.config.skin_overlap_warn_mm:
+            msg = (f"step '{step.name}': {count} skin nodes end inside the tissue, the deepest "
+                   f"{depth:.1f} mm (over [contact] skin_overlap_warn_mm = "
+                   f"{self.config.skin_overlap_warn_mm:g}): the skin folds through itself there "
+                   "(the model has no self-contact), so the shape and stresses there are not "
+                   "physical")
             log.warning(msg)
             rec.warnings.append(msg)
         if T0 is not None:

@@ -29,7 +29,7 @@ from regtrack.config import parse_section, to_table
 from regtrack.errors import ConfigError, ResultCheckError, SolverDidNotConvergeError
 from regtrack.mechanics.contact import ContactConfig
 from regtrack.mechanics.protocol import Protocol, protocol_for_view
-from regtrack.mechanics.placement import BodySetup
+from regtrack.mechanics.placement import BodySetup, skin_contact
 from regtrack.mechanics.protocol_run import ProtocolResult, ProtocolRunner
 from regtrack.model.types import BreastModel
 
@@ -82,6 +82,7 @@ def run_protocol_on_model(model: BreastModel, protocol: Protocol, *, mechanics: 
     t1 = time.perf_counter()
     step_solver = minimiser_from_problem(problem, progress=progress)
     body = body_from_model(model, problem.mats.tissue_young_mpa, sliding=problem.support is not None)
+    problem.self_contact = skin_contact(body, contact)
     runner = ProtocolRunner(body, protocol, step_solver, config=contact)
     result = runner.run()
     result.materials = problem.tissue_c1.info
@@ -163,13 +164,16 @@ def summarise(result: ProtocolResult, timing: dict | None = None) -> dict:
     the rest, ``upper_force_N - upper_edge_force_N``: the force of the breast between the
     plates, the part that does not grow with mesh refinement.  ``behind_chest_wall_mm``: the
     deepest any node ended a step behind the chest-wall plane
-    (:func:`regtrack.mechanics.placement.behind_chest_wall`); ``warnings``: every step's
-    warnings (``[contact] behind_wall_warn_mm``).
+    (:func:`regtrack.mechanics.placement.behind_chest_wall`); ``skin_overlap_mm``: the
+    deepest any skin node ended a step inside the tissue, and ``skin_overlap_nodes`` how many
+    at the last step (:func:`regtrack.mechanics.overlap.skin_overlap`); ``warnings``: every
+    step's warnings (``[contact] behind_wall_warn_mm``, ``skin_overlap_warn_mm``).
     ``force_imbalance_rel``: the largest over the steps of the global force imbalance
     (the residual's resultant over the free nodes) relative to the step's largest load
     (:func:`regtrack.mechanics.problem.force_balance`; a step above ``[mechanics.solver]
     stall_force_tol`` is refused), None without fixed nodes."""
     behind = [s.behind_chest_wall_mm for s in result.steps if s.behind_chest_wall_mm is not None]
+    overlap = [s.skin_overlap_mm for s in result.steps if s.skin_overlap_mm is not None]
     balance = [s.solver["force_balance"]["relative"] for s in result.steps
                if isinstance(s.solver.get("force_balance"), dict)]
     last = result.steps[-1]
@@ -187,6 +191,8 @@ def summarise(result: ProtocolResult, timing: dict | None = None) -> dict:
             "iterations": sum(s.solver.get("iterations", 0) for s in result.steps),
             "cutbacks": sum(s.solver.get("cutbacks", 0) for s in result.steps),
             "behind_chest_wall_mm": max(behind) if behind else None,
+            "skin_overlap_mm": max(overlap) if overlap else None,
+            "skin_overlap_nodes": last.skin_overlap_nodes,
             "force_imbalance_rel": max(balance) if balance else None,
             "warnings": [w for s in result.steps for w in s.warnings],
             "tissue": result.materials, "timing_s": timing or {}}
