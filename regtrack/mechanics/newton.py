@@ -19,9 +19,6 @@ Newton's method with a guaranteed descent (Nocedal & Wright, *Numerical Optimiza
   remains for a singular projected Hessian);
 * a correction computed on an earlier (positive definite) factorisation is accepted only
   if it is a descent direction, ``R . du < 0``;
-* the skin's self-contact penalty (:mod:`.overlap`), when the problem has one, joins the
-  potential with its Gauss-Newton Hessian, whose couplings beyond the mesh's pattern
-  extend the system matrix;
 * the step length is chosen by backtracking on the potential itself (Armijo: ``Pi(u + a
   du) <= Pi(u) + c a R . du``); an inverted element makes ``Pi`` infinite;
 * an increment has converged when the residual ``R = dPi/du`` on the free dofs meets
@@ -48,7 +45,6 @@ import scipy.sparse as sp
 
 from regtrack.errors import SolverDidNotConvergeError
 from regtrack.mechanics.linsolve import LinearSolveError, LinearSolver
-from regtrack.mechanics.overlap import SelfEval
 from regtrack.mechanics.potential import PlateEval, PlatePotential
 from regtrack.mechanics.problem import (FORCE_FLOOR_N, Problem, chest_wall_reaction,
                                         constraint_positions, dof_nodes, evaluate, scatter_add,
@@ -77,7 +73,6 @@ class NewtonState:
     plates: list[PlateEval]
     ev: object = None
     f_ref: float = 0.0
-    skin: SelfEval | None = None
 
 
 class Minimiser:
@@ -101,7 +96,6 @@ class Minimiser:
         self._diag = problem.pattern.diagonal_positions()
         self._cons = constraint_positions(problem, self.fixed_dofs)
         self.n_groups = 0 if problem.groups is None else problem.groups.n_groups
-        self._pairs: np.ndarray | None = None  # node pairs coupled by self-contact this step
         # every iteration lowers the potential, so a minimisation may take longer than a
         # Newton solve of the residual before an increment is halved
         self.max_iterations = 4 * options.max_iterations
@@ -126,17 +120,12 @@ class Minimiser:
             energy += e.energy
             R = R + e.grad
             fc = max(fc, float(np.linalg.norm(e.grad.reshape(-1, 3).sum(axis=0))))
-        skin = None
-        if self.p.self_contact is not None:
-            skin = self.p.self_contact.evaluate(ue, hessian=hessian)
-            energy += skin.energy
-            R = R + skin.grad
         self.stats.t_assembly += time.perf_counter() - t0
         weight = float(np.linalg.norm(fext.reshape(-1, 3).sum(axis=0)))
         reaction = float(np.linalg.norm(chest_wall_reaction(self.p, ue, R)))
         f_ref = max(weight, fc, reaction, float(np.linalg.norm(ev.f)) / np.sqrt(len(ev.f)),
                     FORCE_FLOOR_N)
-        return NewtonState(ue.reshape(-1, 3), energy, R, pe, ev, f_ref, skin)
+        return NewtonState(ue.reshape(-1, 3), energy, R, pe, ev, f_ref)
 
     def converged(self, s: NewtonState) -> bool:
         norm = float(np.linalg.norm(s.R[self.free]))
@@ -158,44 +147,13 @@ class Minimiser:
         for e in s.plates:
             if e.hess is not None and e.hess.nnz:
                 scatter_add(data, pat.dof_positions(e.hess.row, e.hess.col), e.hess.data)
-        extra = None
-        if s.skin is not None and s.skin.hess is not None:
-            rows, cols, vals = s.skin.hess
-            pos = pat.dof_positions(rows, cols)
-            inside = pos >= 0
-            scatter_add(data, pos[inside], vals[inside])
-            extra = (rows[~inside], cols[~inside], vals[~inside])
         if shift > 0:
             data[self._diag] += shift
         M = system_matrix(self.p, ev, data)
         zero, diag = self._cons
         M.data[zero] = 0.0
         M.data[diag] = 1.0
-        return self._with_couplings(M, extra)
-
-    def _with_couplings(self, M: sp.csr_matrix, extra) -> sp.csr_matrix:
-        """``M`` with the skin self-contact's couplings outside the mesh's pattern added
-        (between free dofs; a fixed dof keeps its identity row).  The extra pattern is the
-        union of the node pairs coupled so far in this step, zero where a pair is not in
-        contact now, so that the sparsity analysis is redone only when a new pair meets."""
-        if extra is not None and len(extra[0]):
-            r, c, v = extra
-            keep = self.free[r] & self.free[c]
-            r, c, v = r[keep], c[keep], v[keep]
-            pairs = np.unique(np.stack([r // 3, c // 3], axis=1), axis=0)
-            self._pairs = pairs if self._pairs is None else np.unique(np.vstack([self._pairs, pairs]), axis=0)
-        else:
-            r = c = np.zeros(0, np.int64)
-            v = np.zeros(0)
-        if self._pairs is None:
-            return M
-        k = np.arange(3)
-        pr = (3 * self._pairs[:, :1, None] + k[None, :, None]).repeat(3, axis=2).reshape(-1)
-        pc = (3 * self._pairs[:, 1:, None] + k[None, None, :]).repeat(3, axis=1).reshape(-1)
-        C = M.tocoo()
-        return sp.csr_matrix((np.concatenate([C.data, np.zeros(len(pr)), v]),
-                              (np.concatenate([C.row, pr, r]), np.concatenate([C.col, pc, c]))),
-                             shape=M.shape)
+        return M
 
     def direction(self, s: NewtonState) -> np.ndarray:
         """A descent direction ``du`` (3N,): the Newton correction of the consistent Hessian

@@ -1,42 +1,21 @@
-r"""Skin self-contact: the skin may touch itself but not pass through the tissue.
+r"""Skin self-overlap: skin that went through other skin into the tissue.
 
 Where the skin folds onto itself (the inframammary crease pressed shut by the lower plate,
-a bulge rolling over the skin beside it), one patch of skin meets another.  Nothing in the
-tissue's energy stops a skin node from passing through the other patch, into the tissue
-behind it; this module measures that and resists it.
+tissue below the breast that the MRI segmentation kept, a bulge rolling over the skin
+beside it) one patch of skin meets another.  The model has no self-contact: nothing in its
+energy stops a skin node from passing through the other patch into the tissue behind it.
+This module measures how far that happened, so that a result says so.
 
-**Overlap.**  A boundary node ``i`` at ``x_i = X_i + u_i`` (mm) is *inside the tissue* when
-it lies in a tetrahedron it is not a corner of (barycentric coordinates all above
-``-BARY_TOL``: in a conforming mesh a node lies in the closure of its own tetrahedra
-only).  The candidates are the ``NEAREST_TETS`` tetrahedra with the nearest centroids (a
-containing tetrahedron's centroid is within its own size of the node).  Its *depth*
-``d_i`` is its distance to the nearest boundary triangle it is not a corner of, at the
-closest point ``q_i = sum_k w_k y_k`` (``y_k`` that triangle's corners, ``w`` the
-barycentric weights): how far it went through the skin it crossed, or less where its own
-skin next to it is nearer (a node always enters the tissue through a triangle it is not a
-corner of, so ``d_i`` grows continuously from 0 as it goes in).
+A boundary node ``i`` at ``x_i = X_i + u_i`` (mm) is *inside the tissue* when it lies in a
+tetrahedron it is not a corner of (barycentric coordinates all above ``-BARY_TOL``: in a
+conforming mesh a node lies in the closure of its own tetrahedra only).  The candidates
+are the ``NEAREST_TETS`` tetrahedra with the nearest centroids (a containing tetrahedron's
+centroid is within its own size of the node).  Its *depth* ``d_i`` is its distance to the
+nearest boundary triangle it is not a corner of: how far it went through the skin it
+crossed, or less where its own skin next to it is nearer (a node enters the tissue through
+a triangle it is not a corner of, so ``d_i`` grows continuously from 0 as it goes in).
 
-**Penalty.**  The potential of the overlaps
-
-.. math::
-
-    \Pi_S = \sum_{i\ \mathrm{inside}} \tfrac12 \varepsilon A_i d_i^2
-    \quad\text{(N mm)},\qquad
-    \frac{\partial \Pi_S}{\partial x_i} = \varepsilon A_i (x_i - q_i),\quad
-    \frac{\partial \Pi_S}{\partial y_k} = -w_k\, \varepsilon A_i (x_i - q_i),
-
-is continuous (``d_i = 0`` where a node reaches the skin it crosses), zero while the skin
-only touches itself, and pushes a node that went through back out with the contact
-pressure ``p_i = eps d_i`` (MPa) on its tributary area ``A_i`` (mm^2), with the plates'
-normal penalty ``eps`` (:func:`.contact.automatic_penalty`): an overlap of ``p / eps``,
-about 0.1 mm at 2 kPa on a 10k-node breast.  The gradient is exact; the Hessian is the
-Gauss-Newton one, ``eps A_i c c^T (x) n n^T`` over the node and the crossed triangle's
-corners (``c = (1, -w_1, -w_2, -w_3)``, ``n = (x_i - q_i) / d_i``), positive
-semi-definite, so every Newton direction still descends.  Its couplings between a node and
-the skin it crossed lie outside the mesh's sparsity pattern and join the system matrix as
-extra entries (:meth:`.newton.Minimiser.matrix`).
-
-Units: mm, N, MPa.
+Units: mm.
 """
 
 from __future__ import annotations
@@ -143,105 +122,43 @@ class Overlaps:
         return float(self.d.max()) if len(self.d) else 0.0
 
 
-@dataclass
-class SelfEval:
-    """The penalty's energy (N mm), gradient (3N,) N and Gauss-Newton Hessian (dof rows,
-    dof cols, values N/mm, duplicates summed; None without ``hessian``) at one state."""
+def overlaps(points: np.ndarray, tets: np.ndarray, faces: np.ndarray, u: np.ndarray) -> Overlaps:
+    """The boundary nodes of ``faces`` (F, 3) inside the tissue of ``tets`` (E, 4+) at
+    ``x = points + u`` (N, 3 each, mm)."""
+    from scipy.spatial import cKDTree
 
-    energy: float
-    grad: np.ndarray
-    hess: tuple[np.ndarray, np.ndarray, np.ndarray] | None
-    overlaps: Overlaps
-
-
-class SkinContact:
-    """The skin of a tetrahedral mesh meeting itself (module docstring).
-
-    Parameters
-    ----------
-    points : (N, 3) float
-        Reference coordinates (mm).
-    tets : (E, 4+) int
-        Tetrahedra (corners first).
-    faces : (F, 3) int
-        The boundary triangles.
-    penalty : float
-        ``eps`` (MPa/mm); 0 only measures.
-    """
-
-    def __init__(self, points: np.ndarray, tets: np.ndarray, faces: np.ndarray, *,
-                 penalty: float = 0.0):
-        from regtrack.mechanics.contact import tributary_areas
-
-        self.X = np.asarray(points, float)
-        self.tets = np.ascontiguousarray(np.asarray(tets)[:, :4], np.int64)
-        self.faces = np.ascontiguousarray(faces, np.int64)
-        self.nodes = np.unique(self.faces)
-        self.eps = float(penalty)
-        self.areas = tributary_areas(self.X, self.faces)
-
-    def overlaps(self, u: np.ndarray) -> Overlaps:
-        """The skin nodes inside the tissue at ``u`` (N, 3) mm."""
-        from scipy.spatial import cKDTree
-
-        x = self.X + np.asarray(u, float).reshape(-1, 3)
-        none = Overlaps(np.zeros(0, np.int64), np.zeros(0), np.zeros((0, 3)),
-                        np.zeros((0, 3), np.int64), np.zeros((0, 3)))
-        T, nodes = self.tets, self.nodes
-        if len(nodes) == 0 or len(T) == 0:
-            return none
-        k = min(len(T), NEAREST_TETS)
-        _, near = cKDTree(x[T].mean(axis=1)).query(x[nodes], k=k)
-        over = nodes[_inside_other(x, T, nodes, near.reshape(len(nodes), k), BARY_TOL)]
-        if len(over) == 0:
-            return none
-        # the skin it crossed: the nearest boundary triangle it is not a corner of
-        kf = min(len(self.faces), NEAREST_FACES)
-        _, nf = cKDTree(x[self.faces].mean(axis=1)).query(x[over], k=kf)
-        tri = self.faces[nf.reshape(len(over), kf)]                      # (n, kf, 3)
-        own = (tri == over[:, None, None]).any(axis=2)
-        P = np.repeat(x[over], kf, axis=0)
-        q, w = closest_on_triangle(P, *(x[tri[..., m]].reshape(-1, 3) for m in range(3)))
-        d = np.linalg.norm(P - q, axis=1).reshape(len(over), kf)
-        d = np.where(own, np.inf, d)
-        best = np.argmin(d, axis=1)
-        row = np.arange(len(over))
-        dd = d[row, best]
-        sel = np.isfinite(dd) & (dd > DEPTH_TOL_MM)
-        flat = row * kf + best
-        return Overlaps(over[sel], dd[sel], q[flat][sel], tri[row, best][sel], w[flat][sel])
-
-    def evaluate(self, u: np.ndarray, *, hessian: bool) -> SelfEval:
-        """``Pi_S``, its gradient and (with ``hessian``) its Gauss-Newton Hessian at ``u``."""
-        o = self.overlaps(u)
-        grad = np.zeros(self.X.shape)
-        if len(o.nodes) == 0 or self.eps <= 0:
-            return SelfEval(0.0, grad.reshape(-1), None, o)
-        x = self.X[o.nodes] + np.asarray(u, float).reshape(-1, 3)[o.nodes]
-        ka = self.eps * self.areas[o.nodes]                                  # N/mm
-        f = ka[:, None] * (x - o.q)                                          # (K, 3) N
-        energy = 0.5 * float(np.sum(ka * o.d ** 2))
-        np.add.at(grad, o.nodes, f)
-        for m in range(3):
-            np.add.at(grad, o.tri[:, m], -o.w[:, m:m + 1] * f)
-        hess = None
-        if hessian:
-            n = (x - o.q) / o.d[:, None]
-            nn = np.einsum("ki,kj->kij", n, n)
-            who = np.concatenate([o.nodes[:, None], o.tri], axis=1)          # (K, 4)
-            c = np.concatenate([np.ones((len(ka), 1)), -o.w], axis=1)        # (K, 4)
-            coef = ka[:, None, None] * c[:, :, None] * c[:, None, :]         # (K, 4, 4)
-            blocks = coef[..., None, None] * nn[:, None, None]               # (K, 4, 4, 3, 3)
-            d = 3 * who[:, :, None] + np.arange(3)                           # (K, 4, 3)
-            rows = np.broadcast_to(d[:, :, None, :, None], blocks.shape).reshape(-1)
-            cols = np.broadcast_to(d[:, None, :, None, :], blocks.shape).reshape(-1)
-            hess = (rows, cols, blocks.reshape(-1))
-        return SelfEval(energy, grad.reshape(-1), hess, o)
+    x = np.asarray(points, float) + np.asarray(u, float).reshape(-1, 3)
+    T = np.ascontiguousarray(np.asarray(tets)[:, :4], np.int64)
+    faces = np.ascontiguousarray(faces, np.int64)
+    nodes = np.unique(faces)
+    none = Overlaps(np.zeros(0, np.int64), np.zeros(0), np.zeros((0, 3)),
+                    np.zeros((0, 3), np.int64), np.zeros((0, 3)))
+    if len(nodes) == 0 or len(T) == 0:
+        return none
+    k = min(len(T), NEAREST_TETS)
+    _, near = cKDTree(x[T].mean(axis=1)).query(x[nodes], k=k)
+    over = nodes[_inside_other(x, T, nodes, near.reshape(len(nodes), k), BARY_TOL)]
+    if len(over) == 0:
+        return none
+    # the skin it crossed: the nearest boundary triangle it is not a corner of
+    kf = min(len(faces), NEAREST_FACES)
+    _, nf = cKDTree(x[faces].mean(axis=1)).query(x[over], k=kf)
+    tri = faces[nf.reshape(len(over), kf)]                              # (n, kf, 3)
+    own = (tri == over[:, None, None]).any(axis=2)
+    P = np.repeat(x[over], kf, axis=0)
+    q, w = closest_on_triangle(P, *(x[tri[..., m]].reshape(-1, 3) for m in range(3)))
+    d = np.where(own, np.inf, np.linalg.norm(P - q, axis=1).reshape(len(over), kf))
+    best = np.argmin(d, axis=1)
+    row = np.arange(len(over))
+    dd = d[row, best]
+    sel = np.isfinite(dd) & (dd > DEPTH_TOL_MM)
+    flat = row * kf + best
+    return Overlaps(over[sel], dd[sel], q[flat][sel], tri[row, best][sel], w[flat][sel])
 
 
 def skin_overlap(points: np.ndarray, tets: np.ndarray, u: np.ndarray,
                  faces: np.ndarray) -> tuple[float, int]:
     """``(depth_mm, nodes)``: the deepest overlap (0 when none) and the number of boundary
     nodes ``faces`` (F, 3) inside the tissue of ``tets`` at ``x = points + u`` (mm)."""
-    o = SkinContact(points, tets, faces).overlaps(u)
+    o = overlaps(points, tets, faces, u)
     return o.depth, int(len(o.nodes))

@@ -229,14 +229,3 @@ def _opening(plate: RigidPlate, centre: np.ndarray, size_mm) -> tuple[float, flo
         log.info("plate %s: opening moved %.1f mm anteriorly to clear the chest-wall edge",
                  plate.name, s0 - (s - w / 2.0))
     return (s0, s0 + w, t - h / 2.0, t + h / 2.0)
-
-
-def skin_contact(body: BodySetup, config: ContactConfig):
-    """The skin's self-contact (:class:`.overlap.SkinContact`) of ``body``'s outer faces,
-    with the plates' automatic normal penalty (MPa/mm): the skin may touch itself but
-    not pass into the tissue."""
-    from regtrack.mechanics.overlap import SkinContact
-
-    X = np.asarray(body.points, float)
-    eps = automatic_penalty(config, young_mpa=body.young_mpa, h_mm=mean_edge_length(X, body.surface))
-    return SkinContact(X, body.tets, body.surface, penalty=eps)

@@ -74,7 +74,6 @@ class Problem:
     parts: list[parallel.Part] | None = None  # the element kernel's threads (P1, P1-ANP)
     support: WallSupport | None = None  # the sliding chest wall's layer (None: clamped)
     support_pos: np.ndarray | None = None  # positions of its (y, z) blocks in the pattern
-    self_contact: Any = None  # the skin meeting itself (.overlap.SkinContact; None: off)
 
     @property
     def n_nodes(self) -> int:
