@@ -22,8 +22,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-
 from regtrack.mechanics.config import MechanicsConfig
+from regtrack.mechanics.contact import ContactConfig
 from regtrack.mechanics.protocol import shipped_protocol
 from regtrack.mechanics.run_view import run_protocol_on_model, summarise
 
@@ -116,4 +116,8 @@ def test_chest_wall_keeps_the_tissue_in_front_of_the_chest_wall(model):
     assert last.contact["chest-wall"]["normal_force_N"] > 0
     assert sm["behind_chest_wall_mm"] < 0.1
     assert not [w for w in sm["warnings"] if "behind_wall_warn_mm" in w]
+    # the model has no self-contact: skin through skin is measured, and warned past 1 mm
+    warned = [w for w in sm["warnings"] if "skin_overlap_warn_mm" in w]
+    assert sm["skin_overlap_mm"] >= 0.0
+    assert bool(warned) == (sm["skin_overlap_mm"] > ContactConfig().skin_overlap_warn_mm)
     assert np.abs(_balance(model, last)).max() < MechanicsConfig().solver.balance_tol * max(sm["upper_force_N"], 1.0)

@@ -161,4 +161,4 @@ def skin_overlap(points: np.ndarray, tets: np.ndarray, u: np.ndarray,
     """``(depth_mm, nodes)``: the deepest overlap (0 when none) and the number of boundary
     nodes ``faces`` (F, 3) inside the tissue of ``tets`` at ``x = points + u`` (mm)."""
     o = overlaps(points, tets, faces, u)
-    return o.depth, int(len(o.nodes))
+    return o.depth, len(o.nodes)
