@@ -43,7 +43,7 @@ from regtrack.errors import ConfigError, ResultCheckError, SolverDidNotConvergeE
 from regtrack.mechanics import compression as comp
 from regtrack.mechanics.contact import ContactConfig, PlateContact
 from regtrack.mechanics.linsolve import serial_openblas
-from regtrack.mechanics.overlap import skin_overlap
+from regtrack.mechanics.overlap import overlaps
 from regtrack.mechanics.placement import BodySetup, behind_chest_wall, chest_wall, make_plates
 from regtrack.mechanics.protocol import G_STANDARD, Protocol, Step
 
@@ -337,14 +337,18 @@ class ProtocolRunner:
                    "chest_wall_contact)")
             log.warning(msg)
             rec.warnings.append(msg)
-        depth, count = skin_overlap(self.body.points, self.body.tets, self.u, self.body.surface)
-        rec.skin_overlap_mm, rec.skin_overlap_nodes = depth, count
-        if depth > self.config.skin_overlap_warn_mm:
-            msg = (f"step '{step.name}': {count} skin nodes end inside the tissue, the deepest "
-                   f"{depth:.1f} mm (over [contact] skin_overlap_warn_mm = "
-                   f"{self.config.skin_overlap_warn_mm:g}): the skin folds through itself there "
-                   "(the model has no self-contact), so the shape and stresses there are not "
-                   "physical")
+        over = overlaps(self.body.points, self.body.tets, self.body.surface, self.u)
+        rec.skin_overlap_mm, rec.skin_overlap_nodes = over.depth, len(over.nodes)
+        if over.depth > self.config.skin_overlap_warn_mm:
+            k = int(over.nodes[np.argmax(over.d)])
+            x = self.body.points[k] + self.u[k]
+            msg = (f"step '{step.name}': {len(over.nodes)} skin nodes end inside the tissue, the "
+                   f"deepest {over.depth:.1f} mm at ({x[0]:.0f}, {x[1]:.0f}, {x[2]:.0f}) mm, "
+                   f"{x[0] - self.body.points[:, 0].min():.0f} mm in front of the chest-wall "
+                   f"plane (over [contact] skin_overlap_warn_mm = "
+                   f"{self.config.skin_overlap_warn_mm:g}): the skin folded through itself "
+                   "there (the model has no self-contact), so its shape and stresses there are "
+                   "not physical")
             log.warning(msg)
             rec.warnings.append(msg)
         if T0 is not None:

@@ -64,6 +64,7 @@ def _steps_rows(steps: list[dict]) -> list[dict]:
                     "force_N": ((s.get("contact") or {}).get("upper") or {}).get("normal_force_N"),
                     "max_penetration_mm": s.get("max_penetration_mm"),
                     "behind_wall_mm": s.get("behind_chest_wall_mm"),
+                    "skin_overlap_mm": s.get("skin_overlap_mm"),
                     "increments": solver.get("increments"), "iterations": solver.get("iterations"),
                     "seconds": solver.get("t_total", solver.get("seconds"))})
     return out

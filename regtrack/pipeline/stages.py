@@ -284,6 +284,7 @@ def align_stage(ctx, mesh: MeshOutput, sim: SimOutput, vm, real, view: str) -> V
         "breast_hausdorff_mm": md["breast_distance"]["hausdorff"],
         "max_penetration_mm": sim.summary.get("max_penetration_mm"),
         "behind_chest_wall_mm": sim.summary.get("behind_chest_wall_mm"),
+        "skin_overlap_mm": sim.summary.get("skin_overlap_mm"),
         "newton_iterations": sim.summary.get("iterations"),
     }
     if m.tumour_distance is not None:
@@ -339,6 +340,7 @@ def virtual_only(ctx, sim: SimOutput, vm, view: str) -> ViewOutcome:
            "force_N": sim.summary.get("upper_force_N"),
            "max_penetration_mm": sim.summary.get("max_penetration_mm"),
            "behind_chest_wall_mm": sim.summary.get("behind_chest_wall_mm"),
+           "skin_overlap_mm": sim.summary.get("skin_overlap_mm"),
            "newton_iterations": sim.summary.get("iterations")}
     return ViewOutcome(view, sim.key, row, None, vm, None, None, sim)
 
