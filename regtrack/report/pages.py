@@ -161,7 +161,7 @@ def steps_cells(steps: list[dict]) -> tuple[list[str], list[list[str]]]:
             ("force_N", "Upper plate\nforce (N)", lambda v: num(v, 1)),
             ("max_penetration_mm", "Penetration\n(mm)", lambda v: num(v, 3)),
             ("behind_wall_mm", "Behind chest\nwall (mm)", lambda v: num(v, 2)),
-            ("skin_overlap_mm", "Skin inside\ntissue (mm)", lambda v: num(v, 1)),
+            ("skin_overlap_mm", "Skin in\ntissue (mm)", lambda v: num(v, 1)),
             ("increments", "Load\nincrements", lambda v: num(v, 0)),
             ("iterations", "Newton\niterations", lambda v: num(v, 0)),
             ("seconds", "Time (s)", lambda v: num(v, 1)))
