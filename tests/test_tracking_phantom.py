@@ -67,8 +67,12 @@ def _centroid_mm(truth, view) -> np.ndarray:
 def test_simulations_are_reused_from_the_cache(session):
     from regtrack.tracking.session import open_case
 
-    again = open_case(CASE, cache_dir=CACHE, simulate=False)   # raises if anything is missing
+    lines: list[str] = []
+    again = open_case(CASE, cache_dir=CACHE, simulate=False,   # raises if anything is missing
+                      progress=lines.append)
     assert again.stage_keys == session.stage_keys and not again.simulated_now
+    # the model is read from the cache once, though the DICOM geometry needs it first
+    assert sum("mesh: found in the cache" in line for line in lines) == 1, lines
 
 
 def test_mri_tumour_centroid_in_each_view(session, truth):

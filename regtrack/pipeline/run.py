@@ -230,14 +230,16 @@ def missing_stages(ctx: RunContext, views: tuple[str, ...] | list[str]) -> list[
     return out
 
 
-def run_stages(ctx: RunContext, views: tuple[str, ...], *, concurrent: bool
+def run_stages(ctx: RunContext, views: tuple[str, ...], *, concurrent: bool,
+               mesh: stages.MeshOutput | None = None
                ) -> tuple[stages.MeshOutput, list[stages.ViewOutcome]]:
     """Mesh, then per view simulate, virtual mammogram and (with a real mammogram) the
     alignment and metrics; the real mammograms are read first, so that a bad DICOM fails
     in seconds, before any stage is computed or cached.  ``concurrent``: simulate the
-    uncached views at the same time (:func:`.workers.simulate_concurrently`)."""
+    uncached views at the same time (:func:`.workers.simulate_concurrently`); ``mesh``: the
+    mesh stage's output when the caller has it already."""
     reals = {view: stages.real_stage(ctx, view) for view in views if view in ctx.case.views}
-    mesh_out = stages.mesh_stage(ctx)
+    mesh_out = mesh if mesh is not None else stages.mesh_stage(ctx)
     if ctx.case.views and not ctx.geometry:  # the DICOM's plate gap, MLO angle, projection
         from regtrack.pipeline.geometry import apply_geometry
 

@@ -74,8 +74,10 @@ def open_compressed(case_dir: str | Path, view: str, *, cache_dir: str | Path | 
     ctx = open_run(case, resolve_configs(case, overrides), cache_dir=cache_dir, progress=progress)
     mk = stages.mesh_key(ctx)
     real = v in case.views
+    mesh = None
     if real and ctx.cache.has("mesh", mk):  # the DICOM's geometry enters the simulation key
-        apply_geometry(ctx, stages.mesh_stage(ctx).model, (v,))
+        mesh = stages.mesh_stage(ctx)
+        apply_geometry(ctx, mesh.model, (v,))
     todo = [] if ctx.cache.has("mesh", mk) else ["mesh"]
     if not ctx.cache.has("simulate", stages.simulate_key(ctx, mk, v)) or todo:
         todo.append(f"simulate_{v}")
@@ -85,7 +87,8 @@ def open_compressed(case_dir: str | Path, view: str, *, cache_dir: str | Path | 
     if todo:
         ctx.say(f"track: {', '.join(todo)} not in the cache {ctx.cache.root}; running them now "
                 "(minutes; later calls re-use them)")
-    mesh = stages.mesh_stage(ctx)
+    if mesh is None:
+        mesh = stages.mesh_stage(ctx)
     if real and not ctx.geometry:
         apply_geometry(ctx, mesh.model, (v,))
     sim = stages.simulate_stage(ctx, mesh, v)

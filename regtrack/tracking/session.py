@@ -110,9 +110,11 @@ def open_case(case_dir: str | Path, *, views: tuple[str, ...] | list[str] | None
     from regtrack.pipeline import stages
     from regtrack.pipeline.geometry import apply_geometry
 
+    mesh = None
     if ctx.cache.has("mesh", stages.mesh_key(ctx)):
         # the DICOM's plate gap and angle enter the simulations' keys (as in `regtrack run`)
-        apply_geometry(ctx, stages.mesh_stage(ctx).model, names)
+        mesh = stages.mesh_stage(ctx)
+        apply_geometry(ctx, mesh.model, names)
     todo = missing_stages(ctx, names)
     if todo and not simulate:
         raise TrackingError(f"case {case.id} not simulated yet ({', '.join(todo)} not in the cache "
@@ -121,7 +123,7 @@ def open_case(case_dir: str | Path, *, views: tuple[str, ...] | list[str] | None
     if todo:
         ctx.say(f"track: {', '.join(todo)} not in the cache {ctx.cache.root}; running them now "
                 "(this takes minutes; later calls re-use them)")
-    mesh, outcomes = run_stages(ctx, names, concurrent=concurrent_default())
+    mesh, outcomes = run_stages(ctx, names, concurrent=concurrent_default(), mesh=mesh)
     session = TrackingSession(case, mesh.model, {}, config=config or configs.tracking,
                               stage_keys={"mesh": mesh.key}, simulated_now=todo)
     for out in outcomes:
