@@ -251,8 +251,6 @@ def align_stage(ctx, mesh: MeshOutput, sim: SimOutput, vm, real, view: str) -> V
     (None) and the prediction is the result.  The prediction always comes from the
     breast-only registration (:mod:`regtrack.tracking.lesions`).
     """
-    import dataclasses
-
     from regtrack.metrics import compute_metrics
     from regtrack.registration import align
     from regtrack.tracking.lesions import breast_alignment, predict_lesions
