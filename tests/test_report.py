@@ -113,10 +113,17 @@ def test_the_verdict_flags_a_mismatched_fit():
     assert line.startswith("3 of 5 quality checks flagged") and "θp -17.0°" in line
     # and a good fit passes every check
     good = check_view("CC", {"BS_Av": 56.8, "theta_p": 3.7, "d_B": 5.7},
-                      simulation={"summary": {"force_imbalance_rel": 7e-8}},
+                      simulation={"summary": {"force_imbalance_rel": 7e-8, "skin_overlap_mm": 0.0}},
                       nipple={"confidence": 1.0, "method": "given (nipple_px)"})
     assert all(c.ok for c in good)
-    assert verdict_line(good) == "All 5 quality checks passed."
+    assert verdict_line(good) == "All 6 quality checks passed."
+    # skin through skin (no self-contact in the model) is flagged past 1 mm, not at 0.4 mm
+    sim = {"summary": {"force_imbalance_rel": 7e-8, "skin_overlap_mm": 2.7}}
+    folded = check_view("CC", {"BS_Av": 56.8, "theta_p": 3.7, "d_B": 5.7}, simulation=sim)
+    assert [c.short for c in folded if c.ok is False] == ["skin in tissue"]
+    assert "skin in tissue 2.7 mm (limit ≤ 1 mm)" in verdict_line(folded)
+    sim["summary"]["skin_overlap_mm"] = 0.4
+    assert all(c.ok is not False for c in check_view("CC", {"BS_Av": 56.8}, simulation=sim))
 
 
 def test_the_report_shows_the_flags_of_a_mismatched_result():

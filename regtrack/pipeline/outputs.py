@@ -105,7 +105,8 @@ def header_lines(ctx, model, results: list, prov: dict) -> list[str]:
 
     from regtrack.report.fmt import num
 
-    lines = [w for note in report_notes(results, prov) for w in textwrap.wrap(note, 125)]
+    # 115 characters of 8.5 pt fit the page's 0.9 width with digits and brackets (125 ran off it)
+    lines = [w for note in report_notes(results, prov) for w in textwrap.wrap(note, 115)]
     vol = np.abs(model.tet_volumes())
     tum = float(vol[np.asarray(model.region) == 2].sum())
     lines.append(f"Model: {model.n_nodes:,} nodes, {model.n_tets:,} tetrahedra, breast "
