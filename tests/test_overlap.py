@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from regtrack.mechanics.meshes import boundary_faces
-from regtrack.mechanics.overlap import overlaps, point_triangle_distance, skin_overlap
+from regtrack.mechanics.overlap import closest_on_triangle, overlaps
 
 
 def _cube(origin, size=10.0, n=3):
@@ -45,7 +45,8 @@ def test_two_overlapping_cubes_give_the_depth_and_the_nodes(depth):
     B and B's bottom nodes (2.5|7.5, 2.5|7.5) inside A, eight in all, each ``depth`` from
     the other cube's face (the side faces are at least 2.5 mm away)."""
     P, T, F = _two_cubes(-depth)
-    d, n = skin_overlap(P, T, np.zeros_like(P), F)
+    o = overlaps(P, T, F, np.zeros_like(P))
+    d, n = o.depth, len(o.nodes)
     assert n == 8
     assert d == pytest.approx(depth, rel=1e-12)
 
@@ -54,10 +55,11 @@ def test_displacement_moves_the_cubes_apart_and_together():
     """Apart (a 0.5 mm gap) nothing overlaps; the displacement that sinks B 1.5 mm into A
     gives the overlap of the sunk geometry."""
     P, T, F = _two_cubes(0.5)
-    assert skin_overlap(P, T, np.zeros_like(P), F) == (0.0, 0)
+    assert len(overlaps(P, T, F, np.zeros_like(P)).nodes) == 0
     u = np.zeros_like(P)
     u[len(P) // 2:, 2] = -2.0
-    d, n = skin_overlap(P, T, u, F)
+    o = overlaps(P, T, F, u)
+    d, n = o.depth, len(o.nodes)
     assert (n, d) == (8, pytest.approx(1.5, rel=1e-12))
 
 
@@ -74,7 +76,8 @@ def test_point_triangle_distance_in_each_voronoi_region():
                   [-2.0, 7, 0]])    # corner c: sqrt 13
     want = [3.0, 2.0, 5.0, np.sqrt(2), np.sqrt(3), np.sqrt(5), np.sqrt(13)]
     k = len(p)
-    got = point_triangle_distance(p, np.tile(a, (k, 1)), np.tile(b, (k, 1)), np.tile(c, (k, 1)))
+    q, _ = closest_on_triangle(p, np.tile(a, (k, 1)), np.tile(b, (k, 1)), np.tile(c, (k, 1)))
+    got = np.linalg.norm(p - q, axis=1)
     assert got == pytest.approx(want, rel=1e-12)
 
 

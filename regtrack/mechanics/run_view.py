@@ -165,7 +165,7 @@ def summarise(result: ProtocolResult, timing: dict | None = None) -> dict:
     deepest any node ended a step behind the chest-wall plane
     (:func:`regtrack.mechanics.placement.behind_chest_wall`); ``skin_overlap_mm``: the
     deepest any skin node ended a step inside the tissue, and ``skin_overlap_nodes`` how many
-    at the last step (:func:`regtrack.mechanics.overlap.skin_overlap`); ``warnings``: every
+    at the last step (:func:`regtrack.mechanics.overlap.overlaps`); ``warnings``: every
     step's warnings (``[contact] behind_wall_warn_mm``, ``skin_overlap_warn_mm``).
     ``force_imbalance_rel``: the largest over the steps of the global force imbalance
     (the residual's resultant over the free nodes) relative to the step's largest load
