@@ -1,4 +1,4 @@
-"""1-sigma uncertainty of points tracked in 3-D, from the tissue's c1, nu and the plate
+r"""1-sigma uncertainty of points tracked in 3-D, from the tissue's c1, nu and the plate
 position, by simulating again (``regtrack track --view V --uncertainty``).
 
 Each parameter ``p`` is moved by its 1-sigma value (``[tracking]`` of case.toml:
