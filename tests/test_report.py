@@ -136,6 +136,23 @@ def test_the_report_shows_the_flags_of_a_mismatched_result():
     assert "quality checks flagged" in joined and "✗" in joined
 
 
+def test_the_view_page_prints_the_simulation_warnings():
+    """The sentences a simulation warned with (chest wall, skin in the tissue) are printed on
+    the view's page, the first four in full and the rest counted; none: no section."""
+    real, virt = _views()
+    al = align(real, virt)
+    rep = _report(_row(compute_metrics(al, real, virt, D=0.38)), real, virt, al)
+    assert not any("Simulation warnings" in t for t in _texts(rep))
+    said = [f"step 'compression': warning number {k}, " + "a long explanation " * 12
+            for k in range(1, 6)]
+    rep.views[0].simulation["summary"]["warnings"] = said
+    joined = " ".join(" ".join(_texts(rep)).split())  # the wrapped lines joined again
+    assert "Simulation warnings" in joined
+    assert all(f"warning number {k}," in joined for k in range(1, 5))
+    assert "warning number 5" not in joined and "and 1 more in the view's simulation JSON" in joined
+    assert all(" ".join(w.split()) in joined for w in said[:4])  # whole sentences, not cut
+
+
 def test_numbers_and_tables():
     assert num(-0.0004, 2) == "0.00"
     assert num(-17.04, 1, unit="°", signed=True) == "-17.0°"

@@ -170,6 +170,21 @@ def steps_cells(steps: list[dict]) -> tuple[list[str], list[list[str]]]:
     return drop_empty_columns(head, rows)
 
 
+#: warnings printed on a view's page (the rest are counted; all are in the view's JSON)
+MAX_WARNINGS = 4
+
+
+def warning_lines(warnings: list[str], width: int = 165) -> list[str]:
+    """The simulation's warnings as bulleted lines of at most ``width`` characters: the
+    first ``MAX_WARNINGS`` in full, then how many more there are."""
+    lines: list[str] = []
+    for w in warnings[:MAX_WARNINGS]:
+        lines += textwrap.wrap(f"• {w}", width, subsequent_indent="   ")
+    if len(warnings) > MAX_WARNINGS:
+        lines.append(f"   and {len(warnings) - MAX_WARNINGS} more in the view's simulation JSON")
+    return lines
+
+
 def view_page(fig, v) -> None:
     """One view: the compression sequence, its steps, the contours before and after the
     rotation, and the real beside the virtual image on the same axes."""
@@ -198,6 +213,11 @@ def view_page(fig, v) -> None:
         table(fig.add_axes([0.05, top - 0.016 - h, 0.9, h]), head, rows, fontsize=7.5,
               col_widths=[0.22] + [0.78 / (len(head) - 1)] * (len(head) - 1))
         top -= 0.016 + h + 0.035
+    lines = warning_lines(((v.simulation or {}).get("summary") or {}).get("warnings") or [])
+    if lines:
+        fig.text(0.05, top, "Simulation warnings", fontsize=9.5, weight="bold", va="top")
+        fig.text(0.05, top - 0.018, "\n".join(lines), fontsize=6.5, va="top", color="#8a1c1c")
+        top -= 0.018 + 0.0105 * len(lines) + 0.03
     if v.real is not None and v.alignment is not None:
         h = (top - 0.16) / 2
         a0 = fig.add_axes([0.08, top - h, 0.4, h])
