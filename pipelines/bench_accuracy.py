@@ -20,7 +20,7 @@ reads):
   default): the tracking case with the tissue's c1 or nu moved by its 1-sigma
   (``[tracking] c1_rel_sigma``, ``nu_sigma``; :func:`sensitivity_sets`).  They measure the
   model term of the lesion sigma: how far the predicted centroid moves, against the
-  stated ``alpha |Delta|`` of :func:`regtrack.tracking.lesions.lesion_sigma`
+  stated ``alpha |Delta|`` of :func:`regtrack.tracking.uncertainty.prediction_sigma`
   (:func:`model_sensitivity`).  Nothing is compared with the truth.
 
 Writes ``accuracy.csv`` and ``accuracy.md`` (per case and view, with medians) under

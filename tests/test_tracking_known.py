@@ -18,8 +18,9 @@ from regtrack.errors import TrackingError
 from regtrack.imaging.mammogram.orient import Orientation
 from regtrack.mechanics.meshes import box_model
 from regtrack.model.types import TUMOUR, AnatomicalFrame
-from regtrack.tracking import (InPlane, PixelFrame, TetLocator, TrackingConfig, ViewMap,
-                               track_mri_point, track_tumour, track_view_point)
+from regtrack.tracking import (InPlane, PixelFrame, PredictionUncertainty, Residual, TetLocator,
+                               TrackingConfig, ViewMap, track_mri_point, track_tumour,
+                               track_view_point)
 from regtrack.virtual.project import default_frame
 
 SQ2 = np.sqrt(2.0)
@@ -63,11 +64,33 @@ def model():
     return m
 
 
+#: the uncertainty model's inputs of each view: no residual samples (the floor applies),
+#: an angular 1-sigma (deg), D and its 1-sigma, the nipple run u (mm)
+UNCERTAINTY = {"CC": (0.8, 0.40, 0.02, 3.0), "MLO": (1.5, 0.30, 0.03, 0.0)}
+
+
 def _viewmap(model, view):
     A, b = (A_CC, B_CC) if view == "CC" else (A_MLO, B_MLO)
     pos = model.points @ A.T + b
     px = PixelFrame(SPACING, Orientation(SHAPE, False, True, False, "test: right breast"))
-    return ViewMap(view, pos, default_frame(pos, view, "R"), INPLANE[view], px)
+    th, D, sD, u = UNCERTAINTY[view]
+    unc = PredictionUncertainty(Residual(np.zeros((0, 2)), np.zeros(0)), INPLANE[view].nipple,
+                                th, D, sD, u, TrackingConfig())
+    return ViewMap(view, pos, default_frame(pos, view, "R"), INPLANE[view], px, uncertainty=unc)
+
+
+def expected_sigma(model, view: str, q_model: np.ndarray, r: np.ndarray) -> float:
+    """The four terms in closed form: the floor, r sigma_theta, |Delta| sqrt((sD/D)^2 +
+    alpha^2) with Delta = P (A - I) (q - nipple) (P the plate's in-plane axes) and u / sqrt 3."""
+    A = A_CC if view == "CC" else A_MLO
+    P = (np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0]]) if view == "CC"
+         else np.array([[1.0, 0.0, 0.0], [0.0, -1.0 / SQ2, -1.0 / SQ2]]))
+    delta = np.linalg.norm(P @ (A - np.eye(3)) @ (q_model - model.points[model.nipple]))
+    th, D, sD, u = UNCERTAINTY[view]
+    cfg = TrackingConfig()
+    rot_term = np.linalg.norm(r - INPLANE[view].nipple) * np.deg2rad(th)
+    model_term = delta * np.hypot(sD / D, cfg.material_rel)
+    return float(np.sqrt(cfg.min_residual_mm ** 2 + rot_term ** 2 + model_term ** 2 + u ** 2 / 3))
 
 
 @pytest.fixture(scope="module")
@@ -105,11 +128,9 @@ def test_mri_point_maps_exactly(model, views):
         assert np.allclose(pred.px, px, atol=1e-9)
         # round trip of the pixel frame
         assert np.allclose(views[view].pixels.px_to_mm(pred.px), r, atol=1e-9)
-        # uncertainty: no residual given -> the floor and r |dtheta| / 2
-        ip = INPLANE[view]
-        rot_term = np.linalg.norm(r - ip.nipple) * np.deg2rad(abs(ip.theta_b_deg - ip.theta_t_deg)) / 2
-        assert pred.rotation_mm == pytest.approx(rot_term, rel=1e-12)
-        assert pred.sigma_mm == pytest.approx(np.hypot(TrackingConfig().min_residual_mm, rot_term))
+        # uncertainty: the four terms of regtrack.tracking.uncertainty in closed form
+        assert pred.sigma_mm == pytest.approx(expected_sigma(model, view, q_model, r), rel=1e-9)
+        assert set(pred.terms_mm) == {"registration_residual", "rotation", "model", "nipple"}
 
 
 def test_tumour_mass_centroid_follows_the_affine_map(model, views):
@@ -249,17 +270,15 @@ def test_voxel_region_centroid_is_mapped_exactly(model, views):
 
 def test_residual_term_is_local():
     """sigma_res is the RMS residual of the contour samples near the point."""
-    from regtrack.tracking.uncertainty import Residual, point_uncertainty
+    from regtrack.tracking.uncertainty import residual_sigma
 
     pts = np.vstack([np.zeros((20, 2)), np.full((20, 2), 200.0)])
     d = np.r_[np.full(20, 1.0), np.full(20, 3.0)]
-    u = point_uncertainty([[0.0, 0.0], [200.0, 200.0], [100.0, 100.0]], residual=Residual(pts, d),
-                          nipple=[0.0, 0.0], theta_b_deg=1.0, theta_t_deg=1.0, scale_mm=25.0,
-                          floor_mm=0.5)
-    assert u.residual_mm[0] == pytest.approx(1.0, abs=1e-6)
-    assert u.residual_mm[1] == pytest.approx(3.0, abs=1e-6)
-    assert u.residual_mm[2] == pytest.approx(np.sqrt(5.0), abs=1e-6)   # equidistant: RMS of 1 and 3
-    assert np.allclose(u.rotation_mm, 0.0)
+    res = residual_sigma([[0.0, 0.0], [200.0, 200.0], [100.0, 100.0]], Residual(pts, d),
+                         scale_mm=25.0)
+    assert res[0] == pytest.approx(1.0, abs=1e-6)
+    assert res[1] == pytest.approx(3.0, abs=1e-6)
+    assert res[2] == pytest.approx(np.sqrt(5.0), abs=1e-6)   # equidistant: RMS of 1 and 3
 
 
 def test_pixel_frame_matches_the_mammogram_reader():

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from regtrack.tracking.config import TrackingConfig
-from regtrack.tracking.lesions import angular_sigma, lesion_sigma
+from regtrack.tracking.uncertainty import angular_sigma, prediction_sigma
 
 
 class Parabola:
@@ -41,7 +41,7 @@ def test_flat_objective_gives_the_cap():
 
 def test_lesion_sigma_terms_add_in_quadrature():
     cfg = TrackingConfig(min_residual_mm=0.5, material_rel=0.1)
-    s, t = lesion_sigma(residual_mm=0.2, r_mm=60.0, theta_sigma_deg=1.0, shift_mm=8.0,
+    s, t = prediction_sigma(residual_mm=0.2, r_mm=60.0, theta_sigma_deg=1.0, shift_mm=8.0,
                         D=0.4, sigma_D=0.04, config=cfg)
     rot = 60.0 * math.radians(1.0)               # 1.047 mm
     model = 8.0 * math.hypot(0.04 / 0.4, 0.1)    # 1.131 mm
@@ -49,14 +49,14 @@ def test_lesion_sigma_terms_add_in_quadrature():
                                "nipple": 0.0})
     assert s == pytest.approx(math.sqrt(0.5 ** 2 + rot ** 2 + model ** 2))  # residual floored
     # a nipple detected anywhere on a 12 mm run of the apex (u = 6 mm): uniform, 6 / sqrt 3
-    s2, t2 = lesion_sigma(residual_mm=0.2, r_mm=60.0, theta_sigma_deg=1.0, shift_mm=8.0,
+    s2, t2 = prediction_sigma(residual_mm=0.2, r_mm=60.0, theta_sigma_deg=1.0, shift_mm=8.0,
                           D=0.4, sigma_D=0.04, nipple_run_mm=6.0, config=cfg)
     assert t2["nipple"] == pytest.approx(6.0 / math.sqrt(3.0))
     assert s2 == pytest.approx(math.sqrt(s ** 2 + 12.0))
 
 
 def test_nipple_run_from_the_real_view():
-    from regtrack.tracking.lesions import nipple_run
+    from regtrack.tracking.uncertainty import nipple_run
 
     detected = SimpleNamespace(meta={"nipple": {"method": "detected", "tangential_uncertainty_mm": 4.5}})
     given = SimpleNamespace(meta={"nipple": {"method": "given (nipple_px)", "confidence": 1.0}})

@@ -20,7 +20,7 @@ import pytest
 from regtrack.errors import TrackingError
 from regtrack.model.types import AnatomicalFrame
 from regtrack.registration import align
-from regtrack.tracking import InPlane, Residual, ViewMap
+from regtrack.tracking import InPlane, PredictionUncertainty, Residual, TrackingConfig, ViewMap
 from regtrack.tracking.figures import report_section, write_outputs
 from regtrack.tracking.session import TrackingSession
 from regtrack.tracking.track import parse_label, track_case
@@ -64,8 +64,10 @@ def session():
         real = MammogramView(v, "R", move(vm.view.breast_contour), n_p,
                              [move(t) for t in vm.view.tumour_contours], source=f"real {v}")
         al = align(real, vm.view)
+        unc = PredictionUncertainty.from_alignment(al, real, D=0.4, sigma_D=0.0,
+                                                   config=TrackingConfig())
         views[v] = ViewMap(v, pos, vm.frame, InPlane.from_alignment(al), None, None,
-                           Residual.from_alignment(al), real)
+                           Residual.from_alignment(al), real, unc)
         views[v]._alignment = al
         truth[v] = move
     s = TrackingSession(_Case(), m, views)
@@ -97,7 +99,16 @@ def test_tumour_lands_where_the_motion_puts_it(session):
         # the projected outline's area centroid agrees with the projected mass centroid
         # for this symmetric tumour (to the mesh's faceting)
         assert np.linalg.norm(p.outline_centroid_mm - p.xy_mm) < 0.5
-        assert 0.5 <= p.sigma_mm < 1.0      # floor 0.5 mm, rotation spread ~0
+        # identical contours: the residual floor (0.5 mm) and no rotation uncertainty; the
+        # model term alpha |Delta|, Delta = P (A - I) (c - nipple) in the plate's axes
+        P = (np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0]]) if v == "CC"
+             else np.array([[1.0, 0.0, 0.0], [0.0, -1.0, -1.0]]) / [[1.0], [np.sqrt(2.0)]])
+        delta = np.linalg.norm(P @ (A - np.eye(3)) @ res.mri.reference_mm)  # nipple at 0
+        t = p.terms_mm
+        assert t["registration_residual"] < 0.05 and t["rotation"] < 0.05 and t["nipple"] == 0
+        assert t["model"] == pytest.approx(TrackingConfig().material_rel * delta, rel=1e-9)
+        assert p.sigma_mm == pytest.approx(np.sqrt(0.5 ** 2 + t["rotation"] ** 2 + t["model"] ** 2),
+                                           rel=1e-12)
 
 
 def test_cc_point_on_the_tumour_gives_an_mlo_curve_through_it(session):

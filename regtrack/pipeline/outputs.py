@@ -229,16 +229,11 @@ def _tracking(ctx, mesh, results: list, out: Path, truth):
 
     if int(mesh.model.tumour_id.max(initial=0)) < 1:
         return None
-    # the breast-only registration of the lesion prediction (lesions.json, the summary page)
-    vms = {r.view: viewmap_from_outcome(r, alignment=r.extra.get("breast_alignment"))
-           for r in results}
+    # the registration and uncertainty of the lesion prediction (lesions.json, the summary page)
+    vms = {r.view: viewmap_from_outcome(r, config=ctx.configs.tracking) for r in results}
     res = TrackResult(results[0].row["case_id"], views={v: {} for v in vms},
-                      mri=track_tumour(mesh.model, vms, config=ctx.configs.tracking,
+                      mri=track_tumour(mesh.model, vms,
                                        truth=None if truth is None else truth.tumour_xy()))
-    for r in results:  # one lesion: the page shows the prediction's full 1-sigma radius
-        lesions = r.extra.get("lesions") or []
-        if len(lesions) == 1 and r.view in res.mri.views:
-            res.mri.views[r.view].sigma_mm = lesions[0].sigma_mm
     _io.write_json(out / "tracking.json", report_section(res))
     return res, {r.view: r.real for r in results}
 

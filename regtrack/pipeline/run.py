@@ -301,7 +301,7 @@ def lesions_doc(case_id: str, results) -> dict:
                   "sigma_mm: 1-sigma radius from the local registration residual, the angular "
                   "uncertainty times the distance from the nipple, the model's sensitivity "
                   "to D, c1 and nu, and the run of the apex along which the nipple was "
-                  "detected (regtrack.tracking.lesions); error_mm: distance to the "
+                  "detected (regtrack.tracking.uncertainty); error_mm: distance to the "
                   "area centroid of the annotated outline (paper mode)",
         "views": {r.view: {"mode": r.extra.get("mode"),
                            "lesions": [p.to_dict() for p in r.extra.get("lesions") or []]}

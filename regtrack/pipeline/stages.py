@@ -289,9 +289,9 @@ def align_stage(ctx, mesh: MeshOutput, sim: SimOutput, vm, real, view: str) -> V
         row.update({"tumour_dist_mean_mm": md["tumour_distance"]["mean"],
                     "tumour_hausdorff_mm": md["tumour_distance"]["hausdorff"]})
     al_b = breast_alignment(al, real, vm.view)
+    sigma_D = _degree_sigma(ctx, sim, view)
     lesions = predict_lesions(mesh.model, view=view, positions=sim.positions, virtual=vm,
-                              real=real, alignment=al_b, D=D,
-                              sigma_D=_degree_sigma(ctx, sim, view),
+                              real=real, alignment=al_b, D=D, sigma_D=sigma_D,
                               config=ctx.configs.tracking)
     if lesions:
         first = lesions[0]
@@ -307,12 +307,12 @@ def align_stage(ctx, mesh: MeshOutput, sim: SimOutput, vm, real, view: str) -> V
     add_time(ctx, f"register_{view}", t0)
     return ViewOutcome(view, sim.key, row, real, vm, al, m, sim,
                        extra={"mode": mode, "mode_reason": why, "lesions": lesions,
-                              "breast_alignment": al_b})
+                              "breast_alignment": al_b, "sigma_D": sigma_D})
 
 
 def _degree_sigma(ctx, sim: SimOutput, view: str) -> float:
     """1-sigma uncertainty of D: from the DICOM thickness when it set the gap, else the
-    nominal ``[tracking] degree_sigma`` (:mod:`regtrack.tracking.lesions`)."""
+    nominal ``[tracking] degree_sigma`` (:mod:`regtrack.tracking.uncertainty`)."""
     from regtrack.tracking.config import TrackingConfig
 
     cfg = ctx.configs.tracking or TrackingConfig()

@@ -15,14 +15,14 @@ from regtrack.tracking.config import TrackingConfig
 from regtrack.tracking.locate import Location, TetLocator
 from regtrack.tracking.mri_to_view import (MriTrack, ViewPrediction, track_mri_point,
                                            track_points_region, track_tumour)
-from regtrack.tracking.uncertainty import Residual, Uncertainty, point_uncertainty
+from regtrack.tracking.uncertainty import PredictionUncertainty, Residual
 from regtrack.tracking.viewmap import InPlane, PixelFrame, ViewMap, viewmap_from_outcome
 from regtrack.tracking.session import TrackingSession, open_case  # noqa: I001
 from regtrack.tracking.track import TrackResult, track_case
 from regtrack.tracking.figures import draw_tracking_page, report_section, write_outputs
 
 __all__ = ["InPlane", "Location", "MriTrack", "PixelFrame", "Residual", "SegmentPrediction",
-           "TetLocator", "TrackingConfig", "Uncertainty", "ViewMap", "ViewPrediction",
-           "point_uncertainty", "track_mri_point", "track_points_region", "track_tumour",
+           "TetLocator", "TrackingConfig", "PredictionUncertainty", "ViewMap", "ViewPrediction",
+           "track_mri_point", "track_points_region", "track_tumour",
            "track_view_point", "TrackingSession", "open_case", "viewmap_from_outcome",
            "TrackResult", "track_case", "draw_tracking_page", "report_section", "write_outputs"]

@@ -27,7 +27,7 @@ from regtrack.errors import TrackingError
 from regtrack.model.types import BreastModel
 from regtrack.tracking.config import TrackingConfig
 from regtrack.tracking.locate import TetLocator
-from regtrack.tracking.uncertainty import point_uncertainty
+from regtrack.tracking.uncertainty import inplane_shift
 from regtrack.tracking.viewmap import ViewMap
 
 log = logging.getLogger(__name__)
@@ -46,7 +46,8 @@ class SegmentPrediction:
     reference_mm : (H, 3) material points in the reference (MRI) configuration (model frame)
     polyline_mm : (H, 2) predicted curve in the real target frame (mm)
     polyline_px : (H, 2) or None, (row, col) in the target DICOM grid
-    sigma_mm : (H,) 1-sigma radius of each vertex (mm)
+    sigma_mm : (H,) 1-sigma radius of each vertex (mm; NaN without the target view's
+        uncertainty model)
     parts : list of (start, stop) index ranges of continuous runs inside the breast
     most_likely : dict or None
         ``{"index", "xy_mm", "px_rc", "height_mm", "reference_distance_mm"}``: the sample
@@ -217,13 +218,14 @@ def track_view_point(model: BreastModel, src: ViewMap, dst: ViewMap, point, *,
     tgt = loc.interpolate(model.tets, dst.positions)
     ref = loc.interpolate(model.tets, model.points)
     xy_t = dst.to_real(tgt)
-    ip = dst.inplane
-    unc = point_uncertainty(xy_t, residual=dst.residual, nipple=ip.nipple,
-                            theta_b_deg=ip.theta_b_deg, theta_t_deg=ip.theta_t_deg,
-                            scale_mm=cfg.residual_scale_mm, floor_mm=cfg.min_residual_mm)
+    sigma = np.full(len(xy_t), np.nan)
+    if dst.uncertainty is not None:
+        shift = inplane_shift(dst.frame, ref, tgt, model.points[model.nipple],
+                              dst.positions[model.nipple])
+        sigma = dst.uncertainty.at(xy_t, shift)[0]
     seg = SegmentPrediction(
         src.view, dst.view, xy, p if pixels else None, heights[keep], ref, xy_t,
-        None if dst.pixels is None else dst.pixels.mm_to_px(xy_t), unc.sigma_mm, parts)
+        None if dst.pixels is None else dst.pixels.mm_to_px(xy_t), sigma, parts)
     if len(parts) > 1:
         seg.notes.append(f"the ray leaves and re-enters the compressed breast ({len(parts)} parts)")
     if lesion_reference_mm is not None:

@@ -26,10 +26,10 @@ class TrackingConfig:
     correlation_mm: float = param(10.0, "mm", "correlation length L_c of the contour residuals: "
                                   "the angular uncertainty of the breast registration counts one "
                                   "independent residual per L_c of contour "
-                                  "(regtrack.tracking.lesions.angular_sigma)", gt=0.0, le=500.0)
+                                  "(regtrack.tracking.uncertainty.angular_sigma)", gt=0.0, le=500.0)
     material_rel: float = param(0.16, "-", "relative sensitivity alpha of the lesion's in-plane "
                                 "shift to the tissue's c1 and nu (the median measured by "
-                                "re-simulation; regtrack.tracking.lesions)", ge=0.0, le=2.0)
+                                "re-simulation; regtrack.tracking.uncertainty)", ge=0.0, le=2.0)
     degree_sigma: float = param(0.05, "-", "1-sigma uncertainty of the compression degree D "
                                 "when it is the protocol's nominal value (no DICOM thickness)",
                                 ge=0.0, le=0.5)

@@ -44,8 +44,9 @@ def _band(seg, every: int = 4):
     import shapely
     from shapely.geometry import Point
 
+    sigma = np.nan_to_num(seg.sigma_mm, nan=0.0)  # NaN: no uncertainty model, the curve only
     discs = [Point(*p).buffer(max(s, 1e-3), quad_segs=8)
-             for p, s in zip(seg.polyline_mm[::every], seg.sigma_mm[::every])]
+             for p, s in zip(seg.polyline_mm[::every], sigma[::every])]
     u = shapely.union_all(discs)
     return list(getattr(u, "geoms", [u]))
 
@@ -70,13 +71,14 @@ def draw_view(ax, view: str, result: TrackResult, real=None, *, truth=None) -> N
         if p.outline_mm is not None:
             o = np.vstack([p.outline_mm, p.outline_mm[:1]])
             ax.plot(*o.T, color=MRI, lw=1.0, ls="--", label="predicted outline")
-        for k in (1, 2):
+        for k in (1, 2) if p.sigma_mm is not None else ():
             ax.add_patch(Circle(tuple(p.xy_mm), k * p.sigma_mm, fill=False, color=MRI,
                                 lw=1.0, ls="-" if k == 1 else ":"))
         ax.plot(*p.xy_mm, "+", color=MRI, ms=12, mew=2, label=f"MRI {result.mri.kind} (±1σ, 2σ)")
         pts.append(p.xy_mm)
         where = "" if p.px is None else f" → px ({p.px[0]:.0f}, {p.px[1]:.0f})"
-        title.append(f"{result.mri.kind}{where} ± {p.sigma_mm:.1f} mm")
+        title.append(f"{result.mri.kind}{where}"
+                     + ("" if p.sigma_mm is None else f" ± {p.sigma_mm:.1f} mm"))
     for seg in result.segments:
         if seg.target_view == view:
             for g in _band(seg):
@@ -123,6 +125,17 @@ def view_figure(view: str, result: TrackResult, real=None, *, truth=None):
     return fig
 
 
+def sigma_text(sigma_mm: float | None, terms: dict) -> str:
+    """`` ± s mm (residual a, rotation b, model c, nipple d)``: a 1-sigma radius and its
+    terms (:mod:`regtrack.tracking.uncertainty`); empty without one."""
+    if sigma_mm is None:
+        return ""
+    names = {"registration_residual": "residual", "rotation": "rotation", "model": "model",
+             "nipple": "nipple"}
+    parts = ", ".join(f"{names[k]} {v:.1f}" for k, v in terms.items() if k in names)
+    return f" ± {sigma_mm:.1f} mm ({parts})"
+
+
 def summary_lines(result: TrackResult) -> list[str]:
     """Plain-text summary (report section body)."""
     lines = []
@@ -133,9 +146,8 @@ def summary_lines(result: TrackResult) -> list[str]:
             px = "" if p.px is None else f", px (row {p.px[0]:.1f}, col {p.px[1]:.1f})"
             t = ("" if p.truth_distance_mm is None
                  else f"; {p.truth_distance_mm:.2f} mm from the truth")
-            lines.append(f"  {v}: ({p.xy_mm[0]:.1f}, {p.xy_mm[1]:.1f}) mm{px} "
-                         f"± {p.sigma_mm:.1f} mm "
-                         f"(residual {p.residual_mm:.1f}, rotation {p.rotation_mm:.1f}){t}")
+            lines.append(f"  {v}: ({p.xy_mm[0]:.1f}, {p.xy_mm[1]:.1f}) mm{px}"
+                         f"{sigma_text(p.sigma_mm, p.terms_mm)}{t}")
         lines += [f"  note: {n}" for n in result.mri.notes]
     for s in result.segments:
         src = ("" if s.source_px is None

@@ -24,7 +24,7 @@ from regtrack.errors import TrackingError
 from regtrack.model.types import TUMOUR, BreastModel
 from regtrack.tracking.config import TrackingConfig
 from regtrack.tracking.locate import Location, TetLocator
-from regtrack.tracking.uncertainty import point_uncertainty
+from regtrack.tracking.uncertainty import inplane_shift
 from regtrack.tracking.viewmap import ViewMap
 
 log = logging.getLogger(__name__)
@@ -36,15 +36,15 @@ class ViewPrediction:
 
     ``xy_mm`` is in the real canonical frame (mm; chest wall left), ``px`` the (row, col)
     of the DICOM's own pixel grid (None without pixel information), ``sigma_mm`` the
-    1-sigma radius of :mod:`regtrack.tracking.uncertainty`.
+    1-sigma radius of :mod:`regtrack.tracking.uncertainty` (None without its model) and
+    ``terms_mm`` its four terms.
     """
 
     view: str
     xy_mm: np.ndarray
     px: np.ndarray | None
-    sigma_mm: float
-    residual_mm: float
-    rotation_mm: float
+    sigma_mm: float | None
+    terms_mm: dict
     virtual_mm: np.ndarray
     deformed_mm: np.ndarray
     outline_mm: np.ndarray | None = None
@@ -67,8 +67,7 @@ class ViewPrediction:
             "view": self.view, "xy_mm": self.xy_mm.tolist(),
             "px_rc": None if self.px is None else self.px.tolist(),
             "sigma_mm": self.sigma_mm, "sigma_px": self.sigma_px,
-            "uncertainty_terms_mm": {"registration_residual": self.residual_mm,
-                                     "rotation_spread": self.rotation_mm},
+            "uncertainty_terms_mm": self.terms_mm,
             "virtual_mm": self.virtual_mm.tolist(), "deformed_model_mm": self.deformed_mm.tolist(),
             "outline_centroid_mm": None if oc is None else oc.tolist(),
             "outline_mm": None if self.outline_mm is None else self.outline_mm.tolist(),
@@ -138,20 +137,24 @@ def _fmt(p) -> str:
     return "(" + ", ".join(f"{v:.1f}" for v in np.asarray(p, float).reshape(-1)) + ")"
 
 
-def predict(view: ViewMap, deformed: np.ndarray, *, config: TrackingConfig,
+def predict(model: BreastModel, view: ViewMap, reference: np.ndarray, deformed: np.ndarray, *,
             outline: np.ndarray | None = None, truth_mm=None) -> ViewPrediction:
-    """Project one deformed model point (mm) of ``view`` into the real mammogram."""
+    """Project one model point of ``view`` into the real mammogram: ``reference`` (3,) its
+    prone MRI position and ``deformed`` (3,) its compressed one (mm, model frame), with the
+    1-sigma radius of the view's uncertainty model."""
     v = view.to_virtual(deformed[None])[0]
     xy = view.inplane.to_real(v)
-    ip = view.inplane
-    u = point_uncertainty(xy[None], residual=view.residual, nipple=ip.nipple,
-                          theta_b_deg=ip.theta_b_deg, theta_t_deg=ip.theta_t_deg,
-                          scale_mm=config.residual_scale_mm, floor_mm=config.min_residual_mm)
+    sigma, terms, sp = None, {}, None
+    if view.uncertainty is not None:
+        shift = inplane_shift(view.frame, reference, deformed, model.points[model.nipple],
+                              view.positions[model.nipple])
+        s, t = view.uncertainty.at(xy, shift)
+        sigma, terms = float(s[0]), t[0]
+        sp = None if view.pixels is None else sigma / view.pixels.mean_spacing
     px = None if view.pixels is None else view.pixels.mm_to_px(xy)
-    sp = None if view.pixels is None else float(u.sigma_mm[0] / view.pixels.mean_spacing)
     td = None if truth_mm is None else float(np.linalg.norm(xy - np.asarray(truth_mm, float)))
-    return ViewPrediction(view.view, xy, px, float(u.sigma_mm[0]), float(u.residual_mm[0]),
-                          float(u.rotation_mm[0]), v, np.asarray(deformed, float), outline, td, sp)
+    return ViewPrediction(view.view, xy, px, sigma, terms, v, np.asarray(deformed, float),
+                          outline, td, sp)
 
 
 def track_mri_point(model: BreastModel, views: dict[str, ViewMap], point_lps, *,
@@ -180,7 +183,7 @@ def track_mri_point(model: BreastModel, views: dict[str, ViewMap], point_lps, *,
     res = MriTrack("point", f"MRI point {_fmt(lps)} LPS mm", ref, lps, notes=notes)
     for name, vm in views.items():
         x = loc.interpolate(model.tets, vm.positions)[0]
-        res.views[name] = predict(vm, x, config=cfg, truth_mm=(truth or {}).get(name))
+        res.views[name] = predict(model, vm, ref, x, truth_mm=(truth or {}).get(name))
     return res
 
 
@@ -205,12 +208,11 @@ def region_outline(view: ViewMap, tets: np.ndarray) -> np.ndarray | None:
 
 
 def track_tumour(model: BreastModel, views: dict[str, ViewMap], *, tumour: int = 0,
-                 config: TrackingConfig | None = None, truth: dict | None = None) -> MriTrack:
+                 truth: dict | None = None) -> MriTrack:
     """Predicted position of the model's tumour (mass centroid + outline) in every view.
 
     ``tumour`` = k >= 1 selects the k-th tumour (``model.tumour_id``), 0 all of them.
     """
-    cfg = config or TrackingConfig()
     sel = model.region == TUMOUR
     if tumour:
         sel &= model.tumour_id == tumour
@@ -228,7 +230,7 @@ def track_tumour(model: BreastModel, views: dict[str, ViewMap], *, tumour: int =
                    "centroid", ref, model.frame.to_patient(ref), n_points=int(sel.sum()))
     for v, vm in views.items():
         x = w @ vm.positions[tets].mean(axis=1)
-        res.views[v] = predict(vm, x, config=cfg, outline=region_outline(vm, tets),
+        res.views[v] = predict(model, vm, ref, x, outline=region_outline(vm, tets),
                                truth_mm=(truth or {}).get(v))
     return res
 
@@ -251,5 +253,5 @@ def track_points_region(model: BreastModel, views: dict[str, ViewMap], points_lp
                    n_points=len(loc.element))
     for v, vm in views.items():
         x = loc.interpolate(model.tets, vm.positions)
-        res.views[v] = predict(vm, x.mean(axis=0), config=cfg, truth_mm=(truth or {}).get(v))
+        res.views[v] = predict(model, vm, ref, x.mean(axis=0), truth_mm=(truth or {}).get(v))
     return res

@@ -127,7 +127,7 @@ def open_case(case_dir: str | Path, *, views: tuple[str, ...] | list[str] | None
     session = TrackingSession(case, mesh.model, {}, config=config or configs.tracking,
                               stage_keys={"mesh": mesh.key}, simulated_now=todo)
     for out in outcomes:
-        session.views[out.view] = viewmap_from_outcome(out)
+        session.views[out.view] = viewmap_from_outcome(out, config=session.config)
         session.outcomes[out.view] = out
         session.stage_keys[f"simulate_{out.view}"] = out.sim_key
     return session

@@ -47,8 +47,9 @@ class TrackResult:
                 "reference_model_mm": "model frame of the prone MRI (origin nipple, x anterior, "
                                       "y superior, z patient right)",
                 "lps_mm": "DICOM patient frame of the MRI",
-                "sigma_mm": "1-sigma radius: local registration residual and rotation spread "
-                            "(regtrack.tracking.uncertainty)",
+                "sigma_mm": "1-sigma radius: registration residual, rotation, model and nipple "
+                            "terms in quadrature (regtrack.tracking.uncertainty), the same as "
+                            "the lesions of `regtrack run`",
             },
             "views": self.views,
             "mri": None if self.mri is None else self.mri.to_dict(),
@@ -136,7 +137,7 @@ def track_case(session, *, mri_point=None, label: str | None = None,
     elif label is not None:
         kind, value = parse_label(label)
         if kind == "tumour":
-            res.mri = track_tumour(model, session.views, tumour=value, config=cfg, truth=truth)
+            res.mri = track_tumour(model, session.views, tumour=value, truth=truth)
         else:
             res.mri = track_points_region(model, session.views, _label_points(session, value),
                                           description=f"MRI label {value} (voxel centres)",

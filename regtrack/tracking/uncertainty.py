@@ -1,41 +1,56 @@
-"""Uncertainty of a predicted position in a real mammogram (mm).
+"""Uncertainty of a position predicted in a real mammogram (mm).
 
-Model
------
-Two independent error sources are combined in quadrature into a 1-sigma radius
+A predicted position ``p`` in a real mammogram (a lesion's centroid, an MRI point, a point
+carried from the other view) has the 1-sigma radius (mm) of four independent terms in
+quadrature (:func:`prediction_sigma`):
 
 .. math::
 
-    \\sigma = \\sqrt{\\max(\\sigma_{res}, \\sigma_{min})^2 + \\sigma_{rot}^2}
+    \\sigma^2 = \\max(\\sigma_{res}, \\sigma_{min})^2 + (r\\,\\sigma_\\theta)^2
+               + \\sigma_{model}^2 + \\sigma_{nip}^2
 
-* **Registration residual** (how well the aligned virtual contours fit the real ones
-  *near the point*): the locally weighted RMS of the closest-point distances ``d_i`` of
-  the aligned virtual breast and tumour contour samples ``q_i`` (Lapuebla-Ferri et al.,
-  eqs. 4-5, evaluated at :math:`\\theta_p`)
+- :math:`\\sigma_{res}`: the locally weighted RMS breast residual around the point
+  (:func:`residual_sigma`);
+- :math:`r\\,\\sigma_\\theta`: the registration's angular uncertainty
+  (:func:`angular_sigma`) times the distance ``r`` (mm) of the point from the nipple,
+  the centre of rotation;
+- :math:`\\sigma_{model} = |\\Delta| \\sqrt{(\\sigma_D / D)^2 + \\alpha^2}`: the
+  sensitivity of the prediction to the model.  :math:`\\Delta` is the in-plane
+  displacement (mm) of the lesion relative to the nipple caused by the compression (its
+  projected position, relative to the projected nipple, after minus before).  To first
+  order it scales with the compression degree ``D``, so an uncertainty
+  :math:`\\sigma_D` of ``D`` moves the lesion by :math:`|\\Delta| \\sigma_D / D`
+  (``sigma_D`` from the thickness's source: the DICOM's BodyPartThickness with
+  ``thickness_sigma_mm``, or the protocol's nominal ``D`` with ``degree_sigma``).
+  :math:`\\alpha` (``material_rel``) is the relative sensitivity of the prediction to
+  the tissue's :math:`c_1` and :math:`\\nu` (with the plates driven to a gap, a
+  homogeneous neo-Hookean breast deforms nearly independently of :math:`c_1`; gravity
+  and :math:`\\nu` change the lateral spread).  No extra simulation is run per case: the
+  default 0.16 is the median that re-simulation measured on the Pelicano exams of
+  docs/truth-cases.md (``pipelines/bench_accuracy.py --variants track_c1,track_nu``:
+  c1 times 1.3 and nu - 0.02, the 1-sigma of ``[tracking]``, moved the predicted
+  centroid by 0.5 to 2.4 mm in quadrature, 0.08 to 0.39 of :math:`|\\Delta|` over seven
+  lesions of six exams);
+- :math:`\\sigma_{nip} = u / \\sqrt{3}`: where the nipple was detected on the
+  mammogram.  The detector takes the middle of the run of contour points within
+  ``nipple_delta_mm`` of the farthest from the chest wall (:mod:`regtrack.imaging.
+  mammogram.nipple`); on a flat compressed apex that run is long, any of its points
+  could be the nipple, and the registration carries the whole prediction with it.  With
+  ``u`` half the run's arc length (mm), a position uniform over the run has the standard
+  deviation ``u / sqrt(3)``.  Zero when the nipple is given (``nipple_px``).
 
-  .. math::
+Every prediction comes from the registration on the breast outline and nipple only
+(:func:`regtrack.tracking.lesions.breast_alignment`; :math:`\\theta_p = \\theta_{p,b}`), so
+``regtrack run`` (a lesion of the model) and ``regtrack track`` (an MRI point or region, a
+point of the other view) give one position and one radius for the same place.
 
-      \\sigma_{res}^2(p) = \\frac{\\sum_i w_i d_i^2}{\\sum_i w_i}, \\qquad
-      w_i = \\exp\\left(-\\frac{\\lVert q_i - p\\rVert^2}{2L^2}\\right)
-
-  with ``L`` = ``residual_scale_mm``.  A model that reproduces the real outline well
-  around the point gives a small residual there.
-* **Rotation ambiguity**: the breast and the tumour contours prefer different rotations
-  :math:`\\theta_{p,b}` and :math:`\\theta_{p,t}`; the method applies their mean, so a
-  point at distance ``r`` from the nipple (the centre of rotation) is uncertain by
-
-  .. math:: \\sigma_{rot}(p) = r \\,\\frac{|\\theta_{p,b} - \\theta_{p,t}|}{2}
-     \\quad (\\text{radians})
-
-  the distance between its positions under :math:`\\theta_p` and either optimum.
-
-Not modelled: the spread over the calibration's near-optimal material parameters (a
-study would re-run the tracking per parameter set) and the error of the MRI annotation.
+Not modelled: the error of the MRI annotation.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import math
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -60,19 +75,6 @@ class Residual:
         return cls(np.vstack(pts), np.concatenate(dist))
 
 
-@dataclass
-class Uncertainty:
-    """Per-point 1-sigma radius and its two terms (mm)."""
-
-    sigma_mm: np.ndarray
-    residual_mm: np.ndarray
-    rotation_mm: np.ndarray
-
-    def to_dict(self, k: int) -> dict:
-        return {"sigma_mm": float(self.sigma_mm[k]), "residual_mm": float(self.residual_mm[k]),
-                "rotation_mm": float(self.rotation_mm[k])}
-
-
 def residual_sigma(xy, residual: Residual | None, *, scale_mm: float) -> np.ndarray:
     """Locally weighted RMS registration residual (mm) at (M, 2) real-frame points."""
     xy = np.atleast_2d(np.asarray(xy, float))
@@ -85,19 +87,109 @@ def residual_sigma(xy, residual: Residual | None, *, scale_mm: float) -> np.ndar
     return np.sqrt((w * residual.distances[None] ** 2).sum(1) / w.sum(1))
 
 
-def rotation_sigma(xy, *, nipple, theta_b_deg: float, theta_t_deg: float) -> np.ndarray:
-    """``r |theta_b - theta_t| / 2`` (mm) at (M, 2) real-frame points; 0 if theta_t is NaN."""
-    xy = np.atleast_2d(np.asarray(xy, float))
-    if not np.isfinite(theta_t_deg):
-        return np.zeros(len(xy))
-    r = np.linalg.norm(xy - np.asarray(nipple, float), axis=1)
-    return r * np.deg2rad(abs(theta_b_deg - theta_t_deg)) / 2.0
+def angular_sigma(objective, theta_deg: float, *, correlation_mm: float, spacing_mm: float,
+                  step_deg: float = 0.5, cap_deg: float = 10.0) -> float:
+    r"""1-sigma uncertainty (deg) of the breast rotation :math:`\theta_{p,b}`.
+
+    Least squares on the ``K`` closest-point distances :math:`d_i(\theta)` (Gauss-Newton,
+    :math:`F'' \approx 2 \sum_i J_i^2`):
+
+    .. math::
+
+        \sigma_\theta^2 = \frac{2 s^2}{F''(\theta)} \cdot \frac{L_c}{h},
+        \qquad s^2 = \frac{F(\theta)}{K - 1}
+
+    with ``F''`` by central differences (``step_deg``).  The contour is resampled every
+    ``h`` = ``spacing_mm``; neighbouring residuals are not independent, so the variance is
+    inflated by the number of samples per correlation length ``L_c`` = ``correlation_mm``
+    (the effective number of independent residuals is the contour length over ``L_c``).
+    A flat or concave objective gives ``cap_deg``.
+    """
+    k = max(len(objective.virtual), 2)
+    f0 = objective(theta_deg)
+    fp, fm = objective(theta_deg + step_deg), objective(theta_deg - step_deg)
+    curv = (fp - 2.0 * f0 + fm) / step_deg ** 2  # mm^2 / deg^2
+    if not (math.isfinite(curv) and curv > 0.0):
+        return float(cap_deg)
+    s2 = f0 / (k - 1)
+    var = 2.0 * s2 / curv * max(1.0, correlation_mm / spacing_mm)
+    return float(min(math.sqrt(var), cap_deg))
 
 
-def point_uncertainty(xy, *, residual: Residual | None, nipple, theta_b_deg: float,
-                      theta_t_deg: float, scale_mm: float, floor_mm: float) -> Uncertainty:
-    """1-sigma radius (mm) of predicted real-frame points (see the module docstring)."""
-    res = residual_sigma(xy, residual, scale_mm=scale_mm)
-    rot = rotation_sigma(xy, nipple=nipple, theta_b_deg=theta_b_deg, theta_t_deg=theta_t_deg)
-    sig = np.sqrt(np.maximum(res, floor_mm) ** 2 + rot ** 2)
-    return Uncertainty(sig, res, rot)
+def prediction_sigma(*, residual_mm: float, r_mm: float, theta_sigma_deg: float,
+                     shift_mm: float, D: float | None, sigma_D: float, nipple_run_mm: float = 0.0,
+                     config) -> tuple[float, dict]:
+    """1-sigma radius (mm) and its four terms (module docstring); ``nipple_run_mm`` is ``u``,
+    ``config`` the :class:`~regtrack.tracking.config.TrackingConfig`."""
+    rot = r_mm * math.radians(theta_sigma_deg)
+    rel_D = sigma_D / D if D else 0.0
+    model = abs(shift_mm) * math.hypot(rel_D, config.material_rel)
+    res = max(residual_mm, config.min_residual_mm)
+    nip = nipple_run_mm / math.sqrt(3.0)
+    sigma = math.sqrt(res ** 2 + rot ** 2 + model ** 2 + nip ** 2)
+    return sigma, {"registration_residual": float(residual_mm), "rotation": float(rot),
+                   "model": float(model), "nipple": float(nip)}
+
+
+def nipple_run(real) -> float:
+    """``u`` (mm) of the nipple on the real view: half the arc length over which the
+    detector found it (0 when given, or when the view does not say)."""
+    info = (getattr(real, "meta", None) or {}).get("nipple") or {}
+    return float(info.get("tangential_uncertainty_mm") or 0.0)
+
+
+def inplane_shift(frame, reference, deformed, nipple_reference, nipple_deformed) -> np.ndarray:
+    """``|Delta|`` (M,) mm: the in-plane displacement of model points (M, 3) relative to the
+    nipple caused by the compression, in the plate ``frame`` (its projected position
+    relative to the projected nipple, after minus before)."""
+    def proj(p):
+        return frame.to_local(np.atleast_2d(np.asarray(p, float)))[:, :2]
+
+    d = (proj(deformed) - proj(nipple_deformed)) - (proj(reference) - proj(nipple_reference))
+    return np.linalg.norm(d, axis=1)
+
+
+@dataclass
+class PredictionUncertainty:
+    """The uncertainty model of one view's predictions (module docstring): what it needs
+    besides a point's position and in-plane shift.
+
+    ``residual`` the breast registration's residual samples, ``nipple`` (2,) the centre of
+    rotation (real frame, mm), ``theta_sigma_deg`` the registration's angular 1-sigma,
+    ``D`` / ``sigma_D`` the simulation's compression degree and its 1-sigma,
+    ``nipple_run_mm`` the detector's ``u``, ``config`` the tracking settings.
+    """
+
+    residual: Residual
+    nipple: np.ndarray
+    theta_sigma_deg: float
+    D: float | None
+    sigma_D: float
+    nipple_run_mm: float
+    config: object = field(default=None)
+
+    @classmethod
+    def from_alignment(cls, alignment, real, *, D: float | None, sigma_D: float,
+                       config) -> PredictionUncertainty:
+        """The model of a breast-only ``alignment`` (its objective, rotation and nipple) of
+        the ``real`` view."""
+        ob = alignment.breast_objective
+        th = float(alignment.theta_p)
+        sig = angular_sigma(ob, th, correlation_mm=config.correlation_mm,
+                            spacing_mm=alignment.config.resample_mm)
+        return cls(Residual(ob.points(th), ob.distances(th)), np.asarray(alignment.nipple, float),
+                   sig, D, float(sigma_D), nipple_run(real), config)
+
+    def at(self, xy, shift_mm) -> tuple[np.ndarray, list[dict]]:
+        """1-sigma radii (M,) mm and their terms at real-frame points ``xy`` (M, 2) whose
+        in-plane shifts are ``shift_mm`` (M,)."""
+        xy = np.atleast_2d(np.asarray(xy, float))
+        shift = np.broadcast_to(np.asarray(shift_mm, float), (len(xy),))
+        res = residual_sigma(xy, self.residual, scale_mm=self.config.residual_scale_mm)
+        r = np.linalg.norm(xy - self.nipple, axis=1)
+        out = [prediction_sigma(residual_mm=float(res[k]), r_mm=float(r[k]),
+                                theta_sigma_deg=self.theta_sigma_deg, shift_mm=float(shift[k]),
+                                D=self.D, sigma_D=self.sigma_D,
+                                nipple_run_mm=self.nipple_run_mm, config=self.config)
+               for k in range(len(xy))]
+        return np.array([s for s, _ in out]), [t for _, t in out]

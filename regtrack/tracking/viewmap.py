@@ -24,7 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from regtrack.registration.geometry import rotation
-from regtrack.tracking.uncertainty import Residual
+from regtrack.tracking.uncertainty import PredictionUncertainty, Residual
 from regtrack.virtual.frames import PlateFrame
 from regtrack.virtual.xray import PointSource, perspective
 
@@ -145,9 +145,12 @@ class ViewMap:
     source : PointSource or None
         X-ray point source of the virtual projection (None: orthogonal, as in the paper).
     residual : Residual or None
-        Aligned contour residuals for the uncertainty model.
+        Aligned contour residuals (those of :attr:`uncertainty` when it is given).
     real : MammogramView or None
         The real view (for figures and the inside-the-breast check).
+    uncertainty : PredictionUncertainty or None
+        The uncertainty model of a prediction (:mod:`regtrack.tracking.uncertainty`);
+        None: positions without a radius.
     """
 
     view: str
@@ -158,6 +161,7 @@ class ViewMap:
     source: PointSource | None = None
     residual: Residual | None = None
     real: object = None
+    uncertainty: PredictionUncertainty | None = None
 
     def to_virtual(self, points) -> np.ndarray:
         """(M, 3) deformed model points (mm) -> (M, 2) virtual image plane (mm)."""
@@ -191,15 +195,27 @@ class ViewMap:
         return float(h.min()), float(h.max())
 
 
-def viewmap_from_outcome(outcome, *, alignment=None) -> ViewMap:
+def viewmap_from_outcome(outcome, *, config=None) -> ViewMap:
     """The :class:`ViewMap` of a pipeline :class:`~regtrack.pipeline.stages.ViewOutcome`
-    (simulated positions, virtual plate frame and source, alignment, real view).
+    (simulated positions, virtual plate frame and source, real view) with the registration
+    and uncertainty model of every prediction: the breast-only registration
+    (``extra["breast_alignment"]``, :func:`regtrack.tracking.lesions.breast_alignment`) and
+    the simulation's ``D`` with its 1-sigma (``extra["sigma_D"]``); ``config`` the
+    :class:`~regtrack.tracking.config.TrackingConfig` (default: its defaults).
 
     For the case report: ``track_tumour(model, {o.view: viewmap_from_outcome(o) for o in
-    results})`` gives the tumour's predicted position in every real view.  ``alignment``
-    replaces the outcome's (e.g. its breast-only registration, ``extra["breast_alignment"]``).
-    """
-    al = alignment if alignment is not None else outcome.alignment
+    results})`` gives the tumour's predicted position in every real view, the same as
+    ``regtrack run``'s lesion prediction."""
+    from regtrack.tracking.config import TrackingConfig
+    from regtrack.tracking.lesions import breast_alignment
+
+    extra = getattr(outcome, "extra", None) or {}
+    al = extra.get("breast_alignment") or breast_alignment(outcome.alignment, outcome.real,
+                                                           outcome.virtual)
+    D = (outcome.sim.summary or {}).get("D")
+    unc = PredictionUncertainty.from_alignment(al, outcome.real, D=D,
+                                               sigma_D=float(extra.get("sigma_D", 0.0)),
+                                               config=config or TrackingConfig())
     return ViewMap(outcome.view, outcome.sim.positions, outcome.virtual.frame,
                    InPlane.from_alignment(al), PixelFrame.from_view(outcome.real),
-                   outcome.virtual.source, Residual.from_alignment(al), outcome.real)
+                   outcome.virtual.source, unc.residual, outcome.real, unc)
