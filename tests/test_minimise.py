@@ -354,11 +354,11 @@ def test_multipliers_failing_in_the_last_increment_halve_it(monkeypatch):
     real = minimise._increment
     calls = []
 
-    def first_fails(m, starts, t, *a, **k):
+    def first_fails(m, origin, starts, t, *a, **k):
         calls.append(t)
         if len(calls) == 1:
             raise ContactDidNotConvergeError("contact multipliers not converged in 20 updates")
-        return real(m, starts, t, *a, **k)
+        return real(m, origin, starts, t, *a, **k)
 
     monkeypatch.setattr(minimise, "_increment", first_fails)
     _, st, _ = minimise_step(prob, np.zeros_like(prob.X), gravity=lambda t: np.zeros(3),
@@ -367,7 +367,7 @@ def test_multipliers_failing_in_the_last_increment_halve_it(monkeypatch):
 
     calls.clear()
 
-    def always_fails(m, starts, t, *a, **k):
+    def always_fails(m, origin, starts, t, *a, **k):
         calls.append(t)
         raise ContactDidNotConvergeError("contact multipliers not converged in 20 updates")
 

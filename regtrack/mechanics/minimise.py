@@ -5,13 +5,14 @@ minimises
 
 .. math::
 
-    \\Pi(u) = W(u) - f_{ext}(t) \\cdot u + \\sum_{plates} (\\Pi_N + \\Pi_T)(u)
+    \\Pi(u) = W(u) - f_{ext}(t) \\cdot u + \\sum_{plates} (\\Pi_N + \\Pi_T)(u) + \\Pi_S(u)
     \\quad\\text{(N mm)}
 
 over the free dofs (the chest-wall nodes keep their displacement): ``W`` the stored energy
 of the tissue and the skin membrane (:mod:`.problem`; the ANP tetrahedron and the
-tension-field membrane are variational), ``f_ext`` gravity, and the plates' augmented-
-Lagrangian contact and lagged friction potentials (:mod:`.potential`).
+tension-field membrane are variational), ``f_ext`` gravity, the plates' augmented-
+Lagrangian contact and lagged friction potentials (:mod:`.potential`), and ``Pi_S`` the
+outer surface's self-contact barrier (:mod:`.selfcontact`; when the problem has one).
 
 Each increment's minimisation at fixed loads and lags is :class:`.newton.Minimiser`: Newton
 with a positive definite Hessian, backtracking on ``Pi`` and a convergence test on the
@@ -111,7 +112,8 @@ def minimise_step(problem: Problem, u0: np.ndarray, *, gravity: Callable[[float]
                             v = v.copy().reshape(-1)
                             v[np.asarray(dofs, np.int64)] = vals
                             starts[k] = v.reshape(-1, 3)
-                    s = _increment(m, starts, t_new, _external(problem, gravity, forces), contacts, plates, cfg)
+                    s = _increment(m, u, starts, t_new, _external(problem, gravity, forces), contacts,
+                                   plates, cfg)
                 except SolverDidNotConvergeError as exc:
                     for pl in plates:
                         pl.begin(u)
@@ -175,19 +177,24 @@ def _progress_info(plates, s: NewtonState, T0_mm: float | None) -> dict:
     return info
 
 
-def _increment(m: Minimiser, starts: Sequence[np.ndarray], t: float, external, contacts, plates,
-               cfg):
+def _increment(m: Minimiser, origin: np.ndarray, starts: Sequence[np.ndarray], t: float, external,
+               contacts, plates, cfg):
     """One increment to ``t`` from the start of lowest potential among ``starts`` (the last
-    state, and the path extrapolated from it: a starting guess changes the iterations, not
-    the minimiser): minimise, and update the multipliers and the friction lag until the
-    penetration and the friction bound are converged (each increment is then a backward-
-    Euler step of Coulomb's law at its own pressure)."""
+    state ``origin``, and the path extrapolated from it: a starting guess changes the
+    iterations, not the minimiser; a start that the outer surface cannot reach from
+    ``origin`` without crossing itself is not taken): minimise, and update the multipliers
+    and the friction lag until the penetration and the friction bound are converged (each
+    increment is then a backward-Euler step of Coulomb's law at its own pressure)."""
     for c in contacts:
         c.set_time(t)
     fext = external(t)
+    if not m.reachable(origin, starts[0]):
+        raise SolverDidNotConvergeError("the prescribed displacements move the outer surface "
+                                        "through itself")
     u = starts[0]
     if len(starts) > 1:
-        trials = [m.state(v, fext, plates, hessian=False) for v in starts]
+        trials = [m.state(v, fext, plates, hessian=False) if m.reachable(origin, v) else None
+                  for v in starts]
         energies = [np.inf if s is None else s.energy for s in trials]
         u = starts[int(np.argmin(energies))] if np.isfinite(min(energies)) else starts[0]
     previous: list = [None] * len(plates)

@@ -19,6 +19,10 @@ Newton's method with a guaranteed descent (Nocedal & Wright, *Numerical Optimiza
   remains for a singular projected Hessian);
 * a correction computed on an earlier (positive definite) factorisation is accepted only
   if it is a descent direction, ``R . du < 0``;
+* the outer surface's self-contact barrier (:mod:`.selfcontact`), when the problem has
+  one, joins the potential with its positive semi-definite Hessian, whose couplings beyond
+  the mesh's pattern extend the system matrix; the line search starts from the largest
+  step in which no node can cross a triangle (its additive CCD);
 * the step length is chosen by backtracking on the potential itself (Armijo: ``Pi(u + a
   du) <= Pi(u) + c a R . du``); an inverted element makes ``Pi`` infinite;
 * an increment has converged when the residual ``R = dPi/du`` on the free dofs meets
@@ -49,6 +53,7 @@ from regtrack.mechanics.potential import PlateEval, PlatePotential
 from regtrack.mechanics.problem import (FORCE_FLOOR_N, Problem, chest_wall_reaction,
                                         constraint_positions, dof_nodes, evaluate, scatter_add,
                                         system_matrix)
+from regtrack.mechanics.selfcontact import BarrierEval, Pairs
 from regtrack.mechanics.types import StepStats
 
 log = logging.getLogger(__name__)
@@ -73,6 +78,7 @@ class NewtonState:
     plates: list[PlateEval]
     ev: object = None
     f_ref: float = 0.0
+    skin: BarrierEval | None = None
 
 
 class Minimiser:
@@ -96,6 +102,8 @@ class Minimiser:
         self._diag = problem.pattern.diagonal_positions()
         self._cons = constraint_positions(problem, self.fixed_dofs)
         self.n_groups = 0 if problem.groups is None else problem.groups.n_groups
+        self.barrier = problem.self_contact
+        self._pairs: np.ndarray | None = None  # node pairs coupled by the barrier so far
         # every iteration lowers the potential, so a minimisation may take longer than a
         # Newton solve of the residual before an increment is halved
         self.max_iterations = 4 * options.max_iterations
@@ -103,9 +111,10 @@ class Minimiser:
 
     # -- the potential ------------------------------------------------------------------
     def state(self, u: np.ndarray, fext: np.ndarray, plates: Sequence[PlatePotential], *,
-              hessian: bool) -> NewtonState | None:
+              hessian: bool, pairs: Pairs | None = None) -> NewtonState | None:
         """``Pi``, ``R = dPi/du`` and the pieces of the Hessian at ``u`` (None if an element
-        inverts)."""
+        inverts or the barrier is infinite); ``pairs``: the self-contact pairs to evaluate
+        (default: those within the barrier's reach at ``u``)."""
         t0 = time.perf_counter()
         ev = evaluate(self.p, u, want_k=hessian)
         if ev.n_inverted != 0 or not np.all(np.isfinite(ev.f)):
@@ -120,12 +129,20 @@ class Minimiser:
             energy += e.energy
             R = R + e.grad
             fc = max(fc, float(np.linalg.norm(e.grad.reshape(-1, 3).sum(axis=0))))
+        skin = None
+        if self.barrier is not None:
+            skin = self.barrier.evaluate(ue, pairs, hessian=hessian)
+            if not np.isfinite(skin.energy):
+                self.stats.t_assembly += time.perf_counter() - t0
+                return None
+            energy += skin.energy
+            R = R + skin.grad
         self.stats.t_assembly += time.perf_counter() - t0
         weight = float(np.linalg.norm(fext.reshape(-1, 3).sum(axis=0)))
         reaction = float(np.linalg.norm(chest_wall_reaction(self.p, ue, R)))
         f_ref = max(weight, fc, reaction, float(np.linalg.norm(ev.f)) / np.sqrt(len(ev.f)),
                     FORCE_FLOOR_N)
-        return NewtonState(ue.reshape(-1, 3), energy, R, pe, ev, f_ref)
+        return NewtonState(ue.reshape(-1, 3), energy, R, pe, ev, f_ref, skin)
 
     def converged(self, s: NewtonState) -> bool:
         norm = float(np.linalg.norm(s.R[self.free]))
@@ -147,13 +164,51 @@ class Minimiser:
         for e in s.plates:
             if e.hess is not None and e.hess.nnz:
                 scatter_add(data, pat.dof_positions(e.hess.row, e.hess.col), e.hess.data)
+        extra = None
+        if s.skin is not None and s.skin.hess is not None:
+            rows, cols, vals = s.skin.hess
+            pos = pat.dof_positions(rows, cols)
+            inside = pos >= 0
+            scatter_add(data, pos[inside], vals[inside])
+            extra = (rows[~inside], cols[~inside], vals[~inside])
         if shift > 0:
             data[self._diag] += shift
         M = system_matrix(self.p, ev, data)
         zero, diag = self._cons
         M.data[zero] = 0.0
         M.data[diag] = 1.0
-        return M
+        return self._with_couplings(M, extra)
+
+    def _with_couplings(self, M: sp.csr_matrix, extra) -> sp.csr_matrix:
+        """``M`` with the barrier's couplings outside the mesh's pattern added (between
+        free dofs; a fixed dof keeps its identity row).  The extra pattern is the union of
+        the node pairs coupled so far by this minimiser, zero where a pair is not in reach
+        now, so that the linear solver's analysis is redone only when a new pair comes."""
+        if extra is not None and len(extra[0]):
+            r, c, v = extra
+            keep = self.free[r] & self.free[c]
+            r, c, v = r[keep], c[keep], v[keep]
+            pairs = np.unique(np.stack([r // 3, c // 3], axis=1), axis=0)
+            self._pairs = pairs if self._pairs is None else np.unique(np.vstack([self._pairs, pairs]), axis=0)
+        else:
+            r = c = np.zeros(0, np.int64)
+            v = np.zeros(0)
+        if self._pairs is None:
+            return M
+        k = np.arange(3)
+        pr = (3 * self._pairs[:, :1, None] + k[None, :, None]).repeat(3, axis=2).reshape(-1)
+        pc = (3 * self._pairs[:, 1:, None] + k[None, None, :]).repeat(3, axis=1).reshape(-1)
+        C = M.tocoo()
+        return sp.csr_matrix((np.concatenate([C.data, np.zeros(len(pr)), v]),
+                              (np.concatenate([C.row, pr, r]), np.concatenate([C.col, pc, c]))),
+                             shape=M.shape)
+
+    def reachable(self, u_from: np.ndarray, u_to: np.ndarray) -> bool:
+        """Whether the straight path from ``u_from`` to ``u_to`` (N, 3) mm crosses no
+        triangle of the outer surface (always, without a barrier)."""
+        if self.barrier is None:
+            return True
+        return self.barrier.near(u_from, np.asarray(u_to) - np.asarray(u_from))[1] >= 1.0
 
     def direction(self, s: NewtonState) -> np.ndarray:
         """A descent direction ``du`` (3N,): the Newton correction of the consistent Hessian
@@ -205,8 +260,8 @@ class Minimiser:
 
     def line_search(self, s: NewtonState, du: np.ndarray, fext: np.ndarray,
                     plates: Sequence[PlatePotential]) -> NewtonState | None:
-        """Backtracking (halving) on ``Pi`` from the full step; None when no trial of 40
-        lowers it.
+        """Backtracking (halving) on ``Pi`` from the full step, or from the self-contact
+        barrier's step bound when that is shorter; None when no trial of 40 lowers it.
 
         A full step that lowers ``Pi`` by more than ``EXPAND_RATIO`` times what the
         quadratic model predicts (``-R . du / 2``) has met less curvature than the
@@ -217,12 +272,19 @@ class Minimiser:
         lowest trial is taken."""
         slope = float(s.R[self.free] @ du[self.free])
         scale = 1e-12 * (abs(s.energy) + float(np.abs(fext) @ np.abs(s.u.reshape(-1))) + 1e-12)
-        a = 1.0
+        a, pairs = 1.0, None
+        if self.barrier is not None:  # the largest step that crosses no triangle
+            t0 = time.perf_counter()
+            pairs, a = self.barrier.near(s.u, du)
+            if a < 1.0:
+                self.stats.ccd_limited += 1
+            log.log(5, "  barrier: %d pairs in reach of the step (largest move %.3g mm), step "
+                    "bound %.3g, %.3f s", len(pairs), np.abs(du).max(), a, time.perf_counter() - t0)
         for k in range(40):
             self.stats.line_search_trials += 1
-            trial = self.state(s.u + a * du.reshape(-1, 3), fext, plates, hessian=False)
+            trial = self.state(s.u + a * du.reshape(-1, 3), fext, plates, hessian=False, pairs=pairs)
             if trial is not None and trial.energy <= s.energy + ARMIJO_C * a * slope + scale:
-                if k == 0 and trial.energy - s.energy < EXPAND_RATIO * 0.5 * slope:
+                if a == 1.0 and trial.energy - s.energy < EXPAND_RATIO * 0.5 * slope:
                     trial = self._expand(s, trial, du, fext, plates)
                 return trial
             a *= 0.5
@@ -234,8 +296,13 @@ class Minimiser:
         a = 1.0
         for _ in range(6):
             a *= 2.0
+            pairs = None
+            if self.barrier is not None:
+                pairs, safe = self.barrier.near(s.u, a * du)
+                if safe < 1.0:
+                    break
             self.stats.line_search_trials += 1
-            trial = self.state(s.u + a * du.reshape(-1, 3), fext, plates, hessian=False)
+            trial = self.state(s.u + a * du.reshape(-1, 3), fext, plates, hessian=False, pairs=pairs)
             if trial is None or trial.energy >= best.energy:
                 break
             best = trial

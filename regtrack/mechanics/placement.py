@@ -229,3 +229,26 @@ def _opening(plate: RigidPlate, centre: np.ndarray, size_mm) -> tuple[float, flo
         log.info("plate %s: opening moved %.1f mm anteriorly to clear the chest-wall edge",
                  plate.name, s0 - (s - w / 2.0))
     return (s0, s0 + w, t - h / 2.0, t + h / 2.0)
+
+
+def skin_barrier(body: BodySetup, config: ContactConfig):
+    """The outer surface's self-contact barrier (:class:`.selfcontact.SkinBarrier`) of
+    ``body``: its outer triangles (:attr:`BodySetup.surface`) with their nodes' tributary
+    areas, the plates' automatic normal penalty as its stiffness and ``[contact]
+    self_contact_gap_mm`` as its reach; None when that is 0.  Raises :class:`ConfigError`
+    when the reference mesh already has a node that close to a triangle it is not a corner
+    of (the reference would not be stress free)."""
+    from regtrack.mechanics.selfcontact import SkinBarrier
+
+    if config.self_contact_gap_mm <= 0:
+        return None
+    X = np.asarray(body.points, float)
+    eps = automatic_penalty(config, young_mpa=body.young_mpa, h_mm=mean_edge_length(X, body.surface))
+    bar = SkinBarrier(X, body.surface, tributary_areas(X, body.surface), kappa=eps,
+                      dhat=config.self_contact_gap_mm)
+    closest = bar.check_reference()
+    if np.isfinite(closest):
+        raise ConfigError(f"[contact] self_contact_gap_mm = {config.self_contact_gap_mm:g}: the "
+                          f"model's outer surface already comes {closest:.3g} mm close to itself "
+                          "(a node and a triangle it is not a corner of); set it below that")
+    return bar

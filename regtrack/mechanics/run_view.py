@@ -29,7 +29,7 @@ from regtrack.config import parse_section, to_table
 from regtrack.errors import ConfigError, ResultCheckError, SolverDidNotConvergeError
 from regtrack.mechanics.contact import ContactConfig
 from regtrack.mechanics.protocol import Protocol, protocol_for_view
-from regtrack.mechanics.placement import BodySetup
+from regtrack.mechanics.placement import BodySetup, skin_barrier
 from regtrack.mechanics.protocol_run import ProtocolResult, ProtocolRunner
 from regtrack.model.types import BreastModel
 
@@ -82,6 +82,7 @@ def run_protocol_on_model(model: BreastModel, protocol: Protocol, *, mechanics: 
     t1 = time.perf_counter()
     step_solver = minimiser_from_problem(problem, progress=progress)
     body = body_from_model(model, problem.mats.tissue_young_mpa, sliding=problem.support is not None)
+    problem.self_contact = skin_barrier(body, contact)
     runner = ProtocolRunner(body, protocol, step_solver, config=contact)
     result = runner.run()
     result.materials = problem.tissue_c1.info

@@ -17,7 +17,8 @@ class StepStats:
     sparse factorisations and ``krylov_solves`` solves on a re-used one (:mod:`.linsolve`);
     ``inertia_corrections`` Hessians made positive definite, ``rejected_directions``
     corrections of an old factorisation that did not descend, ``line_search_trials``
-    potential evaluations of the line search.  Times are wall-clock seconds:
+    potential evaluations of the line search, ``ccd_limited`` line searches started
+    below the full step so that no node crosses the outer surface (:mod:`.selfcontact`).  Times are wall-clock seconds:
     ``t_assembly`` (tissue, skin and contact terms), ``t_solve`` (linear solves),
     ``t_total``.
     """
@@ -32,6 +33,7 @@ class StepStats:
     inertia_corrections: int = 0
     rejected_directions: int = 0
     line_search_trials: int = 0
+    ccd_limited: int = 0
     t_assembly: float = 0.0
     t_solve: float = 0.0
     t_total: float = 0.0

@@ -1,0 +1,309 @@
+r"""The outer surface against itself: a barrier that keeps the skin out of the tissue.
+
+Where the skin folds onto itself (the inframammary crease pressed shut by a plate, the
+breast's underside resting on tissue below it that the MRI segmentation kept, a bulge
+rolling over the skin beside it) one patch of the model's outer surface meets another.
+This term of the incremental potential (:mod:`.minimise`) stops one passing through the
+other.
+
+Every boundary node ``i`` (position ``x_i``, tributary reference area ``A_i`` in mm^2) and
+every boundary triangle ``T`` outside its 2-ring (no corner of ``T`` is ``i`` or a surface
+neighbour of ``i``), at the distance ``d = dist(x_i, T)`` (mm), add the log barrier of *Incremental Potential Contact* (Li et al., SIGGRAPH 2020,
+eq. 6) when ``d < dhat``:
+
+.. math::
+
+    \Pi_S = \sum_{(i, T):\, d < \hat d} \kappa A_i\, b(d), \qquad
+    b(d) = -(d - \hat d)^2 \ln(d / \hat d) \quad\text{(mm}^2\text{; } \Pi_S \text{ in N mm)},
+
+with ``kappa`` (MPa/mm) the plates' normal penalty (:func:`.contact.automatic_penalty`) and
+``dhat`` (mm) the barrier's reach (``[contact] self_contact_gap_mm``).  ``b`` is C2 at
+``dhat`` (it and its first two derivatives vanish there) and grows without bound as ``d ->
+0``, so a state of finite potential has no node on a triangle it faces.  The line search
+never lets a node cross a triangle within a step (:meth:`SkinBarrier.near`, below), so no
+boundary node can enter the tissue: the skin may touch itself, pressing with ``-kappa
+b'(d)`` (MPa), but not go through.
+
+Derivatives (envelope theorem; ``q = sum_k w_k v_k`` the closest point of ``T`` with its
+barycentric weights, ``n = (x_i - q) / d``): ``dd/dx_i = n``, ``dd/dv_k = -w_k n``: exact in
+every Voronoi region of the triangle.  The Hessian handed to Newton is the Gauss-Newton
+part ``kappa A_i b''(d) g g^T`` (``g`` the 12 derivatives above): ``b'' > 0`` on ``(0,
+dhat)``, so it is positive semi-definite.  The part ``kappa A_i b'(d) d^2d/dx^2`` is left
+out: ``b' < 0`` and the distance is convex in the node, so in the node's own block it is
+negative semi-definite and would be clamped by a projection anyway.
+
+Steps that cannot cross (additive continuous collision detection; Li et al., *Codimensional
+IPC*, 2021): moving the nodes by ``alpha Delta``, with ``c`` the mean motion of the pair's
+four nodes or zero (the smaller bound is used),
+
+.. math::
+
+    |d(\alpha) - d(0)| \le \alpha\, m, \qquad m = |\Delta_i - c| + \max_k |\Delta_{v_k} - c|,
+
+because the distance is invariant under a common translation, 1-Lipschitz in the point, and
+a triangle whose corners move by at most ``r`` moves each of its points by at most ``r``.
+So ``alpha <= s d(0) / m`` (``s = 0.9``) keeps the pair apart, and a pair with ``d(0) >=
+dhat + m`` stays beyond the barrier's reach for every ``alpha`` in ``[0, 1]``: the pairs of a
+line search are found once, before its trials.  Repeating the bound from the distance
+reached (additive CCD) gives each pair's time of impact, when its distance first falls to
+``(1 - s) d(0)``; a pair sliding along the other surface keeps its distance and may take the
+whole step.  The line search starts from the smallest time of impact.
+
+The barrier acts between nodes and triangles; two edges may still cross with every node
+outside (a fold meeting another at a sharp crease), which this term does not see.  A node
+and the triangles of its 2-ring are left out: they are the same patch of skin, which the
+tetrahedra below it keep apart; wrinkled by a plate, the patch would otherwise press on
+itself at the barrier's reach and stiffen the skin against a fold that the mesh is too
+coarse to resolve.
+
+Units: mm, N, MPa; energies in N mm.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from regtrack.mechanics.overlap import closest_on_triangle
+
+#: Fraction of the distance a step may close (the conservative CCD's safety factor).
+CCD_SAFETY = 0.9
+#: Strides of the additive CCD per pair before its time reached is kept as its bound.
+ACCD_ITERATIONS = 64
+#: Pairs within this many reaches enter the system matrix's pattern (with zero blocks).
+PATTERN_MARGIN = 2.0
+#: Candidate pairs per surface node a step's search may test; a longer step (its nodes
+#: moving far past their neighbours) is bounded to the part that fits (halved until it does).
+BROAD_PHASE_BUDGET = 128
+
+
+def barrier(d: np.ndarray, dhat: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``b(d)``, ``b'(d)`` and ``b''(d)`` (mm^2, mm, 1) of the log barrier for ``0 < d``,
+    zero from ``dhat`` on (module docstring)."""
+    d = np.asarray(d, float)
+    inside = d < dhat
+    with np.errstate(divide="ignore", invalid="ignore"):
+        g = d - dhat
+        L = np.log(d / dhat)
+        b = np.where(inside, -g * g * L, 0.0)
+        b1 = np.where(inside, -2.0 * g * L - g * g / d, 0.0)
+        b2 = np.where(inside, -2.0 * L - 4.0 * g / d + g * g / (d * d), 0.0)
+    return b, b1, b2
+
+
+@dataclass
+class Pairs:
+    """Node-triangle pairs: boundary nodes ``node`` (P,) and triangles ``tri`` (P,) (rows
+    of :attr:`SkinBarrier.faces`)."""
+
+    node: np.ndarray
+    tri: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.node)
+
+
+@dataclass
+class BarrierEval:
+    """The barrier at one state: ``energy`` (N mm), ``grad`` (3N,) N, the Gauss-Newton
+    Hessian as ``(rows, cols, vals)`` dof triplets (N/mm; None unless asked), the number of
+    pairs within reach and the smallest distance (mm; inf without pairs)."""
+
+    energy: float
+    grad: np.ndarray
+    hess: tuple[np.ndarray, np.ndarray, np.ndarray] | None
+    n_active: int
+    d_min: float
+
+
+class SkinBarrier:
+    """The self-contact barrier of a mesh's outer surface (module docstring).
+
+    Parameters
+    ----------
+    points : (N, 3) reference coordinates (mm).
+    faces : (F, 3) the outer triangles (node indices).
+    areas : (N,) tributary reference area of each node on the outer surface (mm^2).
+    kappa : barrier stiffness (MPa/mm).
+    dhat : the barrier's reach (mm), below the smallest distance between a node and a
+        triangle it is not a corner of in the reference configuration (else the reference
+        is not stress free; :meth:`check_reference`).
+    """
+
+    def __init__(self, points: np.ndarray, faces: np.ndarray, areas: np.ndarray, *,
+                 kappa: float, dhat: float) -> None:
+        self.X = np.asarray(points, float)
+        self.faces = np.asarray(faces, np.int64)
+        self.nodes = np.unique(self.faces)
+        self.areas = np.asarray(areas, float)
+        self.kappa = float(kappa)
+        self.dhat = float(dhat)
+        self.n_dofs = 3 * len(self.X)
+        # the surface's edges (both ways) and its nodes, as sorted keys i * N + j
+        E = self.faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2)
+        n = len(self.X)
+        self._adjacent = np.unique(np.concatenate([E[:, 0] * n + E[:, 1], E[:, 1] * n + E[:, 0],
+                                                   self.nodes * n + self.nodes]))
+
+    def _neighbours(self, node: np.ndarray, corners: np.ndarray) -> np.ndarray:
+        """Whether a triangle (``corners`` (P, 3)) has ``node`` (P,) or one of the node's
+        surface neighbours as a corner: a triangle of the node's 2-ring."""
+        keys = node[:, None] * len(self.X) + corners
+        return np.isin(keys, self._adjacent).any(axis=1)
+
+    # -- pairs --------------------------------------------------------------------------
+    def near(self, u: np.ndarray, du: np.ndarray | None = None, *,
+             margin: float = 1.0) -> tuple[Pairs, float]:
+        """The pairs that can come within reach while the nodes move from ``x = X + u`` by
+        ``alpha du`` for ``alpha`` in ``[0, a]`` (``du`` None: those within ``margin``
+        times the reach at ``x``), and ``a``: the largest step ``<= 1`` that no pair can cross (conservative
+        CCD, module docstring; 1 without motion; at most ``2^-k`` when the search of the
+        whole step exceeds ``BROAD_PHASE_BUDGET`` and its ``2^-k`` part does not).  Both
+        (N, 3) mm."""
+        x = self.X + np.asarray(u, float).reshape(-1, 3)
+        F = self.faces
+        scale = 1.0
+        corners = x[F]                                                   # (F, 3, 3)
+        centre = corners.mean(axis=1)
+        radius = np.linalg.norm(corners - centre[:, None], axis=2).max(axis=1)
+        D = np.zeros_like(x) if du is None else np.asarray(du, float).reshape(-1, 3)
+        if du is not None:  # pairs meet by their relative motion: take out a common one
+            Ds = D[self.nodes]
+            D = D - 0.5 * (Ds.max(axis=0) + Ds.min(axis=0))
+        budget = BROAD_PHASE_BUDGET * len(self.nodes)
+        while True:  # a step too long to search within the budget is searched for its part
+            move = np.linalg.norm(D, axis=1)
+            tri_move = move[F].max(axis=1)
+            found = self._broad_phase(x[self.nodes], margin * self.dhat + move[self.nodes], centre,
+                                      radius + tri_move, budget if move.any() else None)
+            if found is not None:
+                break
+            D, scale = 0.5 * D, 0.5 * scale
+        node, tri = found
+        node = self.nodes[node]
+        keep = ~self._neighbours(node, F[tri])  # not a corner, nor next to one
+        node, tri = node[keep], tri[keep]
+        d, _, _ = self._distance(x, node, tri)
+        if du is None:
+            sel = d < margin * self.dhat
+            return Pairs(node[sel], tri[sel]), 1.0
+        quad = np.concatenate([node[:, None], F[tri]], axis=1)           # (P, 4)
+        Dq = D[quad]
+        rel = np.linalg.norm(Dq - Dq.mean(axis=1, keepdims=True), axis=2)
+        m = np.minimum(rel[:, 0] + rel[:, 1:].max(axis=1), move[node] + tri_move[tri])
+        sel = d < self.dhat + m
+        toi = self._time_of_impact(x, D, node, tri, d, m)
+        alpha = float(min(scale, scale * toi.min(initial=np.inf)))
+        return Pairs(node[sel], tri[sel]), alpha
+
+    def _time_of_impact(self, x: np.ndarray, D: np.ndarray, node: np.ndarray, tri: np.ndarray,
+                        d0: np.ndarray, m: np.ndarray) -> np.ndarray:
+        """Additive CCD (Li et al. 2021, algorithm 1) of each pair moving from ``x`` by
+        ``t D``: the pair advances by ``s d(t) / m`` (``s = CCD_SAFETY``; its distance stays
+        above ``(1 - s) d(t)`` meanwhile, module docstring) until its distance falls below
+        ``(1 - s) d0``; the time reached before that is its time of impact (inf: not before
+        ``t = 1``).  A pair sliding along the other surface keeps its distance and advances
+        in long strides; after ``ACCD_ITERATIONS`` the time reached is kept (a lower bound:
+        safe)."""
+        toi = np.full(len(node), np.inf)
+        idx = np.flatnonzero(m > CCD_SAFETY * d0)    # the others cannot close to (1 - s) d0
+        t = np.zeros(len(idx))
+        d = d0[idx]
+        for _ in range(ACCD_ITERATIONS):
+            t_new = t + CCD_SAFETY * d / m[idx]
+            go = t_new <= 1.0
+            idx, t, t_new = idx[go], t[go], t_new[go]
+            if len(idx) == 0:
+                return toi
+            d = np.linalg.norm(self._gap(x, D, t_new, node[idx], tri[idx]), axis=1)
+            hit = d < (1.0 - CCD_SAFETY) * d0[idx]
+            toi[idx[hit]] = t[hit]
+            idx, t, d = idx[~hit], t_new[~hit], d[~hit]
+        toi[idx] = t
+        return toi
+
+    def _gap(self, x: np.ndarray, D: np.ndarray, t: np.ndarray, node: np.ndarray,
+             tri: np.ndarray) -> np.ndarray:
+        """``x_i - q`` (P, 3) mm of the pairs at positions ``x + t D`` (``t`` per pair)."""
+        c = x[self.faces[tri]] + t[:, None, None] * D[self.faces[tri]]
+        p = x[node] + t[:, None] * D[node]
+        q, _ = closest_on_triangle(p, c[:, 0], c[:, 1], c[:, 2])
+        return p - q
+
+    @staticmethod
+    def _broad_phase(pts: np.ndarray, reach: np.ndarray, centre: np.ndarray, sweep: np.ndarray,
+                     budget: int | None = None) -> tuple[np.ndarray, np.ndarray] | None:
+        """The (point, triangle) index pairs whose spheres meet: point ``k`` with radius
+        ``reach[k]``, triangle ``j`` with centre ``centre[j]`` and radius ``sweep[j]`` (its
+        bounding sphere grown by its corners' largest motion); None when the search would
+        test more than ``budget`` pairs.  The triangles are queried in classes of radius
+        within a factor 2, so that a few fast ones do not widen the search of all."""
+        cls = np.ceil(np.log2(np.maximum(sweep, 0.5) / 0.5)).astype(np.int64)
+        queries = []
+        for k in np.unique(cls):
+            ts = np.flatnonzero(cls == k)
+            queries.append((ts, cKDTree(centre[ts]), reach + float(sweep[ts].max())))
+        if budget is not None and sum(int(tree.query_ball_point(pts, r=r, return_length=True).sum())
+                                      for _, tree, r in queries) > budget:
+            return None
+        out_p, out_t = [], []
+        for ts, tree, r in queries:
+            lists = tree.query_ball_point(pts, r=r, return_sorted=False)
+            counts = np.fromiter((len(v) for v in lists), np.int64, len(lists))
+            p = np.repeat(np.arange(len(pts)), counts)
+            t = ts[np.concatenate([np.asarray(v, np.int64) for v in lists])]
+            keep = np.linalg.norm(pts[p] - centre[t], axis=1) <= reach[p] + sweep[t]
+            out_p.append(p[keep])
+            out_t.append(t[keep])
+        return np.concatenate(out_p), np.concatenate(out_t)
+
+    def _distance(self, x: np.ndarray, node: np.ndarray, tri: np.ndarray):
+        """Distances (P,) mm of the pairs, closest points and their weights on the triangles."""
+        c = x[self.faces[tri]]
+        q, w = closest_on_triangle(x[node], c[:, 0], c[:, 1], c[:, 2])
+        return np.linalg.norm(x[node] - q, axis=1), q, w
+
+    # -- the potential ------------------------------------------------------------------
+    def evaluate(self, u: np.ndarray, pairs: Pairs | None = None, *,
+                 hessian: bool = False) -> BarrierEval:
+        """The barrier at ``x = X + u`` over ``pairs`` (default: those within
+        ``PATTERN_MARGIN`` times the reach; the Hessian has a zero block for a pair beyond
+        the reach, so that the pairs about to come into reach are in the matrix's pattern
+        already and the linear solver's analysis is redone less often)."""
+        if pairs is None:
+            pairs, _ = self.near(u, margin=PATTERN_MARGIN if hessian else 1.0)
+        x = self.X + np.asarray(u, float).reshape(-1, 3)
+        grad = np.zeros(self.n_dofs)
+        if len(pairs) == 0:
+            return BarrierEval(0.0, grad, None, 0, np.inf)
+        d, q, w = self._distance(x, pairs.node, pairs.tri)
+        if np.any(d <= 0.0):
+            return BarrierEval(np.inf, grad, None, len(pairs), 0.0)
+        node, tri = pairs.node, pairs.tri
+        b, b1, b2 = barrier(d, self.dhat)
+        k = self.kappa * self.areas[node]
+        n = (x[node] - q) / d[:, None]
+        g = np.concatenate([n[:, None], -w[:, :, None] * n[:, None]], axis=1)   # (P, 4, 3)
+        quad = np.concatenate([node[:, None], self.faces[tri]], axis=1)         # (P, 4)
+        dofs = (3 * quad[:, :, None] + np.arange(3)).reshape(len(node), 12)
+        np.add.at(grad, dofs, (k * b1)[:, None] * g.reshape(-1, 12))
+        hess = None
+        if hessian:
+            gf = g.reshape(-1, 12)
+            vals = (k * b2)[:, None, None] * gf[:, :, None] * gf[:, None, :]
+            rows = np.repeat(dofs, 12, axis=1).reshape(-1)
+            cols = np.tile(dofs, (1, 12)).reshape(-1)
+            hess = (rows, cols, vals.reshape(-1))
+        act = d < self.dhat
+        return BarrierEval(float(np.sum(k * b)), grad, hess, int(act.sum()),
+                           float(d[act].min(initial=np.inf)))
+
+    def check_reference(self) -> float:
+        """The smallest distance (mm) between a node and a triangle it is not a corner of
+        in the reference configuration, within ``dhat`` (inf when none is that close)."""
+        pairs, _ = self.near(np.zeros_like(self.X))
+        if len(pairs) == 0:
+            return np.inf
+        return float(self._distance(self.X, pairs.node, pairs.tri)[0].min())

@@ -1,0 +1,177 @@
+"""The outer surface's self-contact barrier (regtrack.mechanics.selfcontact): known answers.
+
+Why the tolerances:
+
+* the barrier's derivatives: central differences (h = 1e-6 mm) of a smooth function of
+  order-1 values, to 1e-6 relative (truncation O(h^2), round-off 1e-16 / h);
+* the potential's gradient: central differences of ``Pi_S`` along random directions (h =
+  1e-6 mm) to 1e-6 relative; the distance is C1 across the triangle's Voronoi regions, so
+  the directional derivative is exact away from measure-zero switches;
+* two equal boxes pressed together between clamped faces: by mirror symmetry the bonded
+  stack has no shear on its mid-plane, so a frictionless contact there carries the force of
+  the bonded 8 mm box compressed by the same amount less the contact gap; 3 % covers the
+  node-to-face barrier's uneven pressure and the Kuhn mesh, which is not mirror symmetric
+  (1.6 % measured).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from regtrack.errors import ConfigError
+from regtrack.mechanics.config import MechanicsConfig
+from regtrack.mechanics.contact import ContactConfig, tributary_areas
+from regtrack.mechanics.meshes import boundary_faces, box_model
+from regtrack.mechanics.minimise import minimise_step
+from regtrack.mechanics.overlap import overlaps
+from regtrack.mechanics.placement import BodySetup, skin_barrier
+from regtrack.mechanics.problem import build_problem
+from regtrack.mechanics.selfcontact import CCD_SAFETY, SkinBarrier, barrier
+from regtrack.model.types import BreastModel
+
+DHAT = 0.5
+
+
+def _stack(gap: float) -> tuple[BreastModel, int]:
+    """Box A = [0, 10]^2 x [0, 4] (its bottom clamped) and box B, the same box ``gap`` mm
+    above it, as one two-part model; returns the model and A's node count."""
+    A = box_model((10.0, 10.0, 4.0), (4, 4, 3))
+    B = box_model((10.0, 10.0, 4.0), (4, 4, 3), origin=(0.0, 0.0, 4.0 + gap))
+    P = np.vstack([A.points, B.points])
+    T = np.vstack([A.tets, B.tets + len(A.points)])
+    fixed = np.zeros(len(P), bool)
+    fixed[: len(A.points)] = np.isclose(A.points[:, 2], 0.0)
+    model = BreastModel(points=P, tets=T, region=np.ones(len(T), int), tumour_id=np.zeros(len(T), int),
+                        skin=boundary_faces(P, T), fixed=fixed, nipple=0, frame=A.frame)
+    return model, len(A.points)
+
+
+def _barrier(model: BreastModel, kappa: float = 0.02) -> SkinBarrier:
+    X = model.points
+    F = boundary_faces(X, np.asarray(model.tets)[:, :4])
+    return SkinBarrier(X, F, tributary_areas(X, F), kappa=kappa, dhat=DHAT)
+
+
+def test_the_barrier_and_its_derivatives():
+    d = np.linspace(0.01, 0.7, 60) * DHAT
+    b, b1, b2 = barrier(d, DHAT)
+    h = 1e-6
+    assert np.allclose(b1, (barrier(d + h, DHAT)[0] - barrier(d - h, DHAT)[0]) / (2 * h), rtol=1e-6, atol=1e-9)
+    assert np.allclose(b2, (barrier(d + h, DHAT)[1] - barrier(d - h, DHAT)[1]) / (2 * h), rtol=1e-6, atol=1e-9)
+    assert np.all(b > 0) and np.all(b1 < 0) and np.all(b2 > 0)  # repulsive and convex
+    # C2 at the reach, zero beyond, unbounded at contact
+    at = barrier(np.array([DHAT, 2 * DHAT]), DHAT)
+    assert all(np.all(v == 0.0) for v in at)
+    near = barrier(np.array([1e-3, 1e-12]), DHAT)[0]  # ~ dhat^2 ln(dhat / d)
+    assert near[1] > 4 * near[0]
+
+
+def test_the_gradient_is_that_of_the_potential_and_the_hessian_is_psd():
+    model, _ = _stack(0.3)
+    bar = _barrier(model)
+    rng = np.random.default_rng(3)
+    u = 0.05 * rng.standard_normal(model.points.shape)
+    e = bar.evaluate(u, hessian=True)
+    assert e.n_active > 20 and 0 < e.d_min < DHAT
+    pairs, _ = bar.near(u, 0.02 * np.ones_like(u))  # every pair the probes can reach
+    h = 1e-6
+    for _ in range(5):
+        v = rng.standard_normal(u.shape)
+        fd = (bar.evaluate(u + h * v, pairs).energy - bar.evaluate(u - h * v, pairs).energy) / (2 * h)
+        assert fd == pytest.approx(float(e.grad @ v.reshape(-1)), rel=1e-6)
+    rows, cols, vals = e.hess
+    keep = np.unique(np.concatenate([rows, cols]))
+    idx = np.searchsorted(keep, rows), np.searchsorted(keep, cols)
+    H = np.zeros((len(keep), len(keep)))
+    np.add.at(H, idx, vals)
+    w = np.linalg.eigvalsh(H)
+    assert np.allclose(H, H.T) and w.min() >= -1e-10 * w.max()
+
+
+def test_no_step_crosses_a_triangle():
+    """A node 1 mm above the middle of a box's top face, moved 3 mm straight down (through
+    the face): the allowed step keeps it ``(1 - 0.9) 0.4`` mm above; with its box sliding
+    along the face, or moved together with both boxes, it may take the whole step."""
+    model, nA = _stack(0.6)
+    bar = _barrier(model)
+    X = model.points
+    i = nA + int(np.argmin(np.linalg.norm(X[nA:] - [5.0, 5.0, 4.6], axis=1)))  # B's bottom centre
+    u = np.zeros_like(X)
+    u[i, 2] = 0.4 - 0.6  # 0.4 mm above A
+    du = np.zeros_like(X)
+    du[i, 2] = -3.0
+    _, alpha = bar.near(u, du)
+    assert alpha == pytest.approx(CCD_SAFETY * 0.4 / 3.0, rel=1e-9)
+    # B sliding 1 mm along A's top keeps the distance: the whole step (the additive CCD
+    # strides along; a single conservative bound would allow 0.36)
+    du[:] = 0.0
+    du[nA:] = (1.0, 0.0, 0.0)
+    assert bar.near(u, du)[1] == 1.0
+    # everything translates by 1 mm: nothing closes
+    du[:] = (0.0, 0.0, -1.0)
+    assert bar.near(u, du)[1] == 1.0
+    assert bar.near(u)[1] == 1.0
+    # a step too long to search within the budget (B lifted 30 mm off A) is bounded to
+    # the part searched, 2^-k
+    du[:] = 0.0
+    du[nA:] = (0.0, 0.0, 30.0)
+    a = bar.near(u, du)[1]
+    assert 0 < a < 1 and np.log2(a) == np.round(np.log2(a))
+
+
+@pytest.mark.parametrize("with_barrier", [True, False])
+def test_two_boxes_pressed_together_carry_the_force_of_one(with_barrier):
+    """B's top face is pushed 1 mm down onto A (0.6 mm below it) with A's bottom clamped.
+    With the barrier, B rests on A: no node of either enters the other, the gap ends
+    within the barrier's reach, the force through the stack balances, and it equals the
+    bonded 8 mm box's at the same compression (module docstring).  Without it B sinks 0.4 mm
+    into A and carries nothing."""
+    model, nA = _stack(0.6)
+    prob = build_problem(model, MechanicsConfig(tissue_c1_kpa=1.0, nu=0.45))
+    prob.self_contact = _barrier(model) if with_barrier else None
+    X = model.points
+    top = np.flatnonzero(np.isclose(X[:, 2], 8.6))
+    dofs = (3 * top[:, None] + np.arange(3)).reshape(-1)
+
+    def push(t, delta=1.0):
+        v = np.zeros((len(top), 3))
+        v[:, 2] = -t * delta
+        return dofs, v.reshape(-1)
+
+    u, _, R = minimise_step(prob, np.zeros_like(X), dirichlet=push, n_increments=4)
+    F = boundary_faces(X, np.asarray(model.tets)[:, :4])
+    inside = overlaps(X, model.tets, F, u)
+    force_top = -R[top, 2].sum()
+    if not with_barrier:
+        assert inside.depth == pytest.approx(0.4, abs=1e-6) and abs(force_top) < 1e-9
+        return
+    assert len(inside.nodes) == 0
+    x = X + u
+    gap = x[nA:][np.isclose(X[nA:, 2], 4.6), 2] - x[:nA][np.isclose(X[:nA, 2], 4.0), 2]
+    assert np.all((gap > 0) & (gap < DHAT))
+    assert R[model.fixed, 2].sum() == pytest.approx(force_top, rel=1e-6)
+    C = box_model((10.0, 10.0, 8.0), (4, 4, 6))
+    C.fixed[:] = np.isclose(C.points[:, 2], 0.0)
+    topc = np.flatnonzero(np.isclose(C.points[:, 2], 8.0))
+    dc = (3 * topc[:, None] + np.arange(3)).reshape(-1)
+    squeeze = 1.0 - (0.6 - gap.mean())
+
+    def press(t):
+        v = np.zeros((len(topc), 3))
+        v[:, 2] = -t * squeeze
+        return dc, v.reshape(-1)
+
+    pc = build_problem(C, MechanicsConfig(tissue_c1_kpa=1.0, nu=0.45))
+    _, _, Rc = minimise_step(pc, np.zeros_like(C.points), dirichlet=press, n_increments=4)
+    assert force_top == pytest.approx(-Rc[topc, 2].sum(), rel=0.03)
+
+
+def test_a_reach_wider_than_the_reference_gap_is_refused():
+    model, _ = _stack(0.3)
+    body = BodySetup(points=model.points, tets=model.tets, surface=model.skin, fixed=model.fixed,
+                     side="R", young_mpa=0.003)
+    with pytest.raises(ConfigError, match=r"self_contact_gap_mm = 0.5: .* 0.3 mm close"):
+        skin_barrier(body, ContactConfig(self_contact_gap_mm=0.5))
+    assert skin_barrier(body, ContactConfig(self_contact_gap_mm=0.25)) is not None
+    assert skin_barrier(body, ContactConfig()) is None  # the default: no self-contact
