@@ -178,7 +178,9 @@ def draw_tracking_page(fig, result: TrackResult, reals: dict | None = None, *, t
     reals = reals or {}
     views = list(result.views) or sorted(set(reals))
     fig.text(0.06, 0.95, f"Lesion tracking: case {result.case_id}", fontsize=14, weight="bold")
-    body = [w for ln in summary_lines(result) for w in (textwrap.wrap(ln, 115) or [""])]
+    body = [w for ln in summary_lines(result)
+            for w in (textwrap.wrap(ln, 115, subsequent_indent=" " * (len(ln) - len(ln.lstrip()) + 4))
+                      or [""])]
     fig.text(0.06, 0.92, "\n".join(body[:22]), fontsize=7, va="top", family="monospace")
     n = max(len(views), 1)
     for k, v in enumerate(views):
