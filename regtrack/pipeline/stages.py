@@ -253,7 +253,8 @@ def align_stage(ctx, mesh: MeshOutput, sim: SimOutput, vm, real, view: str) -> V
     """
     from regtrack.metrics import compute_metrics
     from regtrack.registration import align
-    from regtrack.tracking.lesions import breast_alignment, predict_lesions
+    from regtrack.tracking.lesions import predict_lesions
+    from regtrack.tracking.viewmap import breast_alignment
 
     t0 = time.perf_counter()
     cfg = ctx.configs.registration

@@ -2,7 +2,7 @@
 
 Tracking mode (no tumour outline on the mammograms) and paper mode (outlines given) both
 make this prediction from a registration on the **breast outline and nipple only**
-(:math:`\\theta_p = \\theta_{p,b}`, :func:`breast_alignment`), so that it never uses the
+(:math:`\\theta_p = \\theta_{p,b}`, :func:`regtrack.tracking.viewmap.breast_alignment`), so that it never uses the
 answer: in paper mode the distance to the annotated outline (``error_mm``) is then an
 honest measure of the tracking error, beside the paper's :math:`d_T` (which aligns on the
 tumour too).
@@ -19,7 +19,6 @@ Per lesion (each tumour of the model, :func:`predict_lesions`):
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 from dataclasses import dataclass, field
 
@@ -77,17 +76,6 @@ class LesionPrediction:
                 "nipple_px_rc": arr(self.nipple_px), "notes": self.notes}
 
 
-def breast_alignment(alignment, real, virtual):
-    """The registration on the breast outline and nipple only (``use_tumour = false``):
-    ``alignment`` itself when it already is one, else a new golden-section search."""
-    from regtrack.registration import align
-
-    if alignment.tumour_objective is None:
-        return alignment
-    cfg = dataclasses.replace(alignment.config, use_tumour=False)
-    return align(real, virtual, config=cfg)
-
-
 def _area_centroid(contours) -> np.ndarray | None:
     from shapely.ops import unary_union
 
@@ -116,7 +104,7 @@ def predict_lesions(model, *, view: str, positions, virtual, real, alignment, D:
     real : MammogramView
         The real view (pixel frame; annotated outlines, if any, for ``error_mm``).
     alignment : Alignment
-        A breast-only registration (:func:`breast_alignment`).
+        A breast-only registration (:func:`regtrack.tracking.viewmap.breast_alignment`).
     D, sigma_D : float
         Compression degree of the simulation and its 1-sigma uncertainty (-).
     """

@@ -40,7 +40,7 @@ quadrature (:func:`prediction_sigma`):
   deviation ``u / sqrt(3)``.  Zero when the nipple is given (``nipple_px``).
 
 Every prediction comes from the registration on the breast outline and nipple only
-(:func:`regtrack.tracking.lesions.breast_alignment`; :math:`\\theta_p = \\theta_{p,b}`), so
+(:func:`regtrack.tracking.viewmap.breast_alignment`; :math:`\\theta_p = \\theta_{p,b}`), so
 ``regtrack run`` (a lesion of the model) and ``regtrack track`` (an MRI point or region, a
 point of the other view) give one position and one radius for the same place.
 

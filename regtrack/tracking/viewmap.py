@@ -19,7 +19,7 @@ onto one image point (a line along the plate normal, or towards the source).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -199,7 +199,7 @@ def viewmap_from_outcome(outcome, *, config=None) -> ViewMap:
     """The :class:`ViewMap` of a pipeline :class:`~regtrack.pipeline.stages.ViewOutcome`
     (simulated positions, virtual plate frame and source, real view) with the registration
     and uncertainty model of every prediction: the breast-only registration
-    (``extra["breast_alignment"]``, :func:`regtrack.tracking.lesions.breast_alignment`) and
+    (``extra["breast_alignment"]``, :func:`breast_alignment`) and
     the simulation's ``D`` with its 1-sigma (``extra["sigma_D"]``); ``config`` the
     :class:`~regtrack.tracking.config.TrackingConfig` (default: its defaults).
 
@@ -207,7 +207,6 @@ def viewmap_from_outcome(outcome, *, config=None) -> ViewMap:
     results})`` gives the tumour's predicted position in every real view, the same as
     ``regtrack run``'s lesion prediction."""
     from regtrack.tracking.config import TrackingConfig
-    from regtrack.tracking.lesions import breast_alignment
 
     extra = getattr(outcome, "extra", None) or {}
     al = extra.get("breast_alignment") or breast_alignment(outcome.alignment, outcome.real,
@@ -219,3 +218,14 @@ def viewmap_from_outcome(outcome, *, config=None) -> ViewMap:
     return ViewMap(outcome.view, outcome.sim.positions, outcome.virtual.frame,
                    InPlane.from_alignment(al), PixelFrame.from_view(outcome.real),
                    outcome.virtual.source, unc.residual, outcome.real, unc)
+
+
+def breast_alignment(alignment, real, virtual):
+    """The registration on the breast outline and nipple only (``use_tumour = false``):
+    ``alignment`` itself when it already is one, else a new golden-section search."""
+    from regtrack.registration import align
+
+    if alignment.tumour_objective is None:
+        return alignment
+    cfg = replace(alignment.config, use_tumour=False)
+    return align(real, virtual, config=cfg)
