@@ -189,7 +189,9 @@ class Minimiser:
             keep = self.free[r] & self.free[c]
             r, c, v = r[keep], c[keep], v[keep]
             pairs = np.unique(np.stack([r // 3, c // 3], axis=1), axis=0)
-            self._pairs = pairs if self._pairs is None else np.unique(np.vstack([self._pairs, pairs]), axis=0)
+            if self._pairs is not None:
+                pairs = np.unique(np.vstack([self._pairs, pairs]), axis=0)
+            self._pairs = pairs
         else:
             r = c = np.zeros(0, np.int64)
             v = np.zeros(0)
@@ -282,7 +284,8 @@ class Minimiser:
                     "bound %.3g, %.3f s", len(pairs), np.abs(du).max(), a, time.perf_counter() - t0)
         for k in range(40):
             self.stats.line_search_trials += 1
-            trial = self.state(s.u + a * du.reshape(-1, 3), fext, plates, hessian=False, pairs=pairs)
+            trial = self.state(s.u + a * du.reshape(-1, 3), fext, plates, hessian=False,
+                               pairs=pairs)
             if trial is not None and trial.energy <= s.energy + ARMIJO_C * a * slope + scale:
                 if a == 1.0 and trial.energy - s.energy < EXPAND_RATIO * 0.5 * slope:
                     trial = self._expand(s, trial, du, fext, plates)
@@ -302,7 +305,8 @@ class Minimiser:
                 if safe < 1.0:
                     break
             self.stats.line_search_trials += 1
-            trial = self.state(s.u + a * du.reshape(-1, 3), fext, plates, hessian=False, pairs=pairs)
+            trial = self.state(s.u + a * du.reshape(-1, 3), fext, plates, hessian=False,
+                               pairs=pairs)
             if trial is None or trial.energy >= best.energy:
                 break
             best = trial

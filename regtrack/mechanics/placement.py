@@ -236,8 +236,8 @@ def skin_barrier(body: BodySetup, config: ContactConfig):
     ``body``: its outer triangles (:attr:`BodySetup.surface`) with their nodes' tributary
     areas, the plates' automatic normal penalty as its stiffness and ``[contact]
     self_contact_gap_mm`` as its reach; None when that is 0.  Raises :class:`ConfigError`
-    when the reference mesh already has a node that close to a triangle it is not a corner
-    of (the reference would not be stress free)."""
+    when the reference mesh already has a node that close to a triangle outside its 2-ring
+    (the reference would not be stress free)."""
     from regtrack.mechanics.selfcontact import SkinBarrier
 
     if config.self_contact_gap_mm <= 0:
@@ -250,5 +250,5 @@ def skin_barrier(body: BodySetup, config: ContactConfig):
     if np.isfinite(closest):
         raise ConfigError(f"[contact] self_contact_gap_mm = {config.self_contact_gap_mm:g}: the "
                           f"model's outer surface already comes {closest:.3g} mm close to itself "
-                          "(a node and a triangle it is not a corner of); set it below that")
+                          "(a node and a triangle outside its 2-ring); set it below that")
     return bar

@@ -8,8 +8,8 @@ other.
 
 Every boundary node ``i`` (position ``x_i``, tributary reference area ``A_i`` in mm^2) and
 every boundary triangle ``T`` outside its 2-ring (no corner of ``T`` is ``i`` or a surface
-neighbour of ``i``), at the distance ``d = dist(x_i, T)`` (mm), add the log barrier of *Incremental Potential Contact* (Li et al., SIGGRAPH 2020,
-eq. 6) when ``d < dhat``:
+neighbour of ``i``), at the distance ``d = dist(x_i, T)`` (mm), add the log barrier of
+*Incremental Potential Contact* (Li et al., SIGGRAPH 2020, eq. 6) when ``d < dhat``:
 
 .. math::
 
@@ -128,8 +128,8 @@ class SkinBarrier:
     areas : (N,) tributary reference area of each node on the outer surface (mm^2).
     kappa : barrier stiffness (MPa/mm).
     dhat : the barrier's reach (mm), below the smallest distance between a node and a
-        triangle it is not a corner of in the reference configuration (else the reference
-        is not stress free; :meth:`check_reference`).
+        triangle outside its 2-ring in the reference configuration (else the reference is
+        not stress free; :meth:`check_reference`).
     """
 
     def __init__(self, points: np.ndarray, faces: np.ndarray, areas: np.ndarray, *,
@@ -158,10 +158,10 @@ class SkinBarrier:
              margin: float = 1.0) -> tuple[Pairs, float]:
         """The pairs that can come within reach while the nodes move from ``x = X + u`` by
         ``alpha du`` for ``alpha`` in ``[0, a]`` (``du`` None: those within ``margin``
-        times the reach at ``x``), and ``a``: the largest step ``<= 1`` that no pair can cross (conservative
-        CCD, module docstring; 1 without motion; at most ``2^-k`` when the search of the
-        whole step exceeds ``BROAD_PHASE_BUDGET`` and its ``2^-k`` part does not).  Both
-        (N, 3) mm."""
+        times the reach at ``x``), and ``a``: the largest step ``<= 1`` that no pair can
+        cross (additive CCD, :meth:`_time_of_impact`; 1 without motion; at most ``2^-k``
+        when the search of the whole step exceeds ``BROAD_PHASE_BUDGET`` and its ``2^-k``
+        part does not).  Both (N, 3) mm."""
         x = self.X + np.asarray(u, float).reshape(-1, 3)
         F = self.faces
         scale = 1.0
@@ -301,8 +301,8 @@ class SkinBarrier:
                            float(d[act].min(initial=np.inf)))
 
     def check_reference(self) -> float:
-        """The smallest distance (mm) between a node and a triangle it is not a corner of
-        in the reference configuration, within ``dhat`` (inf when none is that close)."""
+        """The smallest distance (mm) between a node and a triangle outside its 2-ring in
+        the reference configuration, within ``dhat`` (inf when none is that close)."""
         pairs, _ = self.near(np.zeros_like(self.X))
         if len(pairs) == 0:
             return np.inf

@@ -136,6 +136,10 @@ def sigma_text(sigma_mm: float | None, terms: dict) -> str:
     return f" ± {sigma_mm:.1f} mm ({parts})"
 
 
+def _indent(line: str) -> int:
+    return len(line) - len(line.lstrip())
+
+
 def summary_lines(result: TrackResult) -> list[str]:
     """Plain-text summary (report section body)."""
     lines = []
@@ -179,8 +183,7 @@ def draw_tracking_page(fig, result: TrackResult, reals: dict | None = None, *, t
     views = list(result.views) or sorted(set(reals))
     fig.text(0.06, 0.95, f"Lesion tracking: case {result.case_id}", fontsize=14, weight="bold")
     body = [w for ln in summary_lines(result)
-            for w in (textwrap.wrap(ln, 115, subsequent_indent=" " * (len(ln) - len(ln.lstrip()) + 4))
-                      or [""])]
+            for w in (textwrap.wrap(ln, 115, subsequent_indent=" " * (_indent(ln) + 4)) or [""])]
     fig.text(0.06, 0.92, "\n".join(body[:22]), fontsize=7, va="top", family="monospace")
     n = max(len(views), 1)
     for k, v in enumerate(views):
