@@ -77,6 +77,8 @@ import numpy as np
 from scipy import ndimage
 from scipy.spatial import cKDTree
 
+from regtrack._gmsh import gmsh_session
+
 log = logging.getLogger("make_truth_cases")
 REPO = Path(__file__).resolve().parents[1]
 DATA = Path(os.environ.get("REGTRACK_SHARED_DATA", REPO.parent / "shared" / "data")) / "pelicano"
@@ -287,11 +289,7 @@ def gmsh_tet10_timed(pts: np.ndarray, faces: np.ndarray, size_mm: float,
 
 def gmsh_tet10(pts: np.ndarray, faces: np.ndarray, size_mm: float) -> tuple[np.ndarray, np.ndarray]:
     """gmsh: re-mesh the surface and fill it with straight-sided tet10 (C3D10 order)."""
-    import gmsh
-
-    gmsh.initialize()
-    try:
-        gmsh.option.setNumber("General.Terminal", 0)
+    with gmsh_session() as gmsh:
         gmsh.option.setNumber("General.NumThreads", 1)
         gmsh.model.add("breast")
         s = gmsh.model.addDiscreteEntity(2)
@@ -318,8 +316,6 @@ def gmsh_tet10(pts: np.ndarray, faces: np.ndarray, size_mm: float) -> tuple[np.n
         coords = np.asarray(ncoord).reshape(-1, 3)
         et, en = gmsh.model.mesh.getElementsByType(11)
         conn = np.asarray(en, np.int64).reshape(-1, 10)
-    finally:
-        gmsh.finalize()
     # compact node numbering
     order = np.argsort(ntag)
     ntag = np.asarray(ntag)[order]

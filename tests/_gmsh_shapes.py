@@ -5,6 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from regtrack._gmsh import gmsh_session
+
 
 def half_ellipsoid_with_tumour(axes, tumour_centre, tumour_radius, *, h: float, ht: float):
     """Tet mesh of the half-ellipsoid ``x in [-a, 0]`` (semi-axes ``axes = (a, b, c)`` mm,
@@ -13,11 +15,9 @@ def half_ellipsoid_with_tumour(axes, tumour_centre, tumour_radius, *, h: float, 
     Returns ``(points (N, 3), tets (E, 4), region (E,))`` with region 2 in the tumour and
     1 elsewhere; ``h`` is the largest element size, ``ht`` the size on the tumour surface.
     """
-    gmsh = pytest.importorskip("gmsh")
+    pytest.importorskip("gmsh")
     A, B, C = axes
-    gmsh.initialize()
-    try:
-        gmsh.option.setNumber("General.Terminal", 0)
+    with gmsh_session() as gmsh:
         occ = gmsh.model.occ
         s = occ.addSphere(0, 0, 0, 1.0)
         occ.dilate([(3, s)], 0, 0, 0, A, B, C)
@@ -40,6 +40,4 @@ def half_ellipsoid_with_tumour(axes, tumour_centre, tumour_radius, *, h: float, 
             t = lookup[en[0].astype(np.int64)].reshape(-1, 4)
             tets.append(t)
             reg.append(np.full(len(t), 2 if v == tv else 1))
-    finally:
-        gmsh.finalize()
     return xyz.reshape(-1, 3), np.concatenate(tets), np.concatenate(reg)

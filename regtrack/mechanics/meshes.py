@@ -12,6 +12,7 @@ import itertools
 
 import numpy as np
 
+from regtrack._gmsh import gmsh_session
 from regtrack.model.types import AnatomicalFrame, BreastModel
 
 
@@ -81,11 +82,7 @@ def hemisphere_model(radius: float = 50.0, lc: float = 5.0, *, tumour_radius: fl
     The nipple is the pole (radius, 0, 0) (the model frame has x anterior).  With
     ``tumour_radius > 0`` a spherical tumour (region 2) is embedded at (radius/2, 0, 0).
     """
-    import gmsh
-
-    gmsh.initialize(interruptible=False)
-    try:
-        gmsh.option.setNumber("General.Terminal", 0)
+    with gmsh_session() as gmsh:
         gmsh.model.add("hemisphere")
         occ = gmsh.model.occ
         s = occ.addSphere(0, 0, 0, radius)
@@ -118,8 +115,6 @@ def hemisphere_model(radius: float = 50.0, lc: float = 5.0, *, tumour_radius: fl
                         tt = idx[n_.astype(int)].reshape(-1, 4)
                         tets.append(tt)
                         region.append(np.full(len(tt), tag))
-    finally:
-        gmsh.finalize()
     tets = np.concatenate(tets)
     region = np.concatenate(region)
     used = np.unique(tets)

@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import json
 import logging
-import math
+import shutil
 import subprocess
 import sys
 import tempfile
@@ -26,6 +26,8 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
+
+from regtrack._gmsh import gmsh_session
 
 log = logging.getLogger(__name__)
 
@@ -118,41 +120,34 @@ def _owner_of_surfaces(gmsh, originals: list[np.ndarray]) -> dict[int, int]:
 
 def mesh_in_process(req: MeshRequest) -> MeshResult:
     """Run one gmsh attempt in this process (use :func:`run_gmsh` for the guarded form)."""
-    import gmsh
-
     t0 = time.perf_counter()
     work = Path(tempfile.mkdtemp(prefix="regtrack-stl-"))
-    gmsh.initialize(readConfigFiles=False)
     try:
-        gmsh.option.setNumber("General.Terminal", 0)
-        gmsh.option.setNumber("General.NumThreads", req.threads)
-        gmsh.model.add("breast")
-        _add_stl(gmsh, work / "outer.stl", req.outer_verts, req.outer_faces)
-        for k, (v, f) in enumerate(zip(req.tumour_verts, req.tumour_faces), start=1):
-            _add_stl(gmsh, work / f"tumour{k}.stl", v, f)
-        # each merged STL is one discrete surface: tag 1 outer, 1 + k tumour k; the volume
-        # mesh is built on these triangles as they are (no re-parametrisation: gmsh's
-        # createGeometry fails or stalls on marching-cubes surfaces with cut faces)
-        groups = {o: [o + 1] for o in range(1 + len(req.tumour_verts))}
-        loops = {o: gmsh.model.geo.addSurfaceLoop(tags) for o, tags in sorted(groups.items())}
-        tumour_keys = [o for o in sorted(loops) if o > 0]
-        vol_tissue = gmsh.model.geo.addVolume([loops[0]] + [loops[o] for o in tumour_keys])
-        vol_tum = {o: gmsh.model.geo.addVolume([loops[o]]) for o in tumour_keys}
-        gmsh.model.geo.synchronize()
-        gmsh.model.addPhysicalGroup(3, [vol_tissue], 1)
-        for o, v in vol_tum.items():
-            gmsh.model.addPhysicalGroup(3, [v], 100 + o)
-        _size_fields(gmsh, req, {o: groups[o] for o in tumour_keys})
-        gmsh.option.setNumber("Mesh.Algorithm", 6)
-        gmsh.option.setNumber("Mesh.Algorithm3D", ALGORITHMS_3D[req.algorithm])
-        gmsh.option.setNumber("Mesh.Optimize", 1)
-        gmsh.option.setNumber("Mesh.OptimizeNetgen", 1 if req.optimize_netgen else 0)
-        gmsh.model.mesh.generate(3)
-        return _extract(gmsh, vol_tissue, vol_tum, time.perf_counter() - t0)
+        with gmsh_session(threads=req.threads) as gmsh:
+            gmsh.model.add("breast")
+            _add_stl(gmsh, work / "outer.stl", req.outer_verts, req.outer_faces)
+            for k, (v, f) in enumerate(zip(req.tumour_verts, req.tumour_faces), start=1):
+                _add_stl(gmsh, work / f"tumour{k}.stl", v, f)
+            # each merged STL is one discrete surface: tag 1 outer, 1 + k tumour k; the volume
+            # mesh is built on these triangles as they are (no re-parametrisation: gmsh's
+            # createGeometry fails or stalls on marching-cubes surfaces with cut faces)
+            groups = {o: [o + 1] for o in range(1 + len(req.tumour_verts))}
+            loops = {o: gmsh.model.geo.addSurfaceLoop(tags) for o, tags in sorted(groups.items())}
+            tumour_keys = [o for o in sorted(loops) if o > 0]
+            vol_tissue = gmsh.model.geo.addVolume([loops[0]] + [loops[o] for o in tumour_keys])
+            vol_tum = {o: gmsh.model.geo.addVolume([loops[o]]) for o in tumour_keys}
+            gmsh.model.geo.synchronize()
+            gmsh.model.addPhysicalGroup(3, [vol_tissue], 1)
+            for o, v in vol_tum.items():
+                gmsh.model.addPhysicalGroup(3, [v], 100 + o)
+            _size_fields(gmsh, req, {o: groups[o] for o in tumour_keys})
+            gmsh.option.setNumber("Mesh.Algorithm", 6)
+            gmsh.option.setNumber("Mesh.Algorithm3D", ALGORITHMS_3D[req.algorithm])
+            gmsh.option.setNumber("Mesh.Optimize", 1)
+            gmsh.option.setNumber("Mesh.OptimizeNetgen", 1 if req.optimize_netgen else 0)
+            gmsh.model.mesh.generate(3)
+            return _extract(gmsh, vol_tissue, vol_tum, time.perf_counter() - t0)
     finally:
-        gmsh.finalize()
-        import shutil
-
         shutil.rmtree(work, ignore_errors=True)
 
 
