@@ -289,8 +289,7 @@ def gmsh_tet10_timed(pts: np.ndarray, faces: np.ndarray, size_mm: float,
 
 def gmsh_tet10(pts: np.ndarray, faces: np.ndarray, size_mm: float) -> tuple[np.ndarray, np.ndarray]:
     """gmsh: re-mesh the surface and fill it with straight-sided tet10 (C3D10 order)."""
-    with gmsh_session() as gmsh:
-        gmsh.option.setNumber("General.NumThreads", 1)
+    with gmsh_session(threads=1) as gmsh:
         gmsh.model.add("breast")
         s = gmsh.model.addDiscreteEntity(2)
         tags = np.arange(1, len(pts) + 1)
