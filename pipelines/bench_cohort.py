@@ -114,9 +114,31 @@ def exam_label_map(exam_dir: Path) -> Path | None:
     return found[0] if found else None
 
 
-def write_case(folder: Path, *, case_id: str, labels: Path, side: str | None, D: float | None) -> Path:
+def read_settings(path: Path | None) -> str:
+    """The text of a ``--settings`` TOML file (tables such as ``[contact]``) to add to every
+    case of the benchmark; "" without one.  Raises ``ValueError`` (one line) when it does not
+    parse or holds a table the benchmark writes itself (``case``, ``mri``, ``protocol``)."""
+    if path is None:
+        return ""
+    import tomllib
+
+    text = path.read_text()
+    try:
+        doc = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise ValueError(f"--settings {path}: not TOML ({exc})") from None
+    own = sorted(set(doc) & {"case", "mri", "protocol"})
+    if own:
+        raise ValueError(f"--settings {path}: [{own[0]}] is written by the benchmark; give the other "
+                         "tables only (D with --D)")
+    return text
+
+
+def write_case(folder: Path, *, case_id: str, labels: Path, side: str | None, D: float | None,
+               settings: str = "") -> Path:
     """A case folder for one breast: ``case.toml`` and a copy of the label map (a case's
-    paths must lie inside its folder, links included); ``D`` sets ``target_D`` of both views."""
+    paths must lie inside its folder, links included); ``D`` sets ``target_D`` of both views,
+    ``settings`` (:func:`read_settings`) is added as it is."""
     (folder / "mri").mkdir(parents=True, exist_ok=True)
     copy = folder / "mri" / labels.name
     if not copy.exists():
@@ -128,7 +150,7 @@ def write_case(folder: Path, *, case_id: str, labels: Path, side: str | None, D:
     if D is not None:
         for v in ("CC", "MLO", "BIOPSY"):
             lines += ["", f"[protocol.{v}]", f"target_D = {D}"]
-    (folder / "case.toml").write_text("\n".join(lines) + "\n")
+    (folder / "case.toml").write_text("\n".join(lines) + "\n" + ("\n" + settings if settings else ""))
     return folder
 
 
@@ -154,11 +176,12 @@ class Model:
 
 
 def mesh_model(m: Model, *, target_nodes: int | None, timeout_s: float, threads: int,
-               resume: bool = False) -> dict:
+               resume: bool = False, settings: str = "") -> dict:
     """Mesh one breast and read the sidecar; returns the meshing row (kept as ``row.json``
     beside the model).  With ``resume``, a model already meshed is read back instead (its
     row, or the sidecar alone when the row was not kept: no timings then)."""
-    write_case(m.folder, case_id=f"exam{m.exam}", labels=m.labels, side=m.side, D=None)
+    write_case(m.folder, case_id=f"exam{m.exam}", labels=m.labels, side=m.side, D=None,
+               settings=settings)
     saved = m.folder / "row.json"
     if resume and saved.is_file():
         m.row = json.loads(saved.read_text())
@@ -198,11 +221,12 @@ def mesh_model(m: Model, *, target_nodes: int | None, timeout_s: float, threads:
 
 
 def simulate_model(m: Model, view: str, D: float | None, *, timeout_s: float, threads: int,
-                   resume: bool = False) -> dict:
+                   resume: bool = False, settings: str = "") -> dict:
     """Compress one model in one view (``D`` None: the protocol default); returns its row
     (kept as ``row.json`` in the run's folder; with ``resume`` a kept row is read back)."""
     tag = "default" if D is None else f"D{round(100 * D)}"
-    case = write_case(m.folder / f"case_{tag}", case_id=f"exam{m.exam}{m.side}", labels=m.labels, side=m.side, D=D)
+    case = write_case(m.folder / f"case_{tag}", case_id=f"exam{m.exam}{m.side}", labels=m.labels,
+                      side=m.side, D=D, settings=settings)
     out = m.folder / f"sim_{tag}_{view}"
     saved = out / "row.json"
     if resume and saved.is_file():
@@ -335,11 +359,18 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--mesh-timeout", type=float, default=1800.0, help="seconds before a meshing is killed")
     ap.add_argument("--mesh-only", action="store_true", help="stop after meshing")
     ap.add_argument("--out", type=Path, default=REPO / "reports" / "cohort")
+    ap.add_argument("--settings", type=Path, default=None,
+                    help="a TOML file of tables added to every case (e.g. [contact] "
+                         "self_contact_gap_mm = 0.5): the cohort off the defaults")
     ap.add_argument("--resume", action="store_true",
                     help="re-use the models and runs of an earlier, interrupted benchmark in --out")
     args = ap.parse_args(argv)
     if not args.data.is_dir():
         ap.error(f"--data {args.data}: not a folder; the Pelicano exams are in ../shared/data/pelicano")
+    try:
+        settings = read_settings(args.settings)
+    except (OSError, ValueError) as exc:
+        ap.error(str(exc))
     jobs = max(1, args.jobs)
     threads = args.threads or max(1, (os.cpu_count() or 1) // jobs)
     Ds = [None if d == "default" else float(d) for d in args.D]
@@ -364,14 +395,14 @@ def main(argv: list[str] | None = None) -> int:
         """Mesh the default breast, then the other one too when it also holds a tumour."""
         done = [m]
         mesh_model(m, target_nodes=args.target_nodes, timeout_s=args.mesh_timeout, threads=threads,
-                   resume=args.resume)
+                   resume=args.resume, settings=settings)
         say(f"mesh exam {m.exam} {m.side}: {m.row['nodes']} nodes, {m.row['wall_s']:.0f} s {m.row['error']}")
         by_side = m.row.get("_tumour_by_side", {})
         if m.side and all(by_side.get(s, 0) > 0 for s in ("L", "R")):
             other = "L" if m.side == "R" else "R"
             o = Model(m.exam, other, m.labels, runs / f"exam{m.exam}{other}")
             mesh_model(o, target_nodes=args.target_nodes, timeout_s=args.mesh_timeout, threads=threads,
-                       resume=args.resume)
+                       resume=args.resume, settings=settings)
             say(f"mesh exam {o.exam} {o.side}: {o.row['nodes']} nodes, {o.row['wall_s']:.0f} s {o.row['error']}")
             done.append(o)
         return done
@@ -393,7 +424,8 @@ def main(argv: list[str] | None = None) -> int:
 
     def sim(t):
         m, v, d = t
-        r = simulate_model(m, v, d, timeout_s=args.timeout, threads=threads, resume=args.resume)
+        r = simulate_model(m, v, d, timeout_s=args.timeout, threads=threads, resume=args.resume,
+                           settings=settings)
         say(f"simulate exam {m.exam} {m.side} {v} {r['D_setting']}: completed {r['completed']}, "
             f"{r['wall_s']:.0f} s {r['error']}")
         with lock:  # the table so far, so that an interrupted benchmark still has one

@@ -61,3 +61,29 @@ def test_summary_is_median_and_worst_of_completed_runs(bench):
     assert cells[2] == "3 of 4"
     assert "20.0 / 30.0" in cells  # wall: median and worst, the failed run left out
     assert "0.0002 % / 0.3 %" in cells
+
+
+def test_settings_reach_every_case_and_bad_ones_are_named(bench, tmp_path):
+    """``--settings``: the cohort off the defaults (e.g. the self-contact barrier on) with
+    the same table; a file that does not parse, or that sets what the benchmark writes
+    itself, is refused in one line naming the file."""
+    from regtrack.case import load_case
+    from regtrack.imaging.readers import write_label_map
+
+    d = np.zeros((8, 8, 8), np.int16)
+    d[2:6, 2:6, 2:6] = 1
+    src = tmp_path / "labels.nii.gz"
+    write_label_map(LabelVolume(d, make_affine((0, 0, 0), (1, 1, 1))), src)
+    f = tmp_path / "barrier.toml"
+    f.write_text("[contact]\nself_contact_gap_mm = 0.5\n")
+    settings = bench.read_settings(f)
+    case = load_case(bench.write_case(tmp_path / "c", case_id="exam99", labels=src, side="L", D=0.5,
+                                      settings=settings), deep=False)
+    assert case.override_table("contact")["self_contact_gap_mm"] == 0.5
+    assert case.override_table("protocol.CC")["target_D"] == 0.5
+    assert bench.read_settings(None) == ""
+    for text, word in [("[contact\n", "not TOML"), ("[protocol.CC]\ntarget_D = 0.3\n", "[protocol]")]:
+        f.write_text(text)
+        with pytest.raises(ValueError, match=word) as err:
+            bench.read_settings(f)
+        assert str(f) in str(err.value) and "\n" not in str(err.value)
