@@ -27,14 +27,20 @@ def bench():
     sys.modules.pop(spec.name, None)
 
 
-def test_case_folder_loads_with_the_asked_compression(bench, tmp_path):
-    from regtrack.case import load_case
+@pytest.fixture
+def src(tmp_path):
+    """A small label map (a cube of tissue) for the case folders the benchmark writes."""
     from regtrack.imaging.readers import write_label_map
 
     d = np.zeros((8, 8, 8), np.int16)
     d[2:6, 2:6, 2:6] = 1
-    src = tmp_path / "labels.nii.gz"
-    write_label_map(LabelVolume(d, make_affine((0, 0, 0), (1, 1, 1))), src)
+    path = tmp_path / "labels.nii.gz"
+    write_label_map(LabelVolume(d, make_affine((0, 0, 0), (1, 1, 1))), path)
+    return path
+
+
+def test_case_folder_loads_with_the_asked_compression(bench, src, tmp_path):
+    from regtrack.case import load_case
     case = load_case(bench.write_case(tmp_path / "c", case_id="exam99", labels=src, side="L", D=0.5), deep=False)
     assert case.id == "exam99" and case.mri.side == "L"
     assert case.override_table("protocol.CC")["target_D"] == 0.5
@@ -63,17 +69,11 @@ def test_summary_is_median_and_worst_of_completed_runs(bench):
     assert "0.0002 % / 0.3 %" in cells
 
 
-def test_settings_reach_every_case_and_bad_ones_are_named(bench, tmp_path):
+def test_settings_reach_every_case_and_bad_ones_are_named(bench, src, tmp_path):
     """``--settings``: the cohort off the defaults (e.g. the self-contact barrier on) with
     the same table; a file that does not parse, or that sets what the benchmark writes
     itself, is refused in one line naming the file."""
     from regtrack.case import load_case
-    from regtrack.imaging.readers import write_label_map
-
-    d = np.zeros((8, 8, 8), np.int16)
-    d[2:6, 2:6, 2:6] = 1
-    src = tmp_path / "labels.nii.gz"
-    write_label_map(LabelVolume(d, make_affine((0, 0, 0), (1, 1, 1))), src)
     f = tmp_path / "barrier.toml"
     f.write_text("[contact]\nself_contact_gap_mm = 0.5\n")
     settings = bench.read_settings(f)
