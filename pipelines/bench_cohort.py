@@ -361,7 +361,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", type=Path, default=REPO / "reports" / "cohort")
     ap.add_argument("--settings", type=Path, default=None,
                     help="a TOML file of tables added to every case (e.g. [contact] "
-                         "self_contact_gap_mm = 0.5): the cohort off the defaults")
+                         "self_contact_gap_mm = 0, no self-contact): the cohort off the "
+                         "defaults")
     ap.add_argument("--resume", action="store_true",
                     help="re-use the models and runs of an earlier, interrupted benchmark in --out")
     args = ap.parse_args(argv)

@@ -167,11 +167,21 @@ def test_two_boxes_pressed_together_carry_the_force_of_one(with_barrier):
     assert force_top == pytest.approx(-Rc[topc, 2].sum(), rel=0.03)
 
 
-def test_a_reach_wider_than_the_reference_gap_is_refused():
+def test_a_reach_wider_than_the_reference_gap_is_halved_to_it():
+    """Two boxes 0.3 mm apart: a 0.5 mm reach (the default) would load the reference, so
+    the barrier reaches half the gap; a reach under the gap is kept; 0 turns it off; boxes
+    that touch are refused (the surface meets itself: not a valid solid)."""
     model, _ = _stack(0.3)
-    body = BodySetup(points=model.points, tets=model.tets, surface=model.skin, fixed=model.fixed,
-                     side="R", young_mpa=0.003)
-    with pytest.raises(ConfigError, match=r"self_contact_gap_mm = 0.5: .* 0.3 mm close"):
-        skin_barrier(body, ContactConfig(self_contact_gap_mm=0.5))
-    assert skin_barrier(body, ContactConfig(self_contact_gap_mm=0.25)) is not None
-    assert skin_barrier(body, ContactConfig()) is None  # the default: no self-contact
+
+    def body(m):
+        return BodySetup(points=m.points, tets=m.tets, surface=m.skin, fixed=m.fixed,
+                         side="R", young_mpa=0.003)
+
+    assert ContactConfig().self_contact_gap_mm == 0.5
+    assert skin_barrier(body(model), ContactConfig()).dhat == pytest.approx(0.15, rel=1e-9)
+    assert skin_barrier(body(model), ContactConfig(self_contact_gap_mm=0.25)).dhat == 0.25
+    assert skin_barrier(body(model), ContactConfig(self_contact_gap_mm=0.0)) is None
+    touching, _ = _stack(0.0)
+    with pytest.raises(ConfigError, match=r"self_contact_gap_mm: the model's outer surface "
+                                          r"touches itself"):
+        skin_barrier(body(touching), ContactConfig())

@@ -103,22 +103,21 @@ class ContactConfig:
                                        "than this behind the chest-wall plane (the torso is "
                                        "there; see chest_wall_contact); every step reports the "
                                        "depth as behind_chest_wall_mm", gt=0.0)
-    self_contact_gap_mm: float = param(0.0, "mm", "self-contact of the outer surface: a node "
+    self_contact_gap_mm: float = param(0.5, "mm", "self-contact of the outer surface: a node "
                                        "and a triangle outside its 2-ring repel by a log barrier "
                                        "(regtrack.mechanics.selfcontact) once closer than this, "
                                        "so folded skin rests on the skin below it instead of "
-                                       "entering the tissue (e.g. 0.5; it must be below the "
-                                       "reference mesh's smallest such distance, 2.2 mm or more "
-                                       "on the 27 Pelicano models).  0, the default: no "
-                                       "self-contact, measured instead (skin_overlap_mm); the "
-                                       "barrier is not yet the default because the cohort has "
-                                       "not been run with it (docs/physics.md)",
+                                       "entering the tissue.  Where the reference surface "
+                                       "already comes closer to itself, the reach is half that "
+                                       "distance (logged).  0: no self-contact, the skin may "
+                                       "pass through itself (measured as skin_overlap_mm)",
                                        ge=0.0, le=5.0)
     skin_overlap_warn_mm: float = param(1.0, "mm", "reports: warn (log and the step's "
                                         "'warnings') when a skin node ends a protocol step "
                                         "deeper than this inside the tissue: the skin folded "
-                                        "through itself, which the model (no self-contact) does "
-                                        "not prevent; every step reports the depth as "
+                                        "through itself where the self-contact barrier cannot "
+                                        "stop it (a crease sharper than the mesh, or the barrier "
+                                        "off); every step reports the depth as "
                                         "skin_overlap_mm (regtrack.mechanics.overlap)", gt=0.0)
     edge_band_mm: float = param(10.0, "mm", "reports: the plate force carried by the skin "
                                 "that lay (reference configuration) within this distance in "

@@ -2,9 +2,12 @@ r"""Skin self-overlap: skin that went through other skin into the tissue.
 
 Where the skin folds onto itself (the inframammary crease pressed shut by the lower plate,
 tissue below the breast that the MRI segmentation kept, a bulge rolling over the skin
-beside it) one patch of skin meets another.  The model has no self-contact: nothing in its
-energy stops a skin node from passing through the other patch into the tissue behind it.
-This module measures how far that happened, so that a result says so.
+beside it) one patch of skin meets another.  The self-contact barrier (:mod:`.selfcontact`)
+keeps a skin node out of every triangle outside its 2-ring, but not out of its own 2-ring's
+patch (a crease sharper than the mesh), nor two edges from crossing; with the barrier off
+(``[contact] self_contact_gap_mm = 0``) nothing in the energy stops a skin node from passing
+through other skin into the tissue behind it.  This module measures how far that happened,
+so that a result says so.
 
 A boundary node ``i`` at ``x_i = X_i + u_i`` (mm) is *inside the tissue* when it lies in a
 tetrahedron it is not a corner of (its barycentric coordinates there all ``>= -tol``, by

@@ -235,20 +235,30 @@ def skin_barrier(body: BodySetup, config: ContactConfig):
     """The outer surface's self-contact barrier (:class:`.selfcontact.SkinBarrier`) of
     ``body``: its outer triangles (:attr:`BodySetup.surface`) with their nodes' tributary
     areas, the plates' automatic normal penalty as its stiffness and ``[contact]
-    self_contact_gap_mm`` as its reach; None when that is 0.  Raises :class:`ConfigError`
-    when the reference mesh already has a node that close to a triangle outside its 2-ring
-    (the reference would not be stress free)."""
+    self_contact_gap_mm`` as its reach; None when that is 0.
+
+    The reference configuration must be stress free, so no node may start within the reach
+    of a triangle outside its 2-ring.  Where the model's outer surface already comes closer
+    to itself than the reach (a crease the segmentation kept tight), the reach becomes half
+    that distance, logged, so the same setting holds on every model.  Raises
+    :class:`ConfigError` when a node lies on such a triangle (the surface touches itself:
+    the mesh is not a valid solid)."""
     from regtrack.mechanics.selfcontact import SkinBarrier
 
     if config.self_contact_gap_mm <= 0:
         return None
     X = np.asarray(body.points, float)
     eps = automatic_penalty(config, young_mpa=body.young_mpa, h_mm=mean_edge_length(X, body.surface))
-    bar = SkinBarrier(X, body.surface, tributary_areas(X, body.surface), kappa=eps,
-                      dhat=config.self_contact_gap_mm)
+    areas = tributary_areas(X, body.surface)
+    bar = SkinBarrier(X, body.surface, areas, kappa=eps, dhat=config.self_contact_gap_mm)
     closest = bar.check_reference()
-    if np.isfinite(closest):
-        raise ConfigError(f"[contact] self_contact_gap_mm = {config.self_contact_gap_mm:g}: the "
-                          f"model's outer surface already comes {closest:.3g} mm close to itself "
-                          "(a node and a triangle outside its 2-ring); set it below that")
-    return bar
+    if not np.isfinite(closest):
+        return bar
+    if closest <= 1e-6 * config.self_contact_gap_mm:
+        raise ConfigError(f"[contact] self_contact_gap_mm: the model's outer surface touches "
+                          f"itself (a node {closest:.2g} mm from a triangle outside its 2-ring); "
+                          "re-mesh the model (regtrack mesh) or set it to 0")
+    log.info("self-contact: the model's outer surface comes %.3g mm close to itself, under "
+             "[contact] self_contact_gap_mm = %g; the barrier's reach is %.3g mm",
+             closest, config.self_contact_gap_mm, 0.5 * closest)
+    return SkinBarrier(X, body.surface, areas, kappa=eps, dhat=0.5 * closest)

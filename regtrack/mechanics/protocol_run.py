@@ -134,6 +134,7 @@ class ProtocolResult:
     plate_frame: dict
     error: str | None = None
     materials: dict = field(default_factory=dict)  # tissue stiffness summary (tissue_model)
+    self_contact_reach_mm: float | None = None  # the skin barrier's reach (None: off)
 
     @property
     def complete(self) -> bool:

@@ -86,6 +86,8 @@ def run_protocol_on_model(model: BreastModel, protocol: Protocol, *, mechanics: 
     runner = ProtocolRunner(body, protocol, step_solver, config=contact)
     result = runner.run()
     result.materials = problem.tissue_c1.info
+    if problem.self_contact is not None:
+        result.self_contact_reach_mm = problem.self_contact.dhat
     t2 = time.perf_counter()
     return result, {"setup_s": t1 - t0, "protocol_s": t2 - t1, "total_s": t2 - t0}
 
@@ -166,7 +168,9 @@ def summarise(result: ProtocolResult, timing: dict | None = None) -> dict:
     deepest any node ended a step behind the chest-wall plane
     (:func:`regtrack.mechanics.placement.behind_chest_wall`); ``skin_overlap_mm``: the
     deepest any skin node ended a step inside the tissue, and ``skin_overlap_nodes`` how many
-    at the last step (:func:`regtrack.mechanics.overlap.overlaps`); ``warnings``: every
+    at the last step (:func:`regtrack.mechanics.overlap.overlaps`); ``self_contact_reach_mm``:
+    the self-contact barrier's reach (:func:`regtrack.mechanics.placement.skin_barrier`;
+    None when off); ``warnings``: every
     step's warnings (``[contact] behind_wall_warn_mm``, ``skin_overlap_warn_mm``).
     ``force_imbalance_rel``: the largest over the steps of the global force imbalance
     (the residual's resultant over the free nodes) relative to the step's largest load
@@ -193,6 +197,7 @@ def summarise(result: ProtocolResult, timing: dict | None = None) -> dict:
             "behind_chest_wall_mm": max(behind) if behind else None,
             "skin_overlap_mm": max(overlap) if overlap else None,
             "skin_overlap_nodes": last.skin_overlap_nodes,
+            "self_contact_reach_mm": result.self_contact_reach_mm,
             "force_imbalance_rel": max(balance) if balance else None,
             "warnings": [w for s in result.steps for w in s.warnings],
             "tissue": result.materials, "timing_s": timing or {}}

@@ -18,9 +18,10 @@ so that a poor fit is never read as a good one.  The thresholds:
   (:func:`regtrack.mechanics.problem.force_balance`); converged states give about 1e-7.
 * **Skin inside the tissue <= 1 mm** (``[contact] skin_overlap_warn_mm``'s default): the
   deepest a skin node ended a step inside the tissue (:mod:`regtrack.mechanics.overlap`).
-  The model has no self-contact, so where the breast folds the skin can pass through other
-  skin; the shape there is then not physical.  The phantom has none; 27 of the 54 Pelicano
-  cohort runs at the defaults end deeper than 0 mm, 26 of them deeper than 1 mm.
+  The self-contact barrier keeps skin out of other skin, but not where the crease is
+  sharper than the mesh (:mod:`regtrack.mechanics.selfcontact`); the shape there is then
+  not physical.  The phantom has none (docs/physics.md: the cohort with and without the
+  barrier).
 * **Nipple confidence >= 0.5** (:data:`NIPPLE_CONFIDENCE_MIN`): ``1 / (1 + (u / 10 mm)^2)``
   with ``u`` the tangential uncertainty of the detected nipple
   (:mod:`regtrack.imaging.mammogram.nipple`), so 0.5 means +-10 mm along the contour; a
@@ -103,8 +104,8 @@ def check_view(view: str, row: dict, *, simulation: dict | None = None,
               _ok(rel, lambda x: x <= tol), "the simulation is not in equilibrium"),
         Check("Skin inside the tissue", "skin in tissue", view, num(skin, 1, unit="mm"),
               f"≤ {SKIN_OVERLAP_MAX_MM:g} mm", _ok(skin, lambda x: x <= SKIN_OVERLAP_MAX_MM),
-              "the skin folded through itself (the model has no self-contact): the shape "
-              "near the fold is not physical"),
+              "the skin folded through itself (a crease sharper than the mesh, or "
+              "[contact] self_contact_gap_mm = 0): the shape near the fold is not physical"),
         Check("Nipple confidence", "nipple confidence", view,
               num(conf, 2) + (" (given)" if "given" in how else ""),
               f"≥ {NIPPLE_CONFIDENCE_MIN:g}", _ok(conf, lambda x: x >= NIPPLE_CONFIDENCE_MIN),
