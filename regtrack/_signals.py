@@ -8,6 +8,9 @@ process pool's shutdown for the workers to finish.  Now:
   both signals unwind the same way: every ``finally`` runs, the stage being produced in a
   temporary ``.part`` folder is removed (:meth:`regtrack.pipeline.cache.StageCache.produce`),
   and the CLI prints one line;
+* an interrupt whose exception Python swallowed (it arrived while a finaliser ran) is
+  raised again at the next stage line or stage commit (:func:`check_interrupted`), so a
+  Ctrl-C is never lost and an interrupted stage is never stored;
 * worker processes ignore SIGINT (a Ctrl-C reaches the whole process group; the parent
   decides) and turn SIGTERM into ``SystemExit``, so their own ``finally`` blocks remove
   their temporary folders too;
@@ -34,14 +37,50 @@ class Terminated(KeyboardInterrupt):
         self.signum = signum
 
 
-def _raise_terminated(signum: int, frame: Any) -> None:
-    raise Terminated(signum)
+#: The signal that asked the command line to stop (None: none).  Python swallows an
+#: exception raised while a finaliser or a weakref callback runs ("Exception ignored in
+#: ..."), so the exception of a signal handler that happens to run there is lost; the
+#: signal is kept here, and :func:`check_interrupted` raises it again.
+_pending: int | None = None
 
 
-def install_cli_handlers() -> None:
-    """SIGTERM raises :class:`Terminated` in the main thread (SIGINT already raises
-    ``KeyboardInterrupt``).  Call from the main thread only."""
-    signal.signal(signal.SIGTERM, _raise_terminated)
+def _interrupt(signum: int) -> KeyboardInterrupt:
+    return KeyboardInterrupt() if signum == signal.SIGINT else Terminated(signum)
+
+
+def _raise_interrupt(signum: int, frame: Any) -> None:
+    global _pending
+    _pending = signum
+    raise _interrupt(signum)
+
+
+def check_interrupted() -> None:
+    """Raise ``KeyboardInterrupt`` (or :class:`Terminated`) again if SIGINT or SIGTERM
+    arrived since :func:`install_cli_handlers`, in case its first exception was swallowed.
+    Called where work moves on (each stage line, each stage's commit to the cache)."""
+    if _pending is not None:
+        raise _interrupt(_pending)
+
+
+def install_cli_handlers() -> dict[int, Any]:
+    """SIGINT raises ``KeyboardInterrupt`` and SIGTERM :class:`Terminated` in the main
+    thread, and both are remembered for :func:`check_interrupted`.  Returns the previous
+    handlers for :func:`restore_handlers`.  Call from the main thread only."""
+    global _pending
+    _pending = None
+    previous = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
+    for s in previous:
+        signal.signal(s, _raise_interrupt)
+    return previous
+
+
+def restore_handlers(previous: dict[int, Any]) -> None:
+    """Put back the handlers :func:`install_cli_handlers` replaced, and forget a pending
+    interrupt (it has been handled)."""
+    global _pending
+    _pending = None
+    for s, h in previous.items():
+        signal.signal(s, h)
 
 
 def _exit_on_sigterm(signum: int, frame: Any) -> None:

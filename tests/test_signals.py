@@ -100,3 +100,45 @@ def test_a_killed_runs_temporaries_are_removed_at_the_next_start(tmp_path):
     os.utime(old_file, (time.time() - 2 * STALE_AGE_S,) * 2)
     StageCache(tmp_path)
     assert sorted(p.name for p in sim.iterdir()) == sorted([live.name, new_file.name])
+
+
+SWALLOWED = """
+import os, signal, sys
+from pathlib import Path
+from regtrack._signals import install_cli_handlers, restore_handlers
+from regtrack.pipeline.cache import StageCache
+
+previous = install_cli_handlers()
+
+
+class Finaliser:
+    def __del__(self):  # Python prints "Exception ignored in ..." and goes on
+        os.kill(os.getpid(), {sig})
+        for _ in range(10 ** 6):
+            pass
+
+
+f = Finaliser()
+del f
+print("went on", flush=True)
+cache = StageCache(Path(sys.argv[1]))
+try:
+    with cache.produce("simulate", "k") as d:
+        (d / "x.json").write_text("{{}}")
+except KeyboardInterrupt as exc:
+    print("raised again:", type(exc).__name__, flush=True)
+restore_handlers(previous)
+"""
+
+
+@pytest.mark.parametrize("sig, name", [(signal.SIGINT, "KeyboardInterrupt"),
+                                       (signal.SIGTERM, "Terminated")])
+def test_an_interrupt_swallowed_by_a_finaliser_is_raised_again(tmp_path, sig, name):
+    """A signal whose exception Python swallowed (raised inside ``__del__``) still stops the
+    command at the next stage commit, and the finished-but-interrupted stage is not stored."""
+    proc = subprocess.run([sys.executable, "-c", SWALLOWED.format(sig=int(sig)), str(tmp_path)],
+                          capture_output=True, text=True, cwd=REPO, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    assert "Exception ignored" in proc.stderr  # the first exception was lost
+    assert proc.stdout.splitlines() == ["went on", f"raised again: {name}"]
+    assert not (tmp_path / "simulate").is_dir() or not any((tmp_path / "simulate").iterdir())

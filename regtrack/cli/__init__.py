@@ -64,16 +64,14 @@ def main(argv: list[str] | None = None) -> int:
     level = logging.DEBUG if args.debug else (logging.WARNING if args.quiet else logging.INFO)
     logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s")
     mod = importlib.import_module(args._module)
-    import signal
     import threading
 
-    from regtrack._signals import Terminated, install_cli_handlers
+    from regtrack._signals import Terminated, install_cli_handlers, restore_handlers
     from regtrack.errors import RegtrackError
 
     main_thread = threading.current_thread() is threading.main_thread()
-    previous = signal.getsignal(signal.SIGTERM) if main_thread else None
-    if main_thread:
-        install_cli_handlers()  # SIGTERM unwinds like Ctrl-C: workers stopped, temporaries removed
+    # SIGTERM unwinds like Ctrl-C: workers stopped, temporaries removed
+    previous = install_cli_handlers() if main_thread else None
     try:
         return int(mod.run(args) or 0)
     except RegtrackError as err:
@@ -87,8 +85,8 @@ def main(argv: list[str] | None = None) -> int:
               "discarded (finished ones stay in the cache)", file=sys.stderr)
         return 128 + exc.signum if isinstance(exc, Terminated) else 130
     finally:
-        if main_thread:
-            signal.signal(signal.SIGTERM, previous)
+        if previous is not None:
+            restore_handlers(previous)
 
 
 if __name__ == "__main__":  # pragma: no cover

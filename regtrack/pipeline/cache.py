@@ -33,6 +33,7 @@ from pathlib import Path
 from typing import Any
 
 from regtrack import __version__, _io
+from regtrack._signals import check_interrupted
 
 log = logging.getLogger(__name__)
 
@@ -167,6 +168,7 @@ class StageCache:
         t0 = time.perf_counter()
         try:
             yield tmp
+            check_interrupted()  # an interrupted stage is never stored, even if it finished
             _io.write_json(tmp / MARKER, {"stage": stage, "key": key, "seconds": time.perf_counter() - t0,
                                           "version": __version__, "info": info or {}})
             if final.exists():  # produced concurrently by another worker: keep theirs

@@ -24,6 +24,7 @@ from typing import Any
 import numpy as np
 
 from regtrack import __version__, _io
+from regtrack._signals import check_interrupted
 from regtrack.case.configs import Configs
 from regtrack.errors import CaseError, ConfigError, RegtrackError
 from regtrack.pipeline import stages, workers
@@ -64,6 +65,7 @@ class RunContext:
         return self.configs.protocol_tables
 
     def say(self, msg: str) -> None:
+        check_interrupted()  # a Ctrl-C swallowed in a finaliser stops the run here
         msg = self.ids.scrub(msg, console=True)
         log.info(msg)
         if self.progress is not None:

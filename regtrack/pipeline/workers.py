@@ -43,7 +43,7 @@ def simulate_concurrently(ctx, mesh: stages.MeshOutput, views, *, worker=None) -
     import concurrent.futures as cf
     import multiprocessing
 
-    from regtrack._signals import stop_pool
+    from regtrack._signals import check_interrupted, stop_pool
 
     keys = {v: stages.simulate_key(ctx, mesh.key, v) for v in views}
     todo = [v for v in views if ctx.cache.lookup("simulate", keys[v]) is None]
@@ -62,20 +62,24 @@ def simulate_concurrently(ctx, mesh: stages.MeshOutput, views, *, worker=None) -
     try:
         futures = {pool.submit(_in_worker, worker or _simulate_worker, lite, mesh, v): v
                    for v in todo}
-        for fut in cf.as_completed(futures):
-            view = futures[fut]
-            try:
-                seconds = fut.result()  # the worker said "finished" on the queue
-                ctx.produced.add(("simulate", keys[view]))
-                ctx.say(f"simulate {view}: done ({seconds:.0f} s)")
-            except RegtrackError as exc:
-                failed[view] = exc
-                reports.put((view, None, 1.0, {}))  # after the worker's increments
-                ctx.say(f"simulate {view}: failed")
-            except Exception as exc:  # a dead worker, an error that did not pickle
-                reports.put((view, None, 1.0, {}))
-                log.warning("simulate %s: the worker process failed (%s: %s); simulating "
-                            "it again in this process", view, type(exc).__name__, exc)
+        pending = set(futures)
+        while pending:
+            done, pending = cf.wait(pending, timeout=0.5, return_when=cf.FIRST_COMPLETED)
+            check_interrupted()  # a Ctrl-C swallowed in a finaliser stops the wait here
+            for fut in done:
+                view = futures[fut]
+                try:
+                    seconds = fut.result()  # the worker said "finished" on the queue
+                    ctx.produced.add(("simulate", keys[view]))
+                    ctx.say(f"simulate {view}: done ({seconds:.0f} s)")
+                except RegtrackError as exc:
+                    failed[view] = exc
+                    reports.put((view, None, 1.0, {}))  # after the worker's increments
+                    ctx.say(f"simulate {view}: failed")
+                except Exception as exc:  # a dead worker, an error that did not pickle
+                    reports.put((view, None, 1.0, {}))
+                    log.warning("simulate %s: the worker process failed (%s: %s); simulating "
+                                "it again in this process", view, type(exc).__name__, exc)
         pool.shutdown(wait=True)  # the workers' last reports are on the queue before the end
     except BaseException:  # Ctrl-C, SIGTERM: stop the workers now, do not wait for them
         stop_pool(pool)
