@@ -9,8 +9,9 @@ process pool's shutdown for the workers to finish.  Now:
   temporary ``.part`` folder is removed (:meth:`regtrack.pipeline.cache.StageCache.produce`),
   and the CLI prints one line;
 * an interrupt whose exception Python swallowed (it arrived while a finaliser ran) is
-  raised again at the next stage line or stage commit (:func:`check_interrupted`), so a
-  Ctrl-C is never lost and an interrupted stage is never stored;
+  raised again at the next stage line, stage commit or poll of the view workers
+  (:func:`check_interrupted`), so a Ctrl-C is never lost and an interrupted stage is never
+  stored;
 * worker processes ignore SIGINT (a Ctrl-C reaches the whole process group; the parent
   decides) and turn SIGTERM into ``SystemExit``, so their own ``finally`` blocks remove
   their temporary folders too;
@@ -57,7 +58,8 @@ def _raise_interrupt(signum: int, frame: Any) -> None:
 def check_interrupted() -> None:
     """Raise ``KeyboardInterrupt`` (or :class:`Terminated`) again if SIGINT or SIGTERM
     arrived since :func:`install_cli_handlers`, in case its first exception was swallowed.
-    Called where work moves on (each stage line, each stage's commit to the cache)."""
+    Called where work moves on (each stage line, each stage's commit to the cache, each
+    poll of the view workers)."""
     if _pending is not None:
         raise _interrupt(_pending)
 
