@@ -120,6 +120,44 @@ def test_no_step_crosses_a_triangle():
     assert 0 < a < 1 and np.log2(a) == np.round(np.log2(a))
 
 
+def _smooth_field(X: np.ndarray, rng, amplitude: float) -> np.ndarray:
+    """A smooth random displacement field (N, 3) mm: sines of wavelength 10-30 mm."""
+    k = rng.uniform(0.2, 0.6, (3, 3)) * rng.choice([-1.0, 1.0], (3, 3))
+    return amplitude * np.sin(X @ k + rng.uniform(0.0, 2 * np.pi, 3))
+
+
+def test_the_neighbour_list_finds_what_a_tree_search_finds():
+    """Box B sliding along A's top (0.4 mm a step, 4.8 mm in all: two elements) under a
+    smooth random wobble (so the list is re-made on the way): the pairs within reach, the
+    pairs of a step and its bound
+    from the neighbour list are those of a tree search at every state; a pair only the
+    search returns is one the bound proves cannot come within reach in the step."""
+    model, nA = _stack(0.6)
+    X = model.points
+    bar, ref = _barrier(model), _barrier(model)
+    ref._listed = lambda *args: None  # type: ignore[method-assign]  # always search
+    rng = np.random.default_rng(7)
+    u = np.zeros_like(X)
+    lists, within = set(), 0
+    for _ in range(12):
+        du = _smooth_field(X, rng, 0.1)
+        du[nA:, 0] += 0.4
+        got, want = bar.near(u, margin=2.0)[0], ref.near(u, margin=2.0)[0]
+        lists.add(id(bar._list[0]))
+        assert set(zip(got.node, got.tri)) == set(zip(want.node, want.tri))
+        within += len(got)
+        (got, a), (want, b) = bar.near(u, du), ref.near(u, du)
+        assert a == b
+        g, w = set(zip(got.node, got.tri)), set(zip(want.node, want.tri))
+        assert g <= w
+        extra = np.array(sorted(w - g), np.int64).reshape(-1, 2)
+        for t in np.linspace(0.0, 1.0, 11):
+            gap = bar._gap(X + u, du, np.full(len(extra), t), extra[:, 0], extra[:, 1])
+            assert np.all(np.linalg.norm(gap, axis=1) >= DHAT)
+        u = u + du
+    assert within > 0 and len(lists) >= 2  # pairs were found, and the list was re-made
+
+
 @pytest.mark.parametrize("with_barrier", [True, False])
 def test_two_boxes_pressed_together_carry_the_force_of_one(with_barrier):
     """B's top face is pushed 1 mm down onto A (0.6 mm below it) with A's bottom clamped.

@@ -49,6 +49,15 @@ reached (additive CCD) gives each pair's time of impact, when its distance first
 ``(1 - s) d(0)``; a pair sliding along the other surface keeps its distance and may take the
 whole step.  The line search starts from the smallest time of impact.
 
+Which pairs to test (a neighbour list with a skin, as in molecular dynamics; Verlet 1967):
+the list holds every pair closer than ``S = PATTERN_MARGIN dhat + LIST_SKIN_MM`` at the
+state ``x_b`` where it was made.  Moving the surface's nodes by ``w`` (less a common
+translation, which changes no distance) changes a pair's distance by at most ``2 max|w|``
+(the 1-Lipschitz bound above), so a pair not on the list stays farther than ``S - 2
+max|w|``: while that is at least the distance asked about, the list holds every pair that
+matters, and the tree search is skipped.  A step that moves the surface further is searched
+afresh.  The pairs come out in the order (node, triangle) whichever way they were found.
+
 The barrier acts between nodes and triangles; two edges may still cross with every node
 outside (a fold meeting another at a sharp crease), which this term does not see.  A node
 and the triangles of its 2-ring are left out: they are the same patch of skin, which the
@@ -77,6 +86,9 @@ PATTERN_MARGIN = 2.0
 #: Candidate pairs per surface node a step's search may test; a longer step (its nodes
 #: moving far past their neighbours) is bounded to the part that fits (halved until it does).
 BROAD_PHASE_BUDGET = 128
+#: The neighbour list's skin (mm): the list serves every state whose surface has moved by
+#: less than half this (besides a common translation) since it was made (module docstring).
+LIST_SKIN_MM = 2.0
 
 
 def barrier(d: np.ndarray, dhat: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -91,6 +103,26 @@ def barrier(d: np.ndarray, dhat: float) -> tuple[np.ndarray, np.ndarray, np.ndar
         b1 = np.where(inside, -2.0 * g * L - g * g / d, 0.0)
         b2 = np.where(inside, -2.0 * L - 4.0 * g / d + g * g / (d * d), 0.0)
     return b, b1, b2
+
+
+def _midrange(v: np.ndarray) -> np.ndarray:
+    """The middle (3,) of the bounding box of the vectors ``v`` (K, 3): the common
+    translation whose removal leaves the smallest largest vector."""
+    if len(v) == 0:
+        return np.zeros(3)
+    return 0.5 * (v.max(axis=0) + v.min(axis=0))
+
+
+def _spheres(corners: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Bounding spheres of triangles ``corners`` (F, 3, 3): centres (F, 3), radii (F,) mm."""
+    centre = corners.mean(axis=1)
+    return centre, np.linalg.norm(corners - centre[:, None], axis=2).max(axis=1)
+
+
+def _ordered(node: np.ndarray, tri: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The pairs sorted by node, then triangle: one order however they were found."""
+    order = np.lexsort((tri, node))
+    return node[order], tri[order]
 
 
 @dataclass
@@ -146,6 +178,8 @@ class SkinBarrier:
         n = len(self.X)
         self._adjacent = np.unique(np.concatenate([E[:, 0] * n + E[:, 1], E[:, 1] * n + E[:, 0],
                                                    self.nodes * n + self.nodes]))
+        # the neighbour list: surface positions where made, its pairs, its radius (mm)
+        self._list: tuple[np.ndarray, np.ndarray, np.ndarray, float] | None = None
 
     def _neighbours(self, node: np.ndarray, corners: np.ndarray) -> np.ndarray:
         """Whether a triangle (``corners`` (P, 3)) has ``node`` (P,) or one of the node's
@@ -161,30 +195,21 @@ class SkinBarrier:
         times the reach at ``x``), and ``a``: the largest step ``<= 1`` that no pair can
         cross (additive CCD, :meth:`_time_of_impact`; 1 without motion; at most ``2^-k``
         when the search of the whole step exceeds ``BROAD_PHASE_BUDGET`` and its ``2^-k``
-        part does not).  Both (N, 3) mm."""
+        part does not).  Both (N, 3) mm.  The pairs are those of the neighbour list while
+        it serves (module docstring), else of a tree search."""
         x = self.X + np.asarray(u, float).reshape(-1, 3)
         F = self.faces
-        scale = 1.0
-        corners = x[F]                                                   # (F, 3, 3)
-        centre = corners.mean(axis=1)
-        radius = np.linalg.norm(corners - centre[:, None], axis=2).max(axis=1)
         D = np.zeros_like(x) if du is None else np.asarray(du, float).reshape(-1, 3)
         if du is not None:  # pairs meet by their relative motion: take out a common one
-            Ds = D[self.nodes]
-            D = D - 0.5 * (Ds.max(axis=0) + Ds.min(axis=0))
-        budget = BROAD_PHASE_BUDGET * len(self.nodes)
-        while True:  # a step too long to search within the budget is searched for its part
+            D = D - _midrange(D[self.nodes])
+        move = np.linalg.norm(D, axis=1)
+        scale = 1.0
+        listed = self._listed(x, move, margin * self.dhat)
+        if listed is not None:
+            node, tri = listed
+        else:
+            node, tri, D, scale = self._search(x, D, margin)
             move = np.linalg.norm(D, axis=1)
-            tri_move = move[F].max(axis=1)
-            found = self._broad_phase(x[self.nodes], margin * self.dhat + move[self.nodes], centre,
-                                      radius + tri_move, budget if move.any() else None)
-            if found is not None:
-                break
-            D, scale = 0.5 * D, 0.5 * scale
-        node, tri = found
-        node = self.nodes[node]
-        keep = ~self._neighbours(node, F[tri])  # not a corner, nor next to one
-        node, tri = node[keep], tri[keep]
         d, _, _ = self._distance(x, node, tri)
         if du is None:
             sel = d < margin * self.dhat
@@ -192,11 +217,59 @@ class SkinBarrier:
         quad = np.concatenate([node[:, None], F[tri]], axis=1)           # (P, 4)
         Dq = D[quad]
         rel = np.linalg.norm(Dq - Dq.mean(axis=1, keepdims=True), axis=2)
-        m = np.minimum(rel[:, 0] + rel[:, 1:].max(axis=1), move[node] + tri_move[tri])
+        m = np.minimum(rel[:, 0] + rel[:, 1:].max(axis=1), move[node] + move[F[tri]].max(axis=1))
         sel = d < self.dhat + m
         toi = self._time_of_impact(x, D, node, tri, d, m)
         alpha = float(min(scale, scale * toi.min(initial=np.inf)))
         return Pairs(node[sel], tri[sel]), alpha
+
+    def _listed(self, x: np.ndarray, move: np.ndarray, need: float
+                ) -> tuple[np.ndarray, np.ndarray] | None:
+        """The neighbour list's pairs when it holds every pair that comes closer than
+        ``need`` (mm) while the nodes move from ``x`` by up to ``move`` (N,) mm (relative
+        to a common translation); the list is made afresh at ``x`` when the old one does
+        not serve and a fresh one would; None when the move is too long for any list."""
+        s = self.nodes
+        if self._list is not None:
+            xb, node, tri, radius = self._list
+            w = x[s] - xb
+            w = w - _midrange(w)
+            if radius - 2.0 * float((np.linalg.norm(w, axis=1) + move[s]).max()) >= need:
+                return node, tri
+        radius = PATTERN_MARGIN * self.dhat + LIST_SKIN_MM
+        if radius - 2.0 * float(move[s].max(initial=0.0)) < need:
+            return None
+        F = self.faces
+        centre, sphere = _spheres(x[F])
+        p, tri = self._broad_phase(x[s], np.full(len(s), radius), centre, sphere)
+        node, tri = _ordered(*self._beyond_ring(s[p], tri))
+        keep = self._distance(x, node, tri)[0] < radius
+        self._list = (x[s].copy(), node[keep], tri[keep], radius)
+        return node[keep], tri[keep]
+
+    def _search(self, x: np.ndarray, D: np.ndarray, margin: float):
+        """Tree search of the pairs that can come within ``margin`` reaches while the nodes
+        move from ``x`` by ``alpha D``: ``(node, tri, D, scale)``, with ``D`` halved (and
+        ``scale`` with it) until the search fits ``BROAD_PHASE_BUDGET``."""
+        F = self.faces
+        centre, radius = _spheres(x[F])
+        scale = 1.0
+        budget = BROAD_PHASE_BUDGET * len(self.nodes)
+        while True:  # a step too long to search within the budget is searched for its part
+            move = np.linalg.norm(D, axis=1)
+            found = self._broad_phase(x[self.nodes], margin * self.dhat + move[self.nodes], centre,
+                                      radius + move[F].max(axis=1),
+                                      budget if move.any() else None)
+            if found is not None:
+                break
+            D, scale = 0.5 * D, 0.5 * scale
+        node, tri = _ordered(*self._beyond_ring(self.nodes[found[0]], found[1]))
+        return node, tri, D, scale
+
+    def _beyond_ring(self, node: np.ndarray, tri: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The pairs whose triangle lies outside the node's 2-ring."""
+        keep = ~self._neighbours(node, self.faces[tri])
+        return node[keep], tri[keep]
 
     def _time_of_impact(self, x: np.ndarray, D: np.ndarray, node: np.ndarray, tri: np.ndarray,
                         d0: np.ndarray, m: np.ndarray) -> np.ndarray:
