@@ -158,6 +158,40 @@ def test_the_neighbour_list_finds_what_a_tree_search_finds():
     assert within > 0 and len(lists) >= 2  # pairs were found, and the list was re-made
 
 
+def test_the_system_matrix_holds_the_barriers_couplings():
+    """``Minimiser.matrix`` with pairs in reach: the mesh's matrix plus the barrier's
+    Hessian between free dofs (summed independently with scipy; equal to rounding), and
+    at a later state with fewer pairs (B tilted off A) the same pattern (the union of the pairs coupled so
+    far, zeros where a pair is out of reach) with that state's values."""
+    import scipy.sparse as sp
+
+    from regtrack.mechanics.newton import Minimiser
+
+    model, nA = _stack(0.6)
+    prob = build_problem(model, MechanicsConfig(tissue_c1_kpa=1.0, nu=0.45))
+    prob.self_contact = _barrier(model)
+    m = Minimiser(prob, prob.config.solver)
+    fext = np.zeros(prob.n_dofs)
+    u = np.zeros_like(model.points)
+    matrices = []
+    for tilt in (0.0, 0.1):  # B 0.25 mm above A, then tilted up to 1.25 mm at its far end
+        u[nA:, 2] = -0.35 + tilt * model.points[nA:, 0]
+        s = m.state(u, fext, [], hessian=True)
+        M = m.matrix(s, s.ev, 0.0)
+        rows, cols, vals = s.skin.hess
+        keep = m.free[rows] & m.free[cols]
+        H = sp.csr_matrix((vals[keep], (rows[keep], cols[keep])), shape=M.shape)
+        plain = Minimiser(prob, prob.config.solver)
+        plain.barrier = None
+        s0 = plain.state(u, fext, [], hessian=True)
+        want = (plain.matrix(s0, s0.ev, 0.0) + H).toarray()
+        assert np.allclose(M.toarray(), want, rtol=0, atol=1e-12 * np.abs(want).max())
+        matrices.append((M, s.skin.n_active))
+    (first, n_first), (later, n_later) = matrices
+    assert n_first > n_later > 0 and later.nnz == first.nnz
+    assert np.array_equal(later.indices, first.indices) and np.array_equal(later.indptr, first.indptr)
+
+
 @pytest.mark.parametrize("with_barrier", [True, False])
 def test_two_boxes_pressed_together_carry_the_force_of_one(with_barrier):
     """B's top face is pushed 1 mm down onto A (0.6 mm below it) with A's bottom clamped.

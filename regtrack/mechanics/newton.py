@@ -103,7 +103,8 @@ class Minimiser:
         self._cons = constraint_positions(problem, self.fixed_dofs)
         self.n_groups = 0 if problem.groups is None else problem.groups.n_groups
         self.barrier = problem.self_contact
-        self._pairs: np.ndarray | None = None  # node pairs coupled by the barrier so far
+        self._pairs: np.ndarray | None = None  # node pairs coupled so far, keys i * N + j
+        self._coupled: tuple | None = None  # the system matrix's pattern with their blocks
         # every iteration lowers the potential, so a minimisation may take longer than a
         # Newton solve of the residual before an increment is halved
         self.max_iterations = 4 * options.max_iterations
@@ -183,27 +184,57 @@ class Minimiser:
         """``M`` with the barrier's couplings outside the mesh's pattern added (between
         free dofs; a fixed dof keeps its identity row).  The extra pattern is the union of
         the node pairs coupled so far by this minimiser, zero where a pair is not in reach
-        now, so that the linear solver's analysis is redone only when a new pair comes."""
+        now, so that the linear solver's analysis is redone only when a new pair comes; the
+        pattern is built once per union and the values scattered into it."""
         if extra is not None and len(extra[0]):
             r, c, v = extra
             keep = self.free[r] & self.free[c]
             r, c, v = r[keep], c[keep], v[keep]
-            pairs = np.unique(np.stack([r // 3, c // 3], axis=1), axis=0)
+            nodes = len(self.p.X)
+            pairs = np.unique((r // 3) * nodes + c // 3)
             if self._pairs is not None:
-                pairs = np.unique(np.vstack([self._pairs, pairs]), axis=0)
-            self._pairs = pairs
+                pairs = np.union1d(self._pairs, pairs)
+            if self._pairs is None or len(pairs) != len(self._pairs):
+                self._pairs, self._coupled = pairs, None
         else:
             r = c = np.zeros(0, np.int64)
             v = np.zeros(0)
         if self._pairs is None:
             return M
+        if self._coupled is None or self._coupled[0] != M.nnz:
+            self._coupled = self._coupled_pattern(M)
+        M.sort_indices()
+        _, indptr, indices, keys, base = self._coupled
+        data = np.zeros(len(indices))
+        data[base] = M.data
+        if len(v):
+            data += np.bincount(np.searchsorted(keys, r * M.shape[0] + c), weights=v,
+                                minlength=len(data))
+        out = sp.csr_matrix((data, indices, indptr), shape=M.shape, copy=False)
+        out.has_sorted_indices = True
+        return out
+
+    def _coupled_pattern(self, M: sp.csr_matrix) -> tuple:
+        """The pattern of ``M`` joined with a 3x3 block for every node pair of
+        ``self._pairs`` (keys ``i * N + j``): ``(M.nnz, indptr, indices, keys, base)`` with
+        the sorted entry keys ``row * n + col`` and the positions of ``M``'s entries."""
+        n = M.shape[0]
+        i, j = np.divmod(self._pairs, len(self.p.X))
         k = np.arange(3)
-        pr = (3 * self._pairs[:, :1, None] + k[None, :, None]).repeat(3, axis=2).reshape(-1)
-        pc = (3 * self._pairs[:, 1:, None] + k[None, None, :]).repeat(3, axis=1).reshape(-1)
-        C = M.tocoo()
-        return sp.csr_matrix((np.concatenate([C.data, np.zeros(len(pr)), v]),
-                              (np.concatenate([C.row, pr, r]), np.concatenate([C.col, pc, c]))),
-                             shape=M.shape)
+        pr = (3 * i[:, None, None] + k[None, :, None]).repeat(3, axis=2).reshape(-1)
+        pc = (3 * j[:, None, None] + k[None, None, :]).repeat(3, axis=1).reshape(-1)
+        M.sort_indices()  # row-major with sorted columns: M's keys are sorted
+        mkeys = np.repeat(np.arange(n, dtype=np.int64) * n, np.diff(M.indptr)) + M.indices
+        new = np.unique(pr * n + pc)
+        at = np.minimum(np.searchsorted(mkeys, new), len(mkeys) - 1)
+        new = new[mkeys[at] != new]
+        base = np.arange(len(mkeys)) + np.searchsorted(new, mkeys)     # merge the two
+        keys = np.empty(len(mkeys) + len(new), np.int64)
+        keys[base] = mkeys
+        keys[np.arange(len(new)) + np.searchsorted(mkeys, new)] = new
+        rows, cols = np.divmod(keys, n)
+        indptr = np.searchsorted(rows, np.arange(n + 1)).astype(np.int32)
+        return (M.nnz, indptr, cols.astype(np.int32), keys, base)
 
     def reachable(self, u_from: np.ndarray, u_to: np.ndarray) -> bool:
         """Whether the straight path from ``u_from`` to ``u_to`` (N, 3) mm crosses no
