@@ -129,9 +129,9 @@ def _smooth_field(X: np.ndarray, rng, amplitude: float) -> np.ndarray:
 def test_the_neighbour_list_finds_what_a_tree_search_finds():
     """Box B sliding along A's top (0.4 mm a step, 4.8 mm in all: two elements) under a
     smooth random wobble (so the list is re-made on the way): the pairs within reach, the
-    pairs of a step and its bound
-    from the neighbour list are those of a tree search at every state; a pair only the
-    search returns is one the bound proves cannot come within reach in the step."""
+    pairs of a step and its bound from the neighbour list are those of a tree search at
+    every state; a pair only the search returns is one the bound proves cannot come within
+    reach in the step."""
     model, nA = _stack(0.6)
     X = model.points
     bar, ref = _barrier(model), _barrier(model)
@@ -161,8 +161,8 @@ def test_the_neighbour_list_finds_what_a_tree_search_finds():
 def test_the_system_matrix_holds_the_barriers_couplings():
     """``Minimiser.matrix`` with pairs in reach: the mesh's matrix plus the barrier's
     Hessian between free dofs (summed independently with scipy; equal to rounding), and
-    at a later state with fewer pairs (B tilted off A) the same pattern (the union of the pairs coupled so
-    far, zeros where a pair is out of reach) with that state's values."""
+    at a later state with fewer pairs (B tilted off A) the same pattern (the union of the
+    pairs coupled so far, zeros where a pair is out of reach) with that state's values."""
     import scipy.sparse as sp
 
     from regtrack.mechanics.newton import Minimiser

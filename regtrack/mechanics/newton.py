@@ -201,9 +201,9 @@ class Minimiser:
             v = np.zeros(0)
         if self._pairs is None:
             return M
+        M.sort_indices()  # row-major with sorted columns: M's entry keys are sorted
         if self._coupled is None or self._coupled[0] != M.nnz:
             self._coupled = self._coupled_pattern(M)
-        M.sort_indices()
         _, indptr, indices, keys, base = self._coupled
         data = np.zeros(len(indices))
         data[base] = M.data
@@ -216,14 +216,14 @@ class Minimiser:
 
     def _coupled_pattern(self, M: sp.csr_matrix) -> tuple:
         """The pattern of ``M`` joined with a 3x3 block for every node pair of
-        ``self._pairs`` (keys ``i * N + j``): ``(M.nnz, indptr, indices, keys, base)`` with
-        the sorted entry keys ``row * n + col`` and the positions of ``M``'s entries."""
+        ``self._pairs`` (keys ``i * N + j``; ``M`` with sorted indices): ``(M.nnz, indptr,
+        indices, keys, base)`` with the sorted entry keys ``row * n + col`` and the
+        positions of ``M``'s entries."""
         n = M.shape[0]
         i, j = np.divmod(self._pairs, len(self.p.X))
         k = np.arange(3)
         pr = (3 * i[:, None, None] + k[None, :, None]).repeat(3, axis=2).reshape(-1)
         pc = (3 * j[:, None, None] + k[None, None, :]).repeat(3, axis=1).reshape(-1)
-        M.sort_indices()  # row-major with sorted columns: M's keys are sorted
         mkeys = np.repeat(np.arange(n, dtype=np.int64) * n, np.diff(M.indptr)) + M.indices
         new = np.unique(pr * n + pc)
         at = np.minimum(np.searchsorted(mkeys, new), len(mkeys) - 1)

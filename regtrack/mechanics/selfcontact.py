@@ -239,10 +239,7 @@ class SkinBarrier:
         radius = PATTERN_MARGIN * self.dhat + LIST_SKIN_MM
         if radius - 2.0 * float(move[s].max(initial=0.0)) < need:
             return None
-        F = self.faces
-        centre, sphere = _spheres(x[F])
-        p, tri = self._broad_phase(x[s], np.full(len(s), radius), centre, sphere)
-        node, tri = _ordered(*self._beyond_ring(s[p], tri))
+        node, tri, _, _ = self._search(x, np.zeros_like(x), radius / self.dhat)
         keep = self._distance(x, node, tri)[0] < radius
         self._list = (x[s].copy(), node[keep], tri[keep], radius)
         return node[keep], tri[keep]
