@@ -48,11 +48,46 @@ def test_lesion_sigma_terms_add_in_quadrature():
     assert t == pytest.approx({"registration_residual": 0.2, "rotation": rot, "model": model,
                                "nipple": 0.0})
     assert s == pytest.approx(math.sqrt(0.5 ** 2 + rot ** 2 + model ** 2))  # residual floored
-    # a nipple detected anywhere on a 12 mm run of the apex (u = 6 mm): uniform, 6 / sqrt 3
+    # the nipple term joins in quadrature
     s2, t2 = prediction_sigma(residual_mm=0.2, r_mm=60.0, theta_sigma_deg=1.0, shift_mm=8.0,
-                          D=0.4, sigma_D=0.04, nipple_run_mm=6.0, config=cfg)
-    assert t2["nipple"] == pytest.approx(6.0 / math.sqrt(3.0))
-    assert s2 == pytest.approx(math.sqrt(s ** 2 + 12.0))
+                              D=0.4, sigma_D=0.04, nipple_mm=2.0, config=cfg)
+    assert t2["nipple"] == 2.0
+    assert s2 == pytest.approx(math.sqrt(s ** 2 + 4.0))
+
+
+def test_the_nipple_term_is_the_registrations_answer_to_a_moved_nipple():
+    """A circular skin line (radius rho = 60 mm, centre c): the detector's nipple is the
+    middle of the run within delta = 1 mm of the farthest point, half-length
+    u = rho arccos(1 - delta / rho).  Moving it by h = u / sqrt 3 along the run, the
+    registration turns the circle back onto itself by about +-h / rho, so the predicted
+    centre moves only by h^2 / (2 rho) towards the chest wall for either sign: its first-
+    order spread |p+ - p-| / 2 vanishes, while a point at the nipple moves by h (6.3 mm
+    here).  Tolerances: the open arc, the 0.1 deg sampling of the circle and the
+    golden-section search leave effects of hundredths of a millimetre."""
+    from regtrack.imaging.mammogram.nipple import detect_nipple
+    from regtrack.registration import RegistrationConfig, align
+    from regtrack.tracking.uncertainty import NippleMoves
+    from regtrack.views import MammogramView
+
+    rho, c = 60.0, np.array([0.0, 100.0])
+    phi = np.deg2rad(np.linspace(-80.0, 80.0, 1601))
+    skin = c + rho * np.stack([np.cos(phi), np.sin(phi)], 1)
+    nip, info = detect_nipple(skin, delta_mm=1.0)
+    u = rho * math.acos(1.0 - 1.0 / rho)
+    assert info["tangential_uncertainty_mm"] == pytest.approx(u, abs=0.2)
+    real = MammogramView("CC", "R", skin, nip, meta={"nipple": info})
+    virtual = MammogramView("CC", "R", skin.copy(), nip.copy())
+    al = align(real, virtual, config=RegistrationConfig(use_tumour=False))
+    moves = NippleMoves.from_alignment(al, real)
+    h = info["tangential_uncertainty_mm"] / math.sqrt(3.0)
+    at_centre, at_nipple = moves.sigma(np.vstack([c, nip]))
+    assert at_nipple == pytest.approx(h, rel=0.02)
+    assert at_centre < 0.1
+    for (n, th), sign in zip(moves.moved, (1.0, -1.0)):   # turned back by h / rho
+        assert th == pytest.approx(sign * math.degrees(h / rho), rel=0.02)
+    # a nipple given on the image has no run: no term
+    given = MammogramView("CC", "R", skin, nip, meta={"nipple": {"method": "given (nipple_px)"}})
+    assert NippleMoves.from_alignment(al, given) is None
 
 
 def test_nipple_run_from_the_real_view():

@@ -302,7 +302,8 @@ def lesions_doc(case_id: str, results) -> dict:
         "method": "registration on the breast outline and nipple only (theta_p = theta_p,b); "
                   "sigma_mm: 1-sigma radius from the local registration residual, the angular "
                   "uncertainty times the distance from the nipple, the model's sensitivity "
-                  "to D, c1 and nu, and the run of the apex along which the nipple was "
+                  "to D, c1 and nu, and how far the prediction moves when the registration "
+                  "is repeated with the nipple moved along the run of the apex where it was "
                   "detected (regtrack.tracking.uncertainty); error_mm: distance to the "
                   "area centroid of the annotated outline (paper mode)",
         "views": {r.view: {"mode": r.extra.get("mode"),

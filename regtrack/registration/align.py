@@ -244,6 +244,17 @@ def _search(obj: Objective, lo: float, hi: float, cfg: RegistrationConfig) -> Go
     return GoldenResult(r.x, r.fun, r.evaluations + n0, r.bracket, r.at_edge)
 
 
+def breast_rotation(alignment: Alignment, nipple) -> float:
+    """:math:`\\theta_{p,b}` (deg) of ``alignment``'s breast objective searched again with the
+    real nipple at ``nipple`` (mm) instead of :math:`n_p`, over the same bracket: how the
+    registration answers a different nipple on the real image."""
+    from dataclasses import replace
+
+    ob = replace(alignment.breast_objective, nipple=np.asarray(nipple, float))
+    lo, hi = alignment.bracket_deg
+    return _search(ob, lo, hi, alignment.config).x
+
+
 def align(real: MammogramView, virtual: MammogramView, *,
           config: RegistrationConfig | None = None) -> Alignment:
     """Align ``virtual`` on ``real``: nipple superposition + golden-section rotation.

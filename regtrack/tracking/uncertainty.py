@@ -31,13 +31,20 @@ quadrature (:func:`prediction_sigma`):
   c1 times 1.3 and nu - 0.02, the 1-sigma of ``[tracking]``, moved the predicted
   centroid by 0.5 to 2.4 mm in quadrature, 0.08 to 0.39 of :math:`|\\Delta|` over seven
   lesions of six exams);
-- :math:`\\sigma_{nip} = u / \\sqrt{3}`: where the nipple was detected on the
-  mammogram.  The detector takes the middle of the run of contour points within
-  ``nipple_delta_mm`` of the farthest from the chest wall (:mod:`regtrack.imaging.
-  mammogram.nipple`); on a flat compressed apex that run is long, any of its points
-  could be the nipple, and the registration carries the whole prediction with it.  With
+- :math:`\\sigma_{nip}`: where the nipple was detected on the mammogram.  The detector
+  takes the middle of the run of contour points within ``nipple_delta_mm`` of the
+  farthest from the chest wall (:mod:`regtrack.imaging.mammogram.nipple`); on a flat
+  compressed apex that run is long and any of its points could be the nipple.  With
   ``u`` half the run's arc length (mm), a position uniform over the run has the standard
-  deviation ``u / sqrt(3)``.  Zero when the nipple is given (``nipple_px``).
+  deviation :math:`h = u / \\sqrt{3}` along the run.  The registration does not carry a
+  prediction rigidly with its nipple: it turns the outline to fit it again.  So the
+  breast rotation is searched again with the real nipple at :math:`n_p \\pm h\\,t`
+  (``t`` the run's direction), giving :math:`\\theta_\\pm`; a point predicted at ``p``
+  moves to :math:`p_\\pm = n_p \\pm h t + R(\\theta_\\pm - \\theta_p)(p - n_p)`, and
+  :math:`\\sigma_{nip}(p) = |p_+ - p_-| / 2`, the first-order propagation of ``h``
+  through the registration (:class:`NippleMoves`).  A point at the nipple moves by ``h``;
+  the centre of a circular outline hardly moves (the turn that re-fits the circle brings
+  it back).  Zero when the nipple is given (``nipple_px``).
 
 Every prediction comes from the registration on the breast outline and nipple only
 (:func:`regtrack.tracking.viewmap.breast_alignment`; :math:`\\theta_p = \\theta_{p,b}`), so
@@ -53,6 +60,8 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
+
+from regtrack.registration.geometry import rotation
 
 
 @dataclass
@@ -117,15 +126,15 @@ def angular_sigma(objective, theta_deg: float, *, correlation_mm: float, spacing
 
 
 def prediction_sigma(*, residual_mm: float, r_mm: float, theta_sigma_deg: float,
-                     shift_mm: float, D: float | None, sigma_D: float, nipple_run_mm: float = 0.0,
+                     shift_mm: float, D: float | None, sigma_D: float, nipple_mm: float = 0.0,
                      config) -> tuple[float, dict]:
-    """1-sigma radius (mm) and its four terms (module docstring); ``nipple_run_mm`` is ``u``,
-    ``config`` the :class:`~regtrack.tracking.config.TrackingConfig`."""
+    """1-sigma radius (mm) and its four terms (module docstring); ``nipple_mm`` is
+    :math:`\\sigma_{nip}`, ``config`` the :class:`~regtrack.tracking.config.TrackingConfig`."""
     rot = r_mm * math.radians(theta_sigma_deg)
     rel_D = sigma_D / D if D else 0.0
     model = abs(shift_mm) * math.hypot(rel_D, config.material_rel)
     res = max(residual_mm, config.min_residual_mm)
-    nip = nipple_run_mm / math.sqrt(3.0)
+    nip = float(nipple_mm)
     sigma = math.sqrt(res ** 2 + rot ** 2 + model ** 2 + nip ** 2)
     return sigma, {"registration_residual": float(residual_mm), "rotation": float(rot),
                    "model": float(model), "nipple": float(nip)}
@@ -136,6 +145,51 @@ def nipple_run(real) -> float:
     detector found it (0 when given, or when the view does not say)."""
     info = (getattr(real, "meta", None) or {}).get("nipple") or {}
     return float(info.get("tangential_uncertainty_mm") or 0.0)
+
+
+def run_direction(contour, nipple, u_mm: float) -> np.ndarray:
+    """Unit direction (2,) of the nipple's run: the chord between the points of the open
+    skin ``contour`` (M, 2) mm at arc length ``u_mm`` either side of its vertex nearest
+    ``nipple``."""
+    c = np.asarray(contour, float)
+    s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(c, axis=0), axis=1))])
+    sn = s[int(np.argmin(np.linalg.norm(c - np.asarray(nipple, float), axis=1)))]
+    a, b = (np.array([np.interp(x, s, c[:, 0]), np.interp(x, s, c[:, 1])])
+            for x in (sn - u_mm, sn + u_mm))
+    d = b - a
+    return d / np.linalg.norm(d)
+
+
+@dataclass(frozen=True)
+class NippleMoves:
+    """The breast registration searched again with the real nipple moved by ``+-h`` along
+    its run (module docstring, :math:`\\sigma_{nip}`): ``nipple`` / ``theta_deg`` the
+    registration's :math:`n_p` and :math:`\\theta_p`, ``moved`` the two
+    :math:`(n_\\pm, \\theta_\\pm)`."""
+
+    nipple: np.ndarray
+    theta_deg: float
+    moved: tuple
+
+    @classmethod
+    def from_alignment(cls, alignment, real) -> NippleMoves | None:
+        """For a breast-only ``alignment`` of the ``real`` view; None when its nipple was
+        given or has no run."""
+        from regtrack.registration.align import breast_rotation
+
+        u = nipple_run(real)
+        if not u > 0.0:
+            return None
+        n_p = np.asarray(alignment.nipple, float)
+        step = u / math.sqrt(3.0) * run_direction(real.breast_contour, n_p, u)
+        moved = tuple((n, breast_rotation(alignment, n)) for n in (n_p + step, n_p - step))
+        return cls(n_p, float(alignment.theta_p), moved)
+
+    def sigma(self, xy) -> np.ndarray:
+        """:math:`\\sigma_{nip}` (M,) mm at real-frame points ``xy`` (M, 2) mm."""
+        xy = np.atleast_2d(np.asarray(xy, float))
+        p = [n + (xy - self.nipple) @ rotation(th - self.theta_deg).T for n, th in self.moved]
+        return 0.5 * np.linalg.norm(p[0] - p[1], axis=1)
 
 
 def inplane_shift(frame, reference, deformed, nipple_reference, nipple_deformed) -> np.ndarray:
@@ -157,7 +211,9 @@ class PredictionUncertainty:
     ``residual`` the breast registration's residual samples, ``nipple`` (2,) the centre of
     rotation (real frame, mm), ``theta_sigma_deg`` the registration's angular 1-sigma,
     ``D`` / ``sigma_D`` the simulation's compression degree and its 1-sigma,
-    ``nipple_run_mm`` the detector's ``u``, ``config`` the tracking settings.
+    ``nipple_run_mm`` the detector's ``u``, ``config`` the tracking settings,
+    ``nipple_moves`` the registration's answer to a moved nipple (None: the prediction is
+    taken to move with the nipple, :math:`\\sigma_{nip} = u / \\sqrt 3`).
     """
 
     residual: Residual
@@ -167,6 +223,7 @@ class PredictionUncertainty:
     sigma_D: float
     nipple_run_mm: float
     config: object = field(default=None)
+    nipple_moves: NippleMoves | None = None
 
     @classmethod
     def from_alignment(cls, alignment, real, *, D: float | None, sigma_D: float,
@@ -178,7 +235,8 @@ class PredictionUncertainty:
         sig = angular_sigma(ob, th, correlation_mm=config.correlation_mm,
                             spacing_mm=alignment.config.resample_mm)
         return cls(Residual(ob.points(th), ob.distances(th)), np.asarray(alignment.nipple, float),
-                   sig, D, float(sigma_D), nipple_run(real), config)
+                   sig, D, float(sigma_D), nipple_run(real), config,
+                   NippleMoves.from_alignment(alignment, real))
 
     def at(self, xy, shift_mm) -> tuple[np.ndarray, list[dict]]:
         """1-sigma radii (M,) mm and their terms at real-frame points ``xy`` (M, 2) whose
@@ -187,9 +245,11 @@ class PredictionUncertainty:
         shift = np.broadcast_to(np.asarray(shift_mm, float), (len(xy),))
         res = residual_sigma(xy, self.residual, scale_mm=self.config.residual_scale_mm)
         r = np.linalg.norm(xy - self.nipple, axis=1)
+        nip = (np.full(len(xy), self.nipple_run_mm / math.sqrt(3.0)) if self.nipple_moves is None
+               else self.nipple_moves.sigma(xy))
         out = [prediction_sigma(residual_mm=float(res[k]), r_mm=float(r[k]),
                                 theta_sigma_deg=self.theta_sigma_deg, shift_mm=float(shift[k]),
-                                D=self.D, sigma_D=self.sigma_D,
-                                nipple_run_mm=self.nipple_run_mm, config=self.config)
+                                D=self.D, sigma_D=self.sigma_D, nipple_mm=float(nip[k]),
+                                config=self.config)
                for k in range(len(xy))]
         return np.array([s for s, _ in out]), [t for _, t in out]
