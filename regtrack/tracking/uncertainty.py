@@ -147,17 +147,18 @@ def nipple_run(real) -> float:
     return float(info.get("tangential_uncertainty_mm") or 0.0)
 
 
-def run_direction(contour, nipple, u_mm: float) -> np.ndarray:
+def run_direction(contour, nipple, u_mm: float) -> np.ndarray | None:
     """Unit direction (2,) of the nipple's run: the chord between the points of the open
     skin ``contour`` (M, 2) mm at arc length ``u_mm`` either side of its vertex nearest
-    ``nipple``."""
+    ``nipple`` (None when they coincide)."""
     c = np.asarray(contour, float)
     s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(c, axis=0), axis=1))])
     sn = s[int(np.argmin(np.linalg.norm(c - np.asarray(nipple, float), axis=1)))]
     a, b = (np.array([np.interp(x, s, c[:, 0]), np.interp(x, s, c[:, 1])])
             for x in (sn - u_mm, sn + u_mm))
     d = b - a
-    return d / np.linalg.norm(d)
+    n = float(np.linalg.norm(d))
+    return d / n if n > 1e-9 else None
 
 
 @dataclass(frozen=True)
@@ -174,14 +175,15 @@ class NippleMoves:
     @classmethod
     def from_alignment(cls, alignment, real) -> NippleMoves | None:
         """For a breast-only ``alignment`` of the ``real`` view; None when its nipple was
-        given or has no run."""
+        given or has no run (then ``u / sqrt 3`` applies, which is zero when given)."""
         from regtrack.registration.align import breast_rotation
 
         u = nipple_run(real)
-        if not u > 0.0:
-            return None
         n_p = np.asarray(alignment.nipple, float)
-        step = u / math.sqrt(3.0) * run_direction(real.breast_contour, n_p, u)
+        t = run_direction(real.breast_contour, n_p, u) if u > 0.0 else None
+        if t is None:
+            return None
+        step = u / math.sqrt(3.0) * t
         moved = tuple((n, breast_rotation(alignment, n)) for n in (n_p + step, n_p - step))
         return cls(n_p, float(alignment.theta_p), moved)
 
