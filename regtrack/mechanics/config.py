@@ -43,10 +43,11 @@ class SolverOptions:
                                    "correction from its state moves no node by more than this (a "
                                    "tenth of a 0.1 mm mammogram pixel): a small residual alone leaves "
                                    "soft modes undetermined", gt=0)
-    max_iterations: int = param(100, "-", "an increment not converged after 4 x this many Newton "
-                                "iterations is halved: every iteration lowers the potential, so this "
-                                "bounds the work, and a slow path to an equilibrium (tissue sliding "
-                                "along a plate) is followed to its end rather than cut back",
+    max_iterations: int = param(100, "-", "an increment is halved when one of its minimisations "
+                                "(one per contact-multiplier update) has not converged after 4 x "
+                                "this many Newton iterations: every iteration lowers the potential, "
+                                "so a slow path to an equilibrium (tissue sliding along a plate) is "
+                                "followed to its end rather than cut back",
                                 ge=2, le=200)
     stall_force_tol: float = param(5e-3, "-", "a step's result is accepted only when its global force "
                                    "balance (the residual's resultant over the free nodes) is within "
