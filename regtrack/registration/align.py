@@ -22,7 +22,7 @@
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -248,8 +248,6 @@ def breast_rotation(alignment: Alignment, nipple) -> float:
     """:math:`\\theta_{p,b}` (deg) of ``alignment``'s breast objective searched again with the
     real nipple at ``nipple`` (mm) instead of :math:`n_p`, over the same bracket: how the
     registration answers a different nipple on the real image."""
-    from dataclasses import replace
-
     ob = replace(alignment.breast_objective, nipple=np.asarray(nipple, float))
     lo, hi = alignment.bracket_deg
     return _search(ob, lo, hi, alignment.config).x

@@ -61,6 +61,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from regtrack.registration.align import breast_rotation
 from regtrack.registration.geometry import rotation
 
 
@@ -176,8 +177,6 @@ class NippleMoves:
     def from_alignment(cls, alignment, real) -> NippleMoves | None:
         """For a breast-only ``alignment`` of the ``real`` view; None when its nipple was
         given or has no run (then ``u / sqrt 3`` applies, which is zero when given)."""
-        from regtrack.registration.align import breast_rotation
-
         u = nipple_run(real)
         n_p = np.asarray(alignment.nipple, float)
         t = run_direction(real.breast_contour, n_p, u) if u > 0.0 else None
