@@ -14,8 +14,10 @@ reads):
   matched to the truth tumour by its MRI centroid (``mri_lps_mm``), never by the image;
   :func:`error_parts` splits that error into the nipple found on the mammogram, the
   registration's rotation and the rest (the mechanics and the projection);
-* ``<case>_track_marked`` (``--variants track_marked``, not run by default): the tracking
-  case with the truth's nipple given on the MRI and the mammograms (:func:`marked_case`);
+* ``<case>_track_marked``, ``<case>_paper_marked``, ``<case>_paper_rot0_marked``
+  (``--variants track_marked,paper_marked,paper_rot0_marked``, not run by default): those
+  cases with the truth's nipple given on the MRI and the mammograms (:func:`marked_case`):
+  the tracking error and theta error without the nipple detection;
 * ``<case>_track_c1`` / ``<case>_track_nu`` (``--variants track_c1,track_nu``, not run by
   default): the tracking case with the tissue's c1 or nu moved by its 1-sigma
   (``[tracking] c1_rel_sigma``, ``nu_sigma``; :func:`sensitivity_sets`).  They measure the
@@ -54,9 +56,9 @@ import numpy as np
 log = logging.getLogger("bench_accuracy")
 REPO = Path(__file__).resolve().parents[1]
 VARIANTS = ("paper", "paper_rot0", "track")
-#: not run by default: the tracking case with the nipple marked on the MRI and on every
-#: mammogram, as a user can click it (:func:`marked_case`)
-EXTRA_VARIANTS = ("track_marked", "track_c1", "track_nu")
+#: not run by default: the cases with the nipple marked on the MRI and on every
+#: mammogram, as a user can click it (:func:`marked_case`), and the sensitivity variants
+EXTRA_VARIANTS = ("track_marked", "paper_marked", "paper_rot0_marked", "track_c1", "track_nu")
 #: the sensitivity variants: the perturbation of regtrack.tracking.sensitivity they apply
 SENSITIVITY = {"track_c1": "c1", "track_nu": "nu"}
 
@@ -146,14 +148,16 @@ def match_lesion(lesions: list, truth_tumour: dict) -> dict | None:
     return best
 
 
-def marked_case(root: Path, name: str, truth: dict, dst: Path) -> Path:
-    """``<case>_track`` with the nipple given: ``[mri] nipple_lps_mm`` (the truth's nipple,
-    the apex of its surface) and ``[views.<V>] nipple_px`` (its projection on each DICOM), as a radiologist
-    marks it on both images.  The truth's breast has no nipple to see, so regtrack detects
-    its own on each image (a cap centre on the MRI skin, the contour point farthest from
-    the chest wall on the mammogram), and the two detections need not be the same material
-    point; this variant measures the tracking without that ambiguity."""
-    src = root / "cases" / f"{name}_track"
+def marked_case(root: Path, name: str, truth: dict, dst: Path, source: str = "track") -> Path:
+    """``<case>_<source>`` with the nipple given: ``[mri] nipple_lps_mm`` (the truth's
+    nipple, the apex of its surface) and ``[views.<V>] nipple_px`` (its projection on each
+    DICOM; the unrotated one for ``paper_rot0``), as a radiologist marks it on both images.
+    The truth's breast has no nipple to see, so regtrack detects its own on each image (a
+    cap centre on the MRI skin, the contour point farthest from the chest wall on the
+    mammogram), and the two detections need not be the same material point; these
+    variants measure the tracking and the rotation without that ambiguity."""
+    src = root / "cases" / f"{name}_{source}"
+    views = truth["views_rot0"] if source == "paper_rot0" else truth["views"]
     if dst.exists():
         shutil.rmtree(dst)
     shutil.copytree(src, dst)
@@ -161,12 +165,12 @@ def marked_case(root: Path, name: str, truth: dict, dst: Path) -> Path:
     n = truth["mesh"]["nipple_lps_mm"]
     out, view = [], None
     for ln in lines:
-        out.append(ln.replace(f'id = "{name}_track"', f'id = "{name}_track_marked"'))
+        out.append(ln.replace(f'id = "{name}_{source}"', f'id = "{name}_{source}_marked"'))
         if ln.strip() == "[mri]":
             out.append(f"nipple_lps_mm = [{n[0]:.3f}, {n[1]:.3f}, {n[2]:.3f}]")
         if ln.strip().startswith("[views."):
             view = ln.strip()[7:-1]
-            rc = truth["views"][view]["nipple_dicom_rc"]
+            rc = views[view]["nipple_dicom_rc"]
             out.append(f"nipple_px = [{rc[0]:.2f}, {rc[1]:.2f}]")
     (dst / "case.toml").write_text("\n".join(out) + "\n")
     return dst
@@ -340,6 +344,7 @@ def collect(root: Path, name: str, truth: dict, res: Path) -> list[dict]:
     mp, m0, mt = (_metrics(res / f"{name}_{v}") for v in VARIANTS)
     lt = _lesions(res / f"{name}_track")
     lm = _lesions(res / f"{name}_track_marked")
+    mpm, m0m = _metrics(res / f"{name}_paper_marked"), _metrics(res / f"{name}_paper_rot0_marked")
     for view, tv in truth["views"].items():
         rot = tv["rotation_deg"]
         row = {"case": name, "view": view, "rotation_true_deg": rot,
@@ -360,6 +365,9 @@ def collect(root: Path, name: str, truth: dict, res: Path) -> list[dict]:
         row["theta_error_deg"] = (a["theta_p"] - rot) if a.get("theta_p") is not None else None
         row["theta_error_vs_rot0_deg"] = (a["theta_p"] - b["theta_p"] - rot) \
             if a.get("theta_p") is not None and b.get("theta_p") is not None else None
+        am, bm = mpm.get(view, {}), m0m.get(view, {})
+        row["theta_error_deg_marked"] = (am["theta_p"] - rot) if am.get("theta_p") is not None else None
+        row["theta_p_rot0_marked"] = bm.get("theta_p")
         # tracking mode
         c = mt.get(view, {})
         row["mode_track"] = c.get("mode")
@@ -382,7 +390,7 @@ COLS = ["case", "view", "rotation_true_deg", "theta_p_paper", "theta_error_deg",
         "lesion_sigma_mm", "lesion_error_true_theta_mm", "lesion_error_x_mm", "lesion_error_y_mm",
         "lesion_r_true_mm", "theta_error_b_track_deg", "nipple_error_mm", "lesion_error_track_mm_marked",
         "lesion_sigma_mm_marked", "lesion_error_true_theta_mm_marked", "theta_error_b_track_deg_marked",
-        "nipple_error_mm_marked", "n_lesions_regtrack", "lesion_mri_match_mm", "D_true", "D_regtrack", "gap_true_mm",
+        "nipple_error_mm_marked", "theta_error_deg_marked", "theta_p_rot0_marked", "n_lesions_regtrack", "lesion_mri_match_mm", "D_true", "D_regtrack", "gap_true_mm",
         "gap_regtrack_mm", "gap_source", "angle_true_deg", "angle_regtrack_deg", "projection", "friction_true",
         "theta_p_b_paper", "theta_p_t_paper", "theta_p_track", "mode_track", "BS_Av_track", "d_B_track",
         "d_T_rot0", "regtrack_errors"]
@@ -409,8 +417,11 @@ def write_tables(rows: list[dict], out: Path) -> None:
                                                             "d_T_paper", "lesion_error_track_mm",
                                                             "lesion_error_paper_mm", "theta_p_rot0",
                                                             "lesion_error_true_theta_mm",
-                                                            "lesion_error_track_mm_marked")}
+                                                            "lesion_error_track_mm_marked",
+                                                            "theta_p_rot0_marked")}
     absmed = _median([abs(r["theta_error_deg"]) for r in rows if r.get("theta_error_deg") is not None])
+    absmed_m = _median([abs(r["theta_error_deg_marked"]) for r in rows
+                        if r.get("theta_error_deg_marked") is not None])
     worst = max([r["lesion_error_track_mm"] for r in rows if r.get("lesion_error_track_mm") is not None],
                 default=None)
     lines += ["", f"Medians over {len(rows)} case-views: |theta error| {f(absmed)} deg (signed {f(med['theta_error_deg'])}), "
@@ -418,7 +429,9 @@ def write_tables(rows: list[dict], out: Path) -> None:
               f"tracking-mode lesion centroid error {f(med['lesion_error_track_mm'])} mm (worst {f(worst)} mm), "
               f"paper-mode lesion error {f(med['lesion_error_paper_mm'])} mm; "
               f"tracking error with the true rotation {f(med['lesion_error_true_theta_mm'])} mm; "
-              f"tracking with the nipple marked {f(med['lesion_error_track_mm_marked'])} mm."]
+              f"tracking with the nipple marked {f(med['lesion_error_track_mm_marked'])} mm; "
+              f"with the nipple marked, |theta error| {f(absmed_m)} deg and theta_p on the unrotated "
+              f"copy {f(med['theta_p_rot0_marked'])} deg."]
     (out / "accuracy.md").write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
 
@@ -472,8 +485,9 @@ def main(argv=None) -> int:
         truth = json.loads((root / "truth" / f"{name}.json").read_text())
         if not a.collect_only:
             for v in variants:
-                case = (marked_case(root, name, truth, res / "cases" / f"{name}_{v}")
-                        if v == "track_marked" else root / "cases" / f"{name}_{v}")
+                case = (marked_case(root, name, truth, res / "cases" / f"{name}_{v}",
+                                    v.removesuffix("_marked"))
+                        if v.endswith("_marked") else root / "cases" / f"{name}_{v}")
                 sets = None
                 if v in SENSITIVITY:
                     case = root / "cases" / f"{name}_track"

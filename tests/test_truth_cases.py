@@ -214,6 +214,27 @@ def test_marked_case_gives_the_nipple_on_both_images(ba, tmp_path):
     assert "tumour_polygon" not in (dst / "case.toml").read_text()
 
 
+def test_marked_unrotated_copy_takes_the_unrotated_nipple(ba, tmp_path):
+    """'paper_rot0_marked': the nipple of the unrotated DICOM (``views_rot0``), not of the
+    rotated one, and the tumour outline of the paper case kept."""
+    import tomllib
+
+    src = tmp_path / "root" / "cases" / "pel07R_paper_rot0"
+    src.mkdir(parents=True)
+    (src / "case.toml").write_text('[case]\nid = "pel07R_paper_rot0"\n\n[mri]\nlabels = "mri/l.zip"\n\n'
+                                   '[views.CC]\nmammogram = "mammo/cc.dcm"\n'
+                                   'tumour_polygon = "mammo/cc_tumour.json"\n')
+    truth = {"mesh": {"nipple_lps_mm": [-60.0, -45.5, 12.25]},
+             "views": {"CC": {"nipple_dicom_rc": [812.5, 40.0]}},
+             "views_rot0": {"CC": {"nipple_dicom_rc": [800.0, 35.5]}}}
+    dst = ba.marked_case(tmp_path / "root", "pel07R", truth, tmp_path / "out" / "pel07R_paper_rot0_marked",
+                         "paper_rot0")
+    doc = tomllib.loads((dst / "case.toml").read_text())
+    assert doc["case"]["id"] == "pel07R_paper_rot0_marked"
+    assert doc["views"]["CC"] == {"nipple_px": [800.0, 35.5], "mammogram": "mammo/cc.dcm",
+                                  "tumour_polygon": "mammo/cc_tumour.json"}
+
+
 def test_model_sensitivity_is_the_quadrature_of_the_measured_moves(ba):
     """The sensitivity variants: c1 moved the lesion 3 mm, nu 4 mm, so the measured model
     shift is 5 mm and alpha = 5 / |Delta| (|Delta| = 10 mm); a lesion a variant lost is
