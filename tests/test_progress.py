@@ -8,7 +8,7 @@ import logging
 
 import pytest
 
-from regtrack.cli._console import OnceFilter, SimulationProgress, increment_text
+from regtrack.cli._console import IncrementLines, OnceFilter, SimulationProgress, increment_text
 from regtrack.pipeline import stages, workers
 from regtrack.pipeline.run import RunContext
 from regtrack.privacy import Identifiers
@@ -34,6 +34,7 @@ def test_increment_text_shows_what_the_solver_reported():
     assert increment_text("compression", 0.5312, {"increment": 12}) == "increment 12 · t 0.53"
     assert (increment_text("compression", 1.0, {"increment": 3, "D": 0.312, "force_N": 22.44})
             == "increment 3 · t 1.00 · D 31.2 % · F 22.4 N")
+    assert increment_text("gravity", 0.5, {"force_N": -1e-9}) == "t 0.50 · F 0.0 N"
 
 
 def test_each_warning_is_shown_once():
@@ -53,6 +54,59 @@ def test_the_live_lines_come_and_go():
         assert len(p.bar.tasks) == 1 and p.bar.tasks[0].completed == 0.5
         p.increment("CC", None, 1.0)
         assert p.bar.tasks == [] and p.tasks == {}
+
+
+class _Clock:
+    def __init__(self):
+        self.now = 100.0
+
+    def __call__(self):
+        return self.now
+
+
+def test_without_a_terminal_a_long_step_writes_a_plain_line_now_and_then():
+    """Every increment_line_s seconds per view, counted from its first increment: a short
+    simulation writes nothing, a long one a line per interval; each view has its own."""
+    clock, out = _Clock(), []
+    lines = IncrementLines(out.append, interval_s=15.0, clock=clock)
+    for dt, view, t in ((0, "CC", 0.1), (5, "CC", 0.2), (0, "MLO", 0.1), (11, "CC", 0.3),
+                        (4, "CC", 0.4), (12, "CC", 0.5), (0, "MLO", 0.2)):
+        clock.now += dt
+        lines(view, "compression", t, {"increment": int(10 * t), "D": 0.3})
+    assert out == ["CC compression · increment 3 · t 0.30 · D 30.0 %",
+                   "CC compression · increment 5 · t 0.50 · D 30.0 %",
+                   "MLO compression · increment 2 · t 0.20 · D 30.0 %"]
+    lines("CC", None, 1.0, {})  # finished: a next simulation of the view starts afresh
+    clock.now += 100
+    lines("CC", "gravity", 0.25, {})
+    assert len(out) == 3
+
+
+@pytest.mark.parametrize("terminal", [False, True])
+def test_plain_increment_lines_only_without_a_terminal(tmp_path, terminal):
+    from rich.console import Console
+
+    log, clock = tmp_path / "run.log", _Clock()
+    with open(log, "w") as fh, SimulationProgress(Console(file=fh, force_terminal=terminal),
+                                                  clock=clock) as p:
+        p.increment("CC", "compression", 0.1, increment=1)
+        clock.now += 20
+        p.increment("CC", "compression", 0.6, increment=9, D=0.31, force_N=12.5)
+    text = log.read_text()
+    assert ("CC compression · increment 9 · t 0.60 · D 31.0 % · F 12.5 N" in text) != terminal
+
+
+def test_the_simulate_command_logs_increments_without_a_terminal(caplog):
+    """``regtrack simulate`` in a log file: the same plain lines, with the seconds since
+    the start (pytest's stderr is not a terminal)."""
+    from regtrack.cli.simulate import _progress
+
+    clock = _Clock()
+    with caplog.at_level(logging.INFO, logger="regtrack.simulate"), _progress(clock=clock) as update:
+        update("compression", 0.1, D=0.05)
+        clock.now += 16
+        update("compression", 0.5, D=0.2, force_N=3.0)
+    assert [r.getMessage() for r in caplog.records] == ["compression · t 0.50 · D 20.0 % · F 3.0 N (16 s)"]
 
 
 def test_a_stage_line_is_not_wrapped_in_a_log_file(tmp_path):

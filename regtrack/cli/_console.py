@@ -4,7 +4,10 @@ warning once.
 :class:`SimulationProgress` draws one rich progress line per view being simulated
 (``CC  compression  [bar of t]  increment 12 · t 0.53 · D 31.2 % · F 22.4 N``) above
 which stage lines and warnings scroll; :class:`OnceFilter` drops a warning already shown.
-Nothing here is used under ``-q``.
+Where the console is not a terminal (a log file, a pipe, a batch job) no live line is
+drawn, so :class:`IncrementLines` writes the same text as a plain line instead, at most
+every ``INCREMENT_LINE_S`` seconds per view: a step that runs for minutes still shows
+that it moves, and a short one adds nothing.  Nothing here is used under ``-q``.
 """
 
 from __future__ import annotations
@@ -12,6 +15,7 @@ from __future__ import annotations
 import logging
 import sys
 import time
+from collections.abc import Callable
 from typing import Any
 
 
@@ -42,8 +46,36 @@ def increment_text(step: str, t: float, info: dict[str, Any]) -> str:
         parts.append(f"D {100 * float(info['D']):.1f} %")
     force = info.get("force_N", info.get("plate_force_N"))
     if force is not None:
-        parts.append(f"F {float(force):.1f} N")
+        f = float(force)
+        parts.append(f"F {0.0 if abs(f) < 0.05 else f:.1f} N")  # no "-0.0" off contact
     return " · ".join(parts)
+
+
+#: Seconds between two plain increment lines of one view (:class:`IncrementLines`).
+INCREMENT_LINE_S = 15.0
+
+
+class IncrementLines:
+    """Plain increment lines for a console that is not a terminal: ``emit(text)`` with
+    ``"<view> <step> · increment 12 · t 0.53 · ..."`` once ``interval_s`` seconds have
+    passed since the view's first increment or its last line (``clock``: seconds)."""
+
+    def __init__(self, emit: Callable[[str], None], *, interval_s: float = INCREMENT_LINE_S,
+                 clock: Callable[[], float] = time.monotonic) -> None:
+        self.emit = emit
+        self.interval_s = interval_s
+        self.clock = clock
+        self.last: dict[str, float] = {}
+
+    def __call__(self, view: str, step: str | None, t: float, info: dict[str, Any]) -> None:
+        if step is None:  # the view's simulation has finished
+            self.last.pop(view, None)
+            return
+        now = self.clock()
+        if now - self.last.setdefault(view, now) < self.interval_s:
+            return
+        self.last[view] = now
+        self.emit(" ".join(p for p in (view, step) if p) + " · " + increment_text(step, t, info))
 
 
 class SimulationProgress:
@@ -55,7 +87,7 @@ class SimulationProgress:
     above the progress lines instead of breaking them), each warning once.
     """
 
-    def __init__(self, console) -> None:
+    def __init__(self, console, *, clock: Callable[[], float] = time.monotonic) -> None:
         from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
         self.console = console
@@ -65,6 +97,7 @@ class SimulationProgress:
                             TextColumn("{task.fields[info]}"), TimeElapsedColumn(),
                             console=console, transient=True)
         self.tasks: dict[str, Any] = {}
+        self.lines = None if console.is_terminal else IncrementLines(self.say, clock=clock)
         self.once = OnceFilter()
         self._streams: list[tuple[logging.StreamHandler, Any]] = []
 
@@ -94,7 +127,10 @@ class SimulationProgress:
 
     def increment(self, view: str, step: str | None, t: float, **info: Any) -> None:
         """A converged increment of ``view``'s ``step`` at load fraction ``t``; ``step``
-        None: the view's simulation has finished (its line goes)."""
+        None: the view's simulation has finished (its line goes).  Without a terminal, a
+        plain line now and then (:class:`IncrementLines`)."""
+        if self.lines is not None:
+            self.lines(view, step, t, info)
         task = self.tasks.get(view)
         if step is None:
             if task is not None:

@@ -17,7 +17,10 @@ runs the view's compression protocol (:func:`regtrack.mechanics.run_view.simulat
 from __future__ import annotations
 
 import argparse
+import logging
+import time
 
+LOGGER = "regtrack.simulate"
 HELP = "simulate a model: load steps from a config file, or a CC/MLO/biopsy compression of a case"
 
 
@@ -33,7 +36,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    import logging
     from pathlib import Path
 
     from regtrack.errors import ConfigError
@@ -41,7 +43,7 @@ def run(args: argparse.Namespace) -> int:
 
     from regtrack.cli._checks import existing_file, writable_folder
 
-    log = logging.getLogger("regtrack.simulate")
+    log = logging.getLogger(LOGGER)
     existing_file(args.model, "--model", "model .vtu")
     out_path = Path(args.out)
     writable_folder(out_path.parent if out_path.suffix == ".vtu" else out_path, "--out")
@@ -99,17 +101,32 @@ def _run_file_level(model_path, config_path, out, log) -> int:
 
 
 class _progress:
-    """Rich progress bar over the steps' pseudo-time; yields a ``(step, t)`` callback."""
+    """Rich progress bar over the steps' pseudo-time; yields a ``(step, t)`` callback.
+    Without a terminal (a log file, a batch job), a plain log line now and then instead
+    (:class:`regtrack.cli._console.IncrementLines`, with the seconds since the start)."""
+
+    def __init__(self, clock=time.monotonic) -> None:
+        self.clock = clock
 
     def __enter__(self):
+        from rich.console import Console
         from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
+        from regtrack.cli._console import IncrementLines
+
+        console = Console(stderr=True)
         self._p = Progress(TextColumn("{task.description}"), BarColumn(), TextColumn("t = {task.completed:.3f}"),
-                           TimeElapsedColumn(), transient=True)
+                           TimeElapsedColumn(), transient=True, console=console)
         self._p.__enter__()
         self._tasks: dict[str, int] = {}
+        t0 = self.clock()
+        lines = None if console.is_terminal else IncrementLines(
+            lambda text: logging.getLogger(LOGGER).info("%s (%.0f s)", text, self.clock() - t0),
+            clock=self.clock)
 
         def update(step: str, t: float, **info) -> None:
+            if lines is not None:
+                lines("", step or "step", t, info)
             if step not in self._tasks:
                 self._tasks[step] = self._p.add_task(step or "step", total=1.0)
             extra = "".join(f" · {k} {info[k]:{fmt}}" for k, fmt in (("D", ".3f"), ("force_N", ".1f"))
