@@ -86,6 +86,10 @@ def restore_handlers(previous: dict[int, Any]) -> None:
 
 
 def _exit_on_sigterm(signum: int, frame: Any) -> None:
+    """Exit through ``SystemExit`` once: a further SIGTERM is ignored, so that it cannot
+    interrupt the ``finally`` blocks that remove the stage temporaries (the process pool
+    terminates its remaining workers again when one of them has exited)."""
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
     raise SystemExit(128 + signum)
 
 

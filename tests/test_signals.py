@@ -79,6 +79,41 @@ def test_signal_stops_the_workers_and_leaves_the_cache_clean(tmp_path, sig, code
     assert left == ["parent-ready", "pid-CC", "pid-MLO", "simulate"], left  # no .part, no stage
 
 
+SECOND_SIGTERM = """
+import os, signal, time
+from regtrack._signals import init_worker
+
+init_worker()
+try:
+    try:
+        print("ready", flush=True)
+        time.sleep(60)
+    finally:  # the stage temporary's removal, hit by the pool's second SIGTERM
+        os.kill(os.getpid(), signal.SIGTERM)
+        time.sleep(0.2)
+        print("cleaned up", flush=True)
+except SystemExit as exc:
+    print("exit", exc.code, flush=True)
+"""
+
+
+def test_a_worker_finishes_its_cleanup_through_a_second_sigterm():
+    """A view worker exits through ``SystemExit`` on the first SIGTERM and ignores a
+    second one, which the process pool sends its remaining workers when one has exited:
+    a cleanup cut short left a stage temporary in the cache (seen on a loaded host)."""
+    env = {**os.environ, "PYTHONPATH": str(REPO)}
+    proc = subprocess.Popen([sys.executable, "-c", SECOND_SIGTERM], cwd=REPO, env=env,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        assert proc.stdout.readline().strip() == "ready"
+        proc.send_signal(signal.SIGTERM)
+        out, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert out.split("\n")[:2] == ["cleaned up", "exit 143"], (out, err)
+
+
 def test_a_killed_runs_temporaries_are_removed_at_the_next_start(tmp_path):
     """SIGKILL runs no cleanup: the stage temporary of the dead producer and an old atomic
     write are removed by the next StageCache on the root; a live producer's are kept."""
