@@ -23,8 +23,10 @@ script builds, *without regtrack's model, mechanics or virtual-mammogram stages*
    until the gap is (1 - D) times the uncompressed thickness, D drawn in 0.30-0.50 (a run
    that stops after at least ``T_ACCEPT`` of the plate travel is kept at its last
    converged increment, and the gap reached is the one written to the DICOM); MLO:
-   plates rotated about the antero-posterior axis by an angle drawn in 40-60 deg (no MLO
-   has converged yet: docs/truth-cases.md).
+   plates rotated about the antero-posterior axis by an angle drawn in 40-60 deg, gravity
+   first on the breast clamped at the wall, the chest-wall nodes then squeezed along the
+   plate normal with the plates (instead of free along it), and the torso a rigid plane
+   in frictionless contact behind the breast (:func:`write_ccx`, docs/truth-cases.md).
 3. **A cone-beam rendering** (point source SID 650-660 mm above the detector, detector
    15-25 mm below the lower plate, the source's foot at the middle of the chest-wall edge)
    of fat / gland / tumour path lengths through the 8 linear sub-tets of every tet10
@@ -102,6 +104,20 @@ STICK_SLOPE = 5.0
 #: the free breast (T_G0 = 0, T_G1 = 0.2, HOLD = 0) gave exam 29 R the same plate force and
 #: regtrack the same tracking error within 0.04 mm (docs/truth-cases.md).
 T_G0, T_G1, HOLD = 0.4, 0.6, 0.5
+#: the MLO's schedule: gravity first (over 0-T_G1_MLO, the plates still), then the whole
+#: plate travel.  Held half-way first (the CC schedule), the MLO diverged at the first
+#: increments of gravity on every set-up tried (docs/truth-cases.md); with the chest-wall
+#: section squeezed with the plates (write_ccx), which carries the breast's weight, the
+#: free-hanging start converged on the exams tried.
+T_G0_MLO, T_G1_MLO, HOLD_MLO = 0.0, 0.2, 0.0
+#: the torso behind the MLO's breast: a rigid plane at the chest wall (the most posterior
+#: node), frictionless contact with the breast's free surface, as wide as the plates and
+#: this much (mm) beyond both plates along their normal
+TORSO_MARGIN_MM = 40.0
+#: largest increment of the step (pseudo-time); an MLO run that fails is run once more with
+#: the second value (05 R and 49 R then passed the gravity ramp, where they had failed)
+MAX_INCREMENT = 0.03
+MLO_RETRY_MAX_INCREMENT = 0.01
 #: address-space cap of one CalculiX process (GiB); a few thousand tet10 need well under 1
 CCX_MEMORY_GB = 4
 #: Gaussian smoothing (voxels) of the breast mask before marching cubes, tried in order,
@@ -429,8 +445,10 @@ def solver_frame(view: str, side: str, angle: float | None):
     return np.stack([pf.e_x, s * pf.e_down, pf.normal]), s, pf
 
 
-def plate_block(x0, x1, y0, y1, z, thick, nx, ny, node0, elem0, up: bool):
-    """One layer of C3D8 over [x0,x1]x[y0,y1]; contact face at height z (facing +z if up)."""
+def plate_block(x0, x1, y0, y1, z, thick, nx, ny, node0, elem0, up: bool, axes=(0, 1, 2)):
+    """One layer of C3D8 over [x0,x1]x[y0,y1]; contact face at height z (facing +z if up).
+    ``axes``: the solver axes of the layer's (x, y, z), a cyclic permutation (right-handed):
+    ``(1, 2, 0)`` lays it over y and z with its height along X (the torso)."""
     xs, ys = np.linspace(x0, x1, nx + 1), np.linspace(y0, y1, ny + 1)
     zs = (z - thick, z) if up else (z, z + thick)
     nodes, nid = {}, node0
@@ -439,7 +457,9 @@ def plate_block(x0, x1, y0, y1, z, thick, nx, ny, node0, elem0, up: bool):
         for j, yy in enumerate(ys):
             for i, xx in enumerate(xs):
                 nodes[(i, j, k)] = nid
-                lines.append(f"{nid}, {xx:.6f}, {yy:.6f}, {zz:.6f}")
+                c = [0.0, 0.0, 0.0]
+                c[axes[0]], c[axes[1]], c[axes[2]] = xx, yy, zz
+                lines.append(f"{nid}, {c[0]:.6f}, {c[1]:.6f}, {c[2]:.6f}")
                 nid += 1
     elems, eid = [], elem0
     for j in range(ny):
@@ -462,8 +482,24 @@ def body_force_direction(basis: np.ndarray) -> tuple[np.ndarray, float]:
     return g / scale, scale
 
 
-def write_ccx(path: Path, mesh: dict, view: str, side: str, p: dict) -> dict:
+def schedule(view: str) -> tuple[float, float, float]:
+    """(T_G0, T_G1, HOLD) of a view's CalculiX step."""
+    return (T_G0_MLO, T_G1_MLO, HOLD_MLO) if view == "MLO" else (T_G0, T_G1, HOLD)
+
+
+def write_ccx(path: Path, mesh: dict, view: str, side: str, p: dict,
+              max_increment: float = MAX_INCREMENT) -> dict:
+    """The CalculiX deck of one view.
+
+    MLO only (the CC deck is unchanged): the torso is a rigid plane at the chest wall
+    (frictionless contact with the breast's free surface); the chest-wall nodes are squeezed
+    along the plates' normal with the plates, each moved by the plate travel times its
+    height above the lower plate over the upper plate's, instead of free along the normal
+    (free, the breast's weight along the oblique normal, 0.8 g, had nothing but the lower
+    plate to rest on); gravity comes first (:func:`schedule`)."""
     angle = p["mlo_angle_deg"] if view == "MLO" else 0.0
+    mlo = view == "MLO"
+    t_g0, t_g1, hold = schedule(view)
     Bs, s, pf = solver_frame(view, side, angle)
     xs = mesh["x"] @ Bs.T            # solver coordinates (X, s*Y, h), origin nipple
     h0 = float(xs[:, 2].min())
@@ -480,13 +516,23 @@ def write_ccx(path: Path, mesh: dict, view: str, side: str, p: dict) -> dict:
     nx, ny = max(4, int(ext[0] // 12)), max(4, int(ext[1] // 12))
     L1, E1, f1, nid, eid = plate_block(lo[0], hi[0], lo[1], hi[1], 0.0, 2.0, nx, ny, nn + 1, len(tets) + 1, True)
     L2, E2, f2, nid, eid = plate_block(lo[0], hi[0], lo[1], hi[1], upper0, 2.0, nx, ny, nid, eid, False)
-    r = list(range(nid, nid + 4))
+    if mlo:  # the torso: a rigid slab behind the chest wall, facing the breast
+        xw = float(xs[:, 0].min())
+        zlo, zhi = -TORSO_MARGIN_MM, upper0 + TORSO_MARGIN_MM
+        nz = max(4, int((zhi - zlo) // 12))
+        LW, EW, _, nid, eid = plate_block(lo[1], hi[1], zlo, zhi, xw, 2.0, ny, nz, nid, eid, True,
+                                          axes=(1, 2, 0))
+    r = list(range(nid, nid + (6 if mlo else 4)))
     out = ["*HEADING", f"regtrack truth (CalculiX) {view}", "*NODE, NSET=NALL"]
     out += [f"{i + 1}, {a:.6f}, {b:.6f}, {c:.6f}" for i, (a, b, c) in enumerate(xs)]
     out += ["*NODE, NSET=NPLOW"] + L1
     out += ["*NODE, NSET=NPUP"] + L2
+    if mlo:
+        out += ["*NODE, NSET=NWALL"] + LW
     out += ["*NODE, NSET=NREF", f"{r[0]}, 0, 0, -5", f"{r[1]}, 0, 0, -5",
             f"{r[2]}, 0, 0, {upper0 + 5:.6f}", f"{r[3]}, 0, 0, {upper0 + 5:.6f}"]
+    if mlo:
+        out += [f"{r[4]}, {xw - 5:.6f}, 0, 0", f"{r[5]}, {xw - 5:.6f}, 0, 0"]
     for gi, name in GROUP_NAMES.items():
         ids = np.nonzero(grp == gi)[0]
         if len(ids) == 0:
@@ -501,6 +547,9 @@ def write_ccx(path: Path, mesh: dict, view: str, side: str, p: dict) -> dict:
     out += [f"{e}, " + ", ".join(map(str, n)) for e, n in E1]
     out.append("*ELEMENT, TYPE=C3D8, ELSET=EPUP")
     out += [f"{e}, " + ", ".join(map(str, n)) for e, n in E2]
+    if mlo:
+        out.append("*ELEMENT, TYPE=C3D8, ELSET=EWALL")
+        out += [f"{e}, " + ", ".join(map(str, n)) for e, n in EW]
     fixed = np.nonzero(mesh["fixed"])[0] + 1
     out.append("*NSET, NSET=NFIX")
     out += [", ".join(map(str, fixed[i:i + 12])) for i in range(0, len(fixed), 12)]
@@ -520,6 +569,9 @@ def write_ccx(path: Path, mesh: dict, view: str, side: str, p: dict) -> dict:
     out += [f"{e}, {f1}" for e, _ in E1]
     out.append("*SURFACE, NAME=SUP, TYPE=ELEMENT")
     out += [f"{e}, {f2}" for e, _ in E2]
+    if mlo:
+        out.append("*SURFACE, NAME=SWALL, TYPE=ELEMENT")
+        out += [f"{e}, S2" for e, _ in EW]
     nu = p["nu"]
     for n in present:
         c1 = p["c1_kpa"][n]
@@ -533,21 +585,35 @@ def write_ccx(path: Path, mesh: dict, view: str, side: str, p: dict) -> dict:
             f"*RIGID BODY, NSET=NPUP, REF NODE={r[2]}, ROT NODE={r[3]}",
             "*SURFACE INTERACTION, NAME=SI", "*SURFACE BEHAVIOR, PRESSURE-OVERCLOSURE=LINEAR", f"{PENALTY:g}",
             "*FRICTION", f"{p['friction']:.4f}, {STICK_SLOPE:g}",
-            "*CONTACT PAIR, INTERACTION=SI, TYPE=SURFACE TO SURFACE", "SBREAST, SLOW", "SBREAST, SUP",
-            "*BOUNDARY", "NFIX, 1, 2"]
+            "*CONTACT PAIR, INTERACTION=SI, TYPE=SURFACE TO SURFACE",
+            "SBREAST, SLOW", "SBREAST, SUP"]
+    if mlo:
+        out += ["*SOLID SECTION, ELSET=EWALL, MATERIAL=MPLATE",
+                f"*RIGID BODY, NSET=NWALL, REF NODE={r[4]}, ROT NODE={r[5]}",
+                "*SURFACE INTERACTION, NAME=SIW", "*SURFACE BEHAVIOR, PRESSURE-OVERCLOSURE=LINEAR",
+                f"{PENALTY:g}", "*CONTACT PAIR, INTERACTION=SIW, TYPE=SURFACE TO SURFACE",
+                "SBREAST, SWALL"]
+    out += ["*BOUNDARY", "NFIX, 1, 2"]
     out += [f"{ri}, 1, 3" for ri in r]
     # one step (a second step restarts CalculiX's friction and diverged at once), on the
-    # schedule of T_G0, T_G1 and HOLD
-    out += ["*AMPLITUDE, NAME=AGRAV", f"0., 0., {T_G0}, 0., {T_G1}, 1., 1., 1.",
-            "*AMPLITUDE, NAME=APLATE", f"0., 0., {T_G0}, {HOLD}, {T_G1}, {HOLD}, 1., 1.",
-            "*STEP, NLGEOM, INC=5000", "*STATIC", "0.02, 1.0, 1e-7, 0.03",
+    # view's schedule of T_G0, T_G1 and HOLD
+    if mlo:  # gravity first: the amplitudes' points from T_G0 = 0 on
+        out += ["*AMPLITUDE, NAME=AGRAV", f"0., 0., {t_g1}, 1., 1., 1.",
+                "*AMPLITUDE, NAME=APLATE", f"0., 0., {t_g1}, {hold}, 1., 1."]
+    else:
+        out += ["*AMPLITUDE, NAME=AGRAV", f"0., 0., {t_g0}, 0., {t_g1}, 1., 1., 1.",
+                "*AMPLITUDE, NAME=APLATE", f"0., 0., {t_g0}, {hold}, {t_g1}, {hold}, 1., 1."]
+    out += ["*STEP, NLGEOM, INC=5000", "*STATIC", f"0.02, 1.0, 1e-7, {max_increment:g}",
             "*DLOAD, AMPLITUDE=AGRAV", f"EBREAST, GRAV, {G_MM_S2 * g_scale:.1f}, {g[0]:.6f}, {g[1]:.6f}, {g[2]:.6f}",
-            "*BOUNDARY, AMPLITUDE=APLATE", f"{r[2]}, 3, 3, {-(upper0 - gap):.6f}",
-            "*NODE PRINT, NSET=NALL", "U", "*NODE PRINT, NSET=NRUP", "RF", "*END STEP"]
+            "*BOUNDARY, AMPLITUDE=APLATE", f"{r[2]}, 3, 3, {-(upper0 - gap):.6f}"]
+    if mlo:  # the chest-wall section squeezed with the plates (its share of the travel)
+        travel = upper0 - gap
+        out += [f"{n}, 3, 3, {-travel * max(float(xs[n - 1, 2]), 0.0) / upper0:.6f}" for n in fixed]
+    out += ["*NODE PRINT, NSET=NALL", "U", "*NODE PRINT, NSET=NRUP", "RF", "*END STEP"]
     path.write_text("\n".join(out) + "\n")
     return {"T0_mm": T0, "gap_mm": gap, "upper0_mm": upper0, "h0_mm": h0 + OVERLAP_MM, "angle_deg": angle,
             "solver_basis": Bs.tolist(), "y_sign": s, "gravity_solver": g.tolist(),
-            "n_slave_faces": nface, "n_nodes_total": nid + 3}
+            "n_slave_faces": nface, "n_nodes_total": nid + len(r) - 1}
 
 
 def _limit_memory() -> None:
@@ -559,11 +625,12 @@ def _limit_memory() -> None:
     resource.setrlimit(resource.RLIMIT_AS, (cap, cap))
 
 
-def plate_travel(t: float | None) -> float:
+def plate_travel(t: float | None, view: str = "CC") -> float:
     """Fraction of the upper plate's travel at step time t (the APLATE amplitude)."""
     if t is None:
         return 0.0
-    return float(np.interp(t, [0.0, T_G0, T_G1, 1.0], [0.0, HOLD, HOLD, 1.0]))
+    t_g0, t_g1, hold = schedule(view)
+    return float(np.interp(t, [0.0, t_g0, t_g1, 1.0], [0.0, hold, hold, 1.0]))
 
 
 def parse_dat(path: Path, n: int) -> tuple[np.ndarray | None, float | None, float | None]:
@@ -593,6 +660,19 @@ def parse_dat(path: Path, n: int) -> tuple[np.ndarray | None, float | None, floa
     return disp, force, t_disp
 
 
+def _run_ccx_once(work: Path, stem: str, timeout: int) -> tuple[int, float, str]:
+    """One single-threaded, memory-capped CalculiX run of ``work/stem.inp``: (rc, s, log)."""
+    env = dict(os.environ, OMP_NUM_THREADS="1", CCX_NPROC_STIFFNESS="1", CCX_NPROC_EQUATION_SOLVER="1")
+    t0 = time.perf_counter()
+    with open(work / f"{stem}.log", "w") as fh:
+        try:
+            rc = subprocess.run(["ccx", "-i", stem], cwd=work, stdout=fh, stderr=subprocess.STDOUT,
+                                env=env, timeout=timeout, preexec_fn=_limit_memory).returncode
+        except subprocess.TimeoutExpired:
+            rc = 124
+    return rc, time.perf_counter() - t0, (work / f"{stem}.log").read_text()
+
+
 def run_ccx(work: Path, mesh: dict, view: str, side: str, p: dict, timeout: int) -> dict:
     stem = f"ccx_{view.lower()}"
     res = work / f"{stem}.npz"
@@ -605,27 +685,30 @@ def run_ccx(work: Path, mesh: dict, view: str, side: str, p: dict, timeout: int)
             return meta | {"u": d["u"]}
         log.warning("%s: mesh changed (%d nodes, run had %d); running CalculiX again", res,
                     mesh["n_nodes"], d["u"].shape[0])
-    meta = write_ccx(work / f"{stem}.inp", mesh, view, side, p)
-    env = dict(os.environ, OMP_NUM_THREADS="1", CCX_NPROC_STIFFNESS="1", CCX_NPROC_EQUATION_SOLVER="1")
-    t0 = time.perf_counter()
-    with open(work / f"{stem}.log", "w") as fh:
-        try:
-            rc = subprocess.run(["ccx", "-i", stem], cwd=work, stdout=fh, stderr=subprocess.STDOUT,
-                                env=env, timeout=timeout, preexec_fn=_limit_memory).returncode
-        except subprocess.TimeoutExpired:
-            rc = 124
-    dt = time.perf_counter() - t0
-    logtxt = (work / f"{stem}.log").read_text()
-    u, f, t_end = parse_dat(work / f"{stem}.dat", mesh["n_nodes"])
-    meta["t_reached"] = t_end
-    if rc != 0 or u is None or "Job finished" not in logtxt:
+    incs = [MAX_INCREMENT] + ([MLO_RETRY_MAX_INCREMENT] if view == "MLO" else [])
+    for k, max_inc in enumerate(incs):
+        if k:  # keep the failed try's log and status
+            for ext in ("log", "sta"):
+                if (work / f"{stem}.{ext}").exists():
+                    (work / f"{stem}.{ext}").replace(work / f"{stem}_try{k}.{ext}")
+        meta = write_ccx(work / f"{stem}.inp", mesh, view, side, p, max_increment=max_inc)
+        rc, dt, logtxt = _run_ccx_once(work, stem, timeout)
+        u, f, t_end = parse_dat(work / f"{stem}.dat", mesh["n_nodes"])
+        meta.update({"t_reached": t_end, "max_increment": max_inc, "tries": k + 1})
+        if rc == 0 and u is not None and "Job finished" in logtxt:
+            break
         # CalculiX stopped before the end of the step: the truth is its last converged
         # increment, at the plate gap reached then (that gap is what the DICOM says), when
         # the upper plate has travelled at least T_ACCEPT of the way
-        travel = plate_travel(t_end)
-        if t_end is None or t_end < T_G1 or travel < T_ACCEPT:
-            tail = "\n".join(logtxt.splitlines()[-6:])
-            raise RuntimeError(f"ccx {view} failed (rc {rc}, {dt:.0f} s, t = {t_end}):\n{tail}")
+        travel = plate_travel(t_end, view)
+        if t_end is not None and t_end >= schedule(view)[1] and travel >= T_ACCEPT:
+            break
+        tail = "\n".join(logtxt.splitlines()[-6:])
+        msg = f"ccx {view} failed (rc {rc}, {dt:.0f} s, t = {t_end}, largest increment {max_inc:g})"
+        if k + 1 == len(incs):
+            raise RuntimeError(f"{msg}:\n{tail}")
+        log.warning("%s; running it again with the largest increment %g", msg, incs[k + 1])
+    if rc != 0 or u is None or "Job finished" not in logtxt:
         meta["gap_target_mm"] = meta["gap_mm"]
         meta["gap_mm"] = meta["upper0_mm"] - travel * (meta["upper0_mm"] - meta["gap_mm"])
         log.warning("ccx %s stopped at t = %.3f (rc %d); the truth is that increment, gap %.1f mm "
