@@ -171,6 +171,14 @@ def test_compression_force_unit(stored, newtons, unit):
     assert g.force_raw == pytest.approx(stored) and not g.warnings
 
 
+def test_an_implausible_force_is_named_with_both_units():
+    g = read_geometry(_ds(CompressionForce=1.5), view="CC")
+    assert g.force_N is None
+    assert [w.split(": ", 1)[1] for w in g.warnings] == [
+        "CompressionForce (0018,11A2) = 1.5 N is implausible (expected 2-300 N, or 2-30 daN); "
+        "ignored, the case.toml value or the default is used"]
+
+
 def test_force_is_reported_not_used(tmp_path):
     ctx = _ctx(tmp_path, {"CC": _ds(CompressionForce=11)})
     geo = resolve_geometry(ctx)["CC"]

@@ -167,7 +167,7 @@ def read_geometry(ds, *, name: str = "mammogram", view: str | None = None) -> Di
     f = _number(ds, "CompressionForce", name, w)
     if f is not None:
         g.force_raw = f
-        f = _in_range("CompressionForce", f, name, w, what=" N, or 2-30 daN")
+        f = _in_range("CompressionForce", f, name, w, what=", or 2-30 daN")
         if f is not None:
             if f <= DAN_HIGH:
                 g.force_N, g.force_unit = 10.0 * f, (
