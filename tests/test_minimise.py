@@ -379,6 +379,26 @@ def test_multipliers_failing_in_the_last_increment_halve_it(monkeypatch):
     assert "multipliers not converged" in str(err.value)
 
 
+def test_an_increment_being_solved_reports_its_newton_iterations():
+    """``progress`` hears from the increment being solved after every Newton iteration
+    (``working_to`` its target t, the iterations and multiplier updates of this attempt)
+    and once after it has converged (its t, the plate force): a long increment still
+    shows it moves."""
+    prob, contacts = _box_between_plates(mu=0.1)
+    heard = []
+    minimise_step(prob, np.zeros_like(prob.X), gravity=lambda t: np.array([0.0, 0.0, -9.81e3]),
+                  contacts=contacts, n_increments=2, options=SolverOptions(),
+                  progress=lambda step, t, **info: heard.append((step, t, info)))
+    work = [(t, i) for _, t, i in heard if "working_to" in i]
+    done = [t for _, t, i in heard if "working_to" not in i]
+    assert done == [0.5, 1.0]
+    assert {i["working_to"] for _, i in work} == {0.5, 1.0}
+    assert all(t == i["working_to"] - 0.5 for t, i in work)  # from the last converged t
+    first = [i["newton"] for t, i in work if t == 0.0]
+    assert first == list(range(1, len(first) + 1))  # counted within the attempt
+    assert all(h[0] == "" for h in heard)
+
+
 def test_friction_error_of_a_barely_touching_plate_is_measured_against_the_load_scale():
     """The lag error of the slip bound is relative to the plate's normal force, or to the
     step's load scale when the plate barely touches: a 100 % error on 1e-6 N of contact is

@@ -27,6 +27,11 @@ def test_the_increment_hook_numbers_the_increments_of_each_step():
     hook("compression", 1.0, D=0.38, force_N=43.6)  # what a solver may add
     assert [k["increment"] for _, k in seen] == [1, 2, 1, 1, 2, 3]
     assert seen[-1] == (("CC", "compression", 1.0), {"increment": 3, "D": 0.38, "force_N": 43.6})
+    seen.clear()  # within an increment: numbered as the next one, not counted
+    hook("compression", 1.0, working_to=1.0, newton=4, updates=0)
+    hook("compression", 1.0, working_to=1.0, newton=5, updates=1)
+    hook("compression", 1.0)
+    assert [k["increment"] for _, k in seen] == [4, 4, 4]
     assert stages.increment_hook(_ctx(), "CC") is None  # nobody listens: the solver gets None
 
 
@@ -35,6 +40,11 @@ def test_increment_text_shows_what_the_solver_reported():
     assert (increment_text("compression", 1.0, {"increment": 3, "D": 0.312, "force_N": 22.44})
             == "increment 3 · t 1.00 · D 31.2 % · F 22.4 N")
     assert increment_text("gravity", 0.5, {"force_N": -1e-9}) == "t 0.50 · F 0.0 N"
+    assert (increment_text("compression", 0.531, {"increment": 13, "working_to": 0.5725,
+                                                   "newton": 37, "updates": 2})
+            == "increment 13 · t 0.53 -> 0.57 · Newton iteration 37 · contact update 2")
+    assert (increment_text("gravity", 0.25, {"working_to": 0.5, "newton": 1, "updates": 0})
+            == "t 0.25 -> 0.50 · Newton iteration 1")
 
 
 def test_each_warning_is_shown_once():

@@ -37,10 +37,18 @@ class OnceFilter(logging.Filter):
 
 
 def increment_text(step: str, t: float, info: dict[str, Any]) -> str:
-    """``increment 12 · t 0.53 · D 31.2 % · F 22.4 N`` (the parts the solver reported)."""
+    """``increment 12 · t 0.53 · D 31.2 % · F 22.4 N`` (the parts the solver reported);
+    for an increment being solved, ``increment 13 · t 0.53 -> 0.57 · Newton iteration 37 ·
+    contact update 2``."""
     parts = []
     if info.get("increment") is not None:
         parts.append(f"increment {info['increment']}")
+    if info.get("working_to") is not None:
+        parts.append(f"t {t:.2f} -> {float(info['working_to']):.2f}")
+        parts.append(f"Newton iteration {int(info.get('newton', 0))}")
+        if info.get("updates"):
+            parts.append(f"contact update {int(info['updates'])}")
+        return " · ".join(parts)
     parts.append(f"t {t:.2f}")
     if info.get("D") is not None:
         parts.append(f"D {100 * float(info['D']):.1f} %")

@@ -129,6 +129,8 @@ class _progress:
                 lines("", step or "step", t, info)
             if step not in self._tasks:
                 self._tasks[step] = self._p.add_task(step or "step", total=1.0)
+            if info.get("working_to") is not None:  # within an increment: the clock ticks
+                return
             extra = "".join(f" · {k} {info[k]:{fmt}}" for k, fmt in (("D", ".3f"), ("force_N", ".1f"))
                             if isinstance(info.get(k), (int, float)))
             self._p.update(self._tasks[step], completed=t,

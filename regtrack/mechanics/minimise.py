@@ -76,9 +76,13 @@ def minimise_step(problem: Problem, u0: np.ndarray, *, gravity: Callable[[float]
     prescribed point, edge or traction load (:func:`.loads.traction_forces`), whose
     potential ``-f . u`` joins the weight's.  ``support(t)``: the chest-wall support
     (:class:`.support.WallSupport`) at pseudo-time ``t``, a support released over the step
-    as a load is applied (None: the problem's own, unchanged).  ``progress(step_name, t, force_N=..., D=...)`` after each increment:
-    the upper plate's force (N) and, given the uncompressed thickness ``T0_mm``, the
-    compression degree ``1 - gap / T0``.  Raises :class:`SolverDidNotConvergeError` with
+    as a load is applied (None: the problem's own, unchanged).  ``progress(step_name, t,
+    force_N=..., D=...)`` after each increment: the upper plate's force (N) and, given the
+    uncompressed thickness ``T0_mm``, the compression degree ``1 - gap / T0``; and
+    ``progress(step_name, t, working_to=t_new, newton=k, updates=j)`` after every Newton
+    iteration of the increment being solved (``k`` iterations and ``j`` multiplier updates
+    so far in this attempt at it), so that an increment that takes minutes still shows it
+    moves.  Raises :class:`SolverDidNotConvergeError` with
     ``load_fraction`` and ``last_converged`` when an increment fails at the smallest
     increment."""
     o = options or problem.config.solver
@@ -95,10 +99,17 @@ def minimise_step(problem: Problem, u0: np.ndarray, *, gravity: Callable[[float]
     t, dt = 0.0, 1.0 / max(int(n_increments), 1)
     base, min_dt = dt, dt / 64.0
     own_support = problem.support
+    t_new, its0, aug0 = dt, 0, 0
+    if progress is not None:
+        def pulse() -> None:
+            progress(step_name, t, working_to=t_new, newton=m.stats.iterations - its0,
+                     updates=m.stats.augmentations - aug0)
+        m.on_iteration = pulse
     try:
         with serial_openblas():
             while t < 1.0 - 1e-12:
                 t_new = min(1.0, t + dt)
+                its0, aug0 = m.stats.iterations, m.stats.augmentations
                 if support is not None:
                     problem.support = support(t_new)
                 try:

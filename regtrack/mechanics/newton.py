@@ -41,7 +41,7 @@ from __future__ import annotations
 
 import logging
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -109,6 +109,8 @@ class Minimiser:
         # Newton solve of the residual before an increment is halved
         self.max_iterations = 4 * options.max_iterations
         self.stats = StepStats()
+        #: called after every Newton iteration (progress of a long increment), or None
+        self.on_iteration: Callable[[], None] | None = None
 
     # -- the potential ------------------------------------------------------------------
     def state(self, u: np.ndarray, fext: np.ndarray, plates: Sequence[PlatePotential], *,
@@ -368,6 +370,8 @@ class Minimiser:
             s = self.state(nxt.u, fext, plates, hessian=True)
             if s is None:  # cannot happen: the line search evaluated this state
                 raise SolverDidNotConvergeError("inverted element at an accepted state")
+            if self.on_iteration is not None:
+                self.on_iteration()
         raise SolverDidNotConvergeError(
             f"no equilibrium in {self.max_iterations} Newton iterations (|R| = "
             f"{np.linalg.norm(s.R[self.free]):.3g} N, reference {s.f_ref:.3g} N; {self.where(s, plates)})")

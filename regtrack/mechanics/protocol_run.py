@@ -389,7 +389,9 @@ class ProtocolRunner:
                 err.last_converged = result  # type: ignore[attr-defined]
                 raise
             rec = self.records[-1]
-            log.info("  gap %.2f mm, D %s, penetration %.4f mm, forces %s", rec.gap_mm,
-                     None if rec.D is None else round(rec.D, 4), rec.max_penetration_mm,
-                     {k: round(v["normal_force_N"], 4) for k, v in rec.contact.items()})
+            forces = ", ".join(f"{k} {round(v['normal_force_N'], 2) + 0.0:.2f} N"
+                               for k, v in rec.contact.items())
+            log.info("  gap %.2f mm, D %s, penetration %.4f mm; forces: %s", rec.gap_mm,
+                     "-" if rec.D is None else f"{100 * rec.D:.1f} %", rec.max_penetration_mm,
+                     forces or "no contact")
         return result

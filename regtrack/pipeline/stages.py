@@ -157,10 +157,11 @@ def simulate_stage(ctx, mesh: MeshOutput, view: str) -> SimOutput:
 
 def increment_hook(ctx, view: str):
     """The solver's ``progress(step_name, t, **info)`` callback (called after every
-    converged increment) relayed to ``ctx.sim_progress(view, step, t, increment=k,
+    converged increment, and with ``working_to`` after every Newton iteration of the
+    increment being solved) relayed to ``ctx.sim_progress(view, step, t, increment=k,
     **info)``, with ``k`` the increment's number in its step (counted here: it restarts
-    when a step starts again from a smaller t, as an automatic retry does).  None when
-    nobody listens."""
+    when a step starts again from a smaller t, as an automatic retry does; the increment
+    being solved is the next number).  None when nobody listens."""
     if ctx.sim_progress is None:
         return None
     state = {"step": None, "t": 0.0, "k": 0}
@@ -169,9 +170,12 @@ def increment_hook(ctx, view: str):
         t = float(t)
         if step_name != state["step"] or t < state["t"]:
             state.update(step=step_name, k=0)
-        state["k"] += 1
         state["t"] = t
-        ctx.sim_progress(view, step_name, t, **{"increment": state["k"], **info})
+        if info.get("working_to") is None:
+            state["k"] += 1
+            ctx.sim_progress(view, step_name, t, **{"increment": state["k"], **info})
+        else:
+            ctx.sim_progress(view, step_name, t, **{"increment": state["k"] + 1, **info})
     return hook
 
 
