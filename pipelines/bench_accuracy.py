@@ -470,10 +470,19 @@ def main(argv=None) -> int:
     ap.add_argument("--timeout", type=int, default=3600)
     ap.add_argument("--field", action="store_true",
                     help="also compare the displacement fields of the tracking runs (field.md)")
+    ap.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE",
+                    help="a case.toml setting for every run (regtrack run --set), e.g. to "
+                         "measure one registration setting against the default; give --out "
+                         "and --cache so that the default's results are kept and its "
+                         "simulations re-used")
+    ap.add_argument("--cache", default=None,
+                    help="stage caches' folder (default OUT/cache): another run's, to re-use "
+                         "its simulations")
     a = ap.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
     root = Path(a.root)
     res = Path(a.out) if a.out else root / "bench"
+    caches = Path(a.cache) if a.cache else res / "cache"
     names = sorted(p.stem for p in (root / "truth").glob("*.json"))
     if a.only:
         keep = set(a.only.split(","))
@@ -488,17 +497,17 @@ def main(argv=None) -> int:
                 case = (marked_case(root, name, truth, res / "cases" / f"{name}_{v}",
                                     v.removesuffix("_marked"))
                         if v.endswith("_marked") else root / "cases" / f"{name}_{v}")
-                sets = None
+                sets = list(a.set)
                 if v in SENSITIVITY:
                     case = root / "cases" / f"{name}_track"
-                    sets = sensitivity_sets(case, v)
-                runs[f"{name}_{v}"] = run_case(case, res / f"{name}_{v}", res / "cache" / name, a.timeout,
+                    sets += sensitivity_sets(case, v)
+                runs[f"{name}_{v}"] = run_case(case, res / f"{name}_{v}", caches / name, a.timeout,
                                                sets=sets)
         rows += collect(root, name, truth, res)
         if a.field:
             for view in truth["views"]:
                 field[(name, view)] = field_difference(root, name, view, root / "cases" / f"{name}_track",
-                                                       res / "cache" / name)
+                                                       caches / name)
         base = _lesions(res / f"{name}_track")
         moved = {v: _lesions(res / f"{name}_{v}") for v in SENSITIVITY}
         for view in base:

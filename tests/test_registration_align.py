@@ -9,6 +9,8 @@ real polyline), so the recovered angle is limited by the polyline resampling onl
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 from conftest import shared_data
@@ -205,3 +207,62 @@ def test_virtual_skin_line_reaching_past_the_real_one_does_not_bias_the_rotation
     assert align(real, virt).theta_p_b == pytest.approx(6.0, abs=0.1)
     plain = align(real, virt, config=RegistrationConfig(reject_ends_mm=0.0)).theta_p_b
     assert abs(plain - 6.0) > 0.5, plain
+
+
+def _detected(view: MammogramView, index: int) -> MammogramView:
+    """``view`` with its nipple replaced by contour point ``index``, marked as the reader's
+    detection (as :func:`regtrack.imaging.mammogram.nipple.detect_nipple` does)."""
+    return dataclasses.replace(view, nipple=view.breast_contour[index].copy(), meta={
+        "nipple": {"method": "detected: farthest contour point from the chest-wall edge",
+                   "tangential_uncertainty_mm": 5.0}})
+
+
+@pytest.mark.parametrize("theta", [-8.0, 9.5])
+def test_a_detected_nipple_is_placed_where_the_outlines_agree(theta):
+    """The real nipple detected 25 mm along the skin from the true one (a flat or turned
+    front): searched along the skin line with the rotation, the superposed point lands
+    back on the nipple (within 0.5 mm: the 0.5 mm resampling of the contours) and theta on
+    the known rotation (0.2 deg); with the search off (the paper's plain superposition) the
+    rotation is wrong by degrees; a nipple the user gave is never moved."""
+    real, virt = _views(theta, np.array([-31.0, 12.5]))
+    true_nipple = real.nipple.copy()
+    k = int(np.argmax(real.breast_contour[:, 0]))
+    s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(real.breast_contour, axis=0),
+                                                          axis=1))])
+    off = int(np.argmin(np.abs(s - (s[k] + 25.0))))  # 25 mm along the skin line
+    det = _detected(real, off)
+    cfg = RegistrationConfig(use_tumour=False)
+    al = align(det, virt, config=cfg)
+    assert np.linalg.norm(al.nipple - true_nipple) < 0.5
+    assert al.nipple_slide_mm == pytest.approx(-25.0, abs=0.6)
+    np.testing.assert_allclose(al.detected_nipple, det.nipple)
+    assert al.theta_p_b == pytest.approx(theta, abs=0.2)
+    assert al.to_dict()["nipple_slide_mm"] == al.nipple_slide_mm
+    plain = align(det, virt, config=RegistrationConfig(use_tumour=False, nipple_search_mm=0.0))
+    assert abs(plain.theta_p_b - theta) > 3.0 and plain.nipple_slide_mm == 0.0
+    given = dataclasses.replace(det, meta={"nipple": {"method": "given (nipple_px)"}})
+    kept = align(given, virt, config=cfg)
+    np.testing.assert_array_equal(kept.nipple, det.nipple)
+    assert kept.detected_nipple is None and kept.theta_p_b == pytest.approx(plain.theta_p_b)
+
+
+def test_the_nipple_search_warns_at_the_end_of_its_window():
+    real, virt = _views(5.0, np.array([-31.0, 12.5]))
+    k = int(np.argmax(real.breast_contour[:, 0]))
+    det = _detected(real, k + 60)  # about 25 mm along, beyond a 10 mm window
+    al = align(det, virt, config=RegistrationConfig(use_tumour=False, nipple_search_mm=10.0))
+    assert abs(al.nipple_slide_mm) == pytest.approx(10.0, abs=0.6)
+    assert any("nipple search stopped" in w and "nipple_px" in w for w in al.warnings)
+
+
+def test_a_round_front_keeps_the_detected_nipple():
+    """A circular skin line fits itself turned about any of its points: the outlines cannot
+    say where the nipple is, and the search keeps the detected point (the prior of the
+    maximum a posteriori estimate; within 0.5 mm, the resampling) and theta = 0."""
+    rho, c = 60.0, np.array([0.0, 100.0])
+    phi = np.deg2rad(np.linspace(-80.0, 80.0, 1601))
+    skin = c + rho * np.stack([np.cos(phi), np.sin(phi)], 1)
+    real = _detected(MammogramView("CC", "R", skin, skin[800]), 800)
+    al = align(real, MammogramView("CC", "R", skin.copy(), skin[800].copy()),
+               config=RegistrationConfig(use_tumour=False))
+    assert np.linalg.norm(al.nipple - skin[800]) < 0.5 and abs(al.theta_p_b) < 0.5

@@ -1,7 +1,29 @@
 """Rigid 2-D alignment of a virtual mammogram on a real one (Lapuebla-Ferri et al.).
 
 1. *Nipple superposition*: the virtual view is translated so that its nipple ``n_v``
-   falls on the real nipple ``n_p``.
+   falls on the real nipple ``n_p``.  A nipple the mammogram reader *detected* (the
+   contour point farthest from the chest wall, :mod:`regtrack.imaging.mammogram.nipple`)
+   is only an estimate: on a flat or turned front, or without a nipple in profile, the
+   farthest point lies tens of millimetres along the skin from the nipple.  Such an
+   ``n_p`` is searched along the real skin line within ``nipple_search_mm`` of arc length
+   either side, jointly with the rotation, as the most probable point given the outlines
+   and the detection (a maximum a posteriori estimate; a grid of ``NIPPLE_GRID_MM``, then
+   golden section):
+
+   .. math::
+
+       s^* = \arg\min_s \; \frac{h}{L_c} \frac{F(s)}{2 \sigma^2}
+             + \frac{s^2}{2 \sigma_s^2}, \qquad F(s) = \min_\theta F_b(\theta; n_p(s)),
+
+   ``s`` the arc length from the detected point (mm): the fit's residuals as ``K``
+   samples ``h`` apart of which one per ``L_c`` (``RESIDUAL_CORRELATION_MM``) is
+   independent, with the variance of the best fit, :math:`\sigma^2 = \max(F_{min} / K,
+   \sigma_0^2)` (:math:`\sigma_0` = ``RESIDUAL_FLOOR_MM``; the same model as the
+   tracking's rotation uncertainty, :mod:`regtrack.tracking.uncertainty`), and a weak
+   prior centred on the detection, :math:`\sigma_s` = half the window.  Where the
+   outlines decide the nipple the prior does not move it; where they cannot (a round
+   front fits at any point) the detected point stays.  A nipple given by the user
+   (``nipple_px``) is not moved.
 2. *Rotation about the nipple*: a virtual point ``v`` maps to
    :math:`v(\\theta) = n_p + R(\\theta)(v - n_v)`.
 3. *Closest-point objective*: both contours are resampled at equal arc length; for each
@@ -99,6 +121,10 @@ class Alignment:
         ``n_p - n_v``: nipple superposition (mm).
     nipple : (2,) float
         Real nipple ``n_p`` (mm), the centre of rotation.
+    detected_nipple, nipple_slide_mm :
+        The reader's detected nipple (mm) and the arc length (mm, signed along the skin
+        line) from it to ``nipple`` when the registration searched it (None, 0 when the
+        nipple was given or not searched).
     F_b, F_t : dict
         Objective values (mm^2) at ``theta = 0``, at its own optimum and at ``theta_p``.
     evaluations_b, evaluations_t : int
@@ -131,6 +157,8 @@ class Alignment:
     tumour_objective: Objective | None
     config: RegistrationConfig
     warnings: list[str] = field(default_factory=list)
+    detected_nipple: np.ndarray | None = None
+    nipple_slide_mm: float = 0.0
 
     def transform(self, xy, theta_deg: float | None = None) -> np.ndarray:
         """Map virtual points (mm) into the real frame: ``n_p + R(theta)(v - n_v)``
@@ -144,7 +172,11 @@ class Alignment:
             "view": self.view, "theta_p_b_deg": self.theta_p_b,
             "theta_p_t_deg": None if np.isnan(self.theta_p_t) else self.theta_p_t,
             "theta_p_deg": self.theta_p, "translation_mm": self.translation.tolist(),
-            "nipple_mm": self.nipple.tolist(), "F_b_mm2": self.F_b, "F_t_mm2": self.F_t,
+            "nipple_mm": self.nipple.tolist(),
+            "nipple_detected_mm": (None if self.detected_nipple is None
+                                   else self.detected_nipple.tolist()),
+            "nipple_slide_mm": self.nipple_slide_mm,
+            "F_b_mm2": self.F_b, "F_t_mm2": self.F_t,
             "evaluations_b": self.evaluations_b, "evaluations_t": self.evaluations_t,
             "bracket_deg": list(self.bracket_deg),
             "breast_contour_mm": self.breast_contour.tolist(),
@@ -244,6 +276,60 @@ def _search(obj: Objective, lo: float, hi: float, cfg: RegistrationConfig) -> Go
     return GoldenResult(r.x, r.fun, r.evaluations + n0, r.bracket, r.at_edge)
 
 
+#: Grid step (mm of skin line) of the nipple search before its golden-section refinement.
+NIPPLE_GRID_MM = 5.0
+#: Correlation length (mm) of the contour residuals and the floor (mm) of their spread in
+#: the nipple search: one independent residual per 10 mm of contour, none resolved below
+#: the 0.5 mm resampling (the tracking's defaults, regtrack.tracking.config).
+RESIDUAL_CORRELATION_MM = 10.0
+RESIDUAL_FLOOR_MM = 0.5
+
+
+def nipple_detected(v: MammogramView) -> bool:
+    """Whether ``v``'s nipple was detected by the mammogram reader (not given)."""
+    info = (v.meta or {}).get("nipple") or {}
+    return str(info.get("method", "")).startswith("detected")
+
+
+def _nipple_on_skin(ob: Objective, contour: np.ndarray, lo: float, hi: float,
+                    cfg: RegistrationConfig) -> tuple[np.ndarray, float, bool]:
+    """The real nipple on the open skin line ``contour`` within ``cfg.nipple_search_mm`` of
+    arc length of ``ob.nipple``, the most probable given the outlines (module docstring),
+    its signed arc length (mm) from ``ob.nipple``, and whether it lies at an end of the
+    searched stretch (the best fit may lie beyond it)."""
+    c = G.resample(np.asarray(contour, float), cfg.resample_mm, closed=False)
+    s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(c, axis=0), axis=1))])
+    s0 = float(s[int(np.argmin(np.linalg.norm(c - ob.nipple, axis=1)))])
+    a, b = max(0.0, s0 - cfg.nipple_search_mm), min(float(s[-1]), s0 + cfg.nipple_search_mm)
+
+    def at(x: float) -> np.ndarray:
+        return np.array([np.interp(x, s, c[:, 0]), np.interp(x, s, c[:, 1])])
+
+    coarse = replace(cfg, tol_deg=max(cfg.tol_deg, 0.01))
+
+    def best(x: float) -> float:
+        return _search(replace(ob, nipple=at(x)), lo, hi, coarse).fun
+
+    grid = np.linspace(a, b, max(int(np.ceil((b - a) / NIPPLE_GRID_MM)), 1) + 1)
+    fit = np.array([best(x) for x in grid])
+    var = max(float(fit.min()) / max(len(ob.virtual), 1), RESIDUAL_FLOOR_MM ** 2)
+    weight = cfg.resample_mm / RESIDUAL_CORRELATION_MM / (2.0 * var)
+    prior = 2.0 * (0.5 * cfg.nipple_search_mm) ** 2
+
+    def posterior(x: float, f: float | None = None) -> float:
+        return weight * (best(x) if f is None else f) + (x - s0) ** 2 / prior
+
+    vals = [posterior(x, f) for x, f in zip(grid, fit)]
+    k = int(np.argmin(vals))
+    x = float(grid[k])
+    if len(grid) > 2:
+        r = golden_section(posterior, float(grid[max(k - 1, 0)]),
+                           float(grid[min(k + 1, len(grid) - 1)]), tol=0.1)
+        if r.fun < vals[k]:
+            x = r.x
+    return at(x), x - s0, min(x - a, b - x) < 0.5 * NIPPLE_GRID_MM
+
+
 def breast_rotation(alignment: Alignment, nipple) -> float:
     """:math:`\\theta_{p,b}` (deg) of ``alignment``'s breast objective searched again with the
     real nipple at ``nipple`` (mm) instead of :math:`n_p`, over the same bracket: how the
@@ -290,6 +376,18 @@ def align(real: MammogramView, virtual: MammogramView, *,
 
     ob = _objective([virtual.breast_contour], [real.breast_contour], closed=False,
                     nv=nv, npr=npr, cfg=cfg)
+    detected, slide = None, 0.0
+    if cfg.nipple_search_mm > 0.0 and nipple_detected(real):
+        detected = npr
+        npr, slide, at_end = _nipple_on_skin(ob, real.breast_contour, lo, hi, cfg)
+        ob = replace(ob, nipple=npr)
+        log.info("%s: nipple placed %.1f mm along the skin line from the detected one",
+                 real.view, slide)
+        if at_end:
+            warnings.append(f"the nipple search stopped at the end of the skin line or of "
+                            f"its {cfg.nipple_search_mm:g} mm window ({slide:+.1f} mm from the "
+                            f"detected nipple); check the outline, or mark the nipple "
+                            f"([views.{real.view}] nipple_px)")
     rb = _search(ob, lo, hi, cfg)
     if rb.at_edge:
         warnings.append(f"theta_p,b = {rb.x:.2f} deg is at the edge of the search bracket "
@@ -320,4 +418,5 @@ def align(real: MammogramView, virtual: MammogramView, *,
         evaluations_b=rb.evaluations, evaluations_t=0 if rt is None else rt.evaluations,
         bracket_deg=(lo, hi), breast_contour=rot(virtual.breast_contour),
         tumour_contours=[rot(t) for t in virtual.tumour_contours],
-        breast_objective=ob, tumour_objective=ot, config=cfg, warnings=warnings)
+        breast_objective=ob, tumour_objective=ot, config=cfg, warnings=warnings,
+        detected_nipple=detected, nipple_slide_mm=float(slide))

@@ -103,7 +103,9 @@ def draw_images(ax_real, ax_virtual, real: MammogramView, virtual: MammogramView
                 alignment: Alignment) -> None:
     """The real mammogram and the virtual one side by side on the same axes (mm of the
     real image's frame): the virtual image is shifted so that its nipple lies on the real
-    nipple (``theta = 0``), and both axes get the union of the two images' extents."""
+    nipple (``theta = 0``; where the registration searched the detected nipple along the
+    skin line, the point it chose, and the detected one as a cross), and both axes get the
+    union of the two images' extents."""
     shift = np.asarray(alignment.translation, float)
     boxes = []
     for ax, v, name, col, d in ((ax_real, real, "real", REAL, np.zeros(2)),
@@ -117,7 +119,11 @@ def draw_images(ax_real, ax_virtual, real: MammogramView, virtual: MammogramView
         for k, t in enumerate(v.tumour_contours):
             ax.plot(*(_closed(t) + d).T, color="tab:orange", lw=1.0,
                     label=f"{name} tumour" if k == 0 else None)
-        ax.plot(*(np.asarray(v.nipple) + d), "o", color="tab:orange", ms=4, label="nipple")
+        nip = alignment.nipple if name == "real" else np.asarray(v.nipple) + d
+        ax.plot(*nip, "o", color="tab:orange", ms=4, label="nipple")
+        det = alignment.detected_nipple
+        if name == "real" and det is not None and np.linalg.norm(det - nip) > 0.5:
+            ax.plot(*det, "x", color="tab:orange", ms=5, label="nipple detected")
         ax.set_title(f"{name} {v.view}" + (" (shifted to the real nipple)" if name == "virtual"
                                             else ""), fontsize=9)
         ax.set_aspect("equal")

@@ -25,7 +25,10 @@ so that a poor fit is never read as a good one.  The thresholds:
 * **Nipple confidence >= 0.5** (:data:`NIPPLE_CONFIDENCE_MIN`): ``1 / (1 + (u / 10 mm)^2)``
   with ``u`` the tangential uncertainty of the detected nipple
   (:mod:`regtrack.imaging.mammogram.nipple`), so 0.5 means +-10 mm along the contour; a
-  nipple given in case.toml (``nipple_px``) has confidence 1.
+  nipple given in case.toml (``nipple_px``) has confidence 1.  The registration then
+  places a detected nipple along the skin line where the outlines agree
+  (:mod:`regtrack.registration.align`), so a low confidence asks for a look at the
+  overlay rather than meaning a wrong superposition.
 """
 
 from __future__ import annotations
@@ -109,7 +112,8 @@ def check_view(view: str, row: dict, *, simulation: dict | None = None,
         Check("Nipple confidence", "nipple confidence", view,
               num(conf, 2) + (" (given)" if "given" in how else ""),
               f"≥ {NIPPLE_CONFIDENCE_MIN:g}", _ok(conf, lambda x: x >= NIPPLE_CONFIDENCE_MIN),
-              "give nipple_px in case.toml"),
+              "the registration placed it where the outlines agree: check the overlay, "
+              "or give nipple_px in case.toml"),
     ]
     return out
 
