@@ -336,7 +336,7 @@ def test_newton_path_does_not_depend_on_the_openblas_thread_count():
     assert pr.n_dofs > 10_000
     inside = []
 
-    def progress(name, t):
+    def progress(name, t, **info):
         inside.append(_openblas_threads())
 
     out = []
