@@ -214,16 +214,17 @@ def _detected(view: MammogramView, index: int) -> MammogramView:
     detection (as :func:`regtrack.imaging.mammogram.nipple.detect_nipple` does)."""
     return dataclasses.replace(view, nipple=view.breast_contour[index].copy(), meta={
         "nipple": {"method": "detected: farthest contour point from the chest-wall edge",
-                   "tangential_uncertainty_mm": 5.0}})
+                   "tangential_uncertainty_mm": 10.0}})
 
 
 @pytest.mark.parametrize("theta", [-8.0, 9.5])
 def test_a_detected_nipple_is_placed_where_the_outlines_agree(theta):
     """The real nipple detected 25 mm along the skin from the true one (a flat or turned
-    front): searched along the skin line with the rotation, the superposed point lands
-    back on the nipple (within 0.5 mm: the 0.5 mm resampling of the contours) and theta on
-    the known rotation (0.2 deg); with the search off (the paper's plain superposition) the
-    rotation is wrong by degrees; a nipple the user gave is never moved."""
+    front; the reader's run u = 10 mm, so the search covers 30 mm either side): searched
+    along the skin line with the rotation, the superposed point lands back on the nipple
+    (within 0.5 mm: the 0.5 mm resampling of the contours) and theta on the known rotation
+    (0.2 deg); with the search off (the paper's plain superposition) the rotation is wrong
+    by degrees; a nipple the user gave is never moved, and a sharp apex (u = 0) is kept."""
     real, virt = _views(theta, np.array([-31.0, 12.5]))
     true_nipple = real.nipple.copy()
     k = int(np.argmax(real.breast_contour[:, 0]))
@@ -244,6 +245,9 @@ def test_a_detected_nipple_is_placed_where_the_outlines_agree(theta):
     kept = align(given, virt, config=cfg)
     np.testing.assert_array_equal(kept.nipple, det.nipple)
     assert kept.detected_nipple is None and kept.theta_p_b == pytest.approx(plain.theta_p_b)
+    sharp = dataclasses.replace(det, meta={"nipple": {"method": "detected: farthest point",
+                                                      "tangential_uncertainty_mm": 0.0}})
+    assert align(sharp, virt, config=cfg).detected_nipple is None
 
 
 def test_the_nipple_search_warns_at_the_end_of_its_window():

@@ -41,8 +41,11 @@ from regtrack.mechanics.materials import (G_SCALE, ElementMaterials, SkinMateria
 from regtrack.mechanics.support import WallSupport, wall_support
 from regtrack.model.types import BreastModel
 
-#: Absolute floor (N) of a force reference, so that an unloaded state still has one.
-FORCE_FLOOR_N = 1e-9
+#: Absolute floor (N) of a force reference, so that an unloaded state still has one: a
+#: micronewton, six orders below a breast's weight, and far above the rounding level of
+#: an unloaded residual (about 1e-12 N on a 10 mm box moved rigidly; a floor of 1e-9 N
+#: asked 1e-13 N of it, which some CPUs' rounding never reached).
+FORCE_FLOOR_N = 1e-6
 
 log = logging.getLogger(__name__)
 

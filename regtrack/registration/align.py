@@ -4,26 +4,28 @@
    falls on the real nipple ``n_p``.  A nipple the mammogram reader *detected* (the
    contour point farthest from the chest wall, :mod:`regtrack.imaging.mammogram.nipple`)
    is only an estimate: on a flat or turned front, or without a nipple in profile, the
-   farthest point lies tens of millimetres along the skin from the nipple.  Such an
-   ``n_p`` is searched along the real skin line within ``nipple_search_mm`` of arc length
-   either side, jointly with the rotation, as the most probable point given the outlines
-   and the detection (a maximum a posteriori estimate; a grid of ``NIPPLE_GRID_MM``, then
-   golden section):
+   farthest point lies tens of millimetres along the skin from the nipple.  The reader
+   says how flat the front is: ``u``, half the arc length of the run of skin points
+   within 1 mm of the farthest distance, which it cannot tell apart.  Such an ``n_p`` is
+   searched along the real skin line within ``W = NIPPLE_SEARCH_RUNS u`` of arc length
+   either side (at most ``nipple_search_mm``), jointly with the rotation, as the most
+   probable point given the outlines and the detection (a maximum a posteriori estimate;
+   a grid of ``NIPPLE_GRID_MM``, then golden section):
 
    .. math::
 
-       s^* = \arg\min_s \; \frac{h}{L_c} \frac{F(s)}{2 \sigma^2}
-             + \frac{s^2}{2 \sigma_s^2}, \qquad F(s) = \min_\theta F_b(\theta; n_p(s)),
+       s^* = \\arg\\min_s \\; \\frac{h}{L_c} \\frac{F(s)}{2 \\sigma^2}
+             + \\frac{s^2}{2 \\sigma_s^2}, \\qquad F(s) = \\min_\\theta F_b(\\theta; n_p(s)),
 
    ``s`` the arc length from the detected point (mm): the fit's residuals as ``K``
    samples ``h`` apart of which one per ``L_c`` (``RESIDUAL_CORRELATION_MM``) is
-   independent, with the variance of the best fit, :math:`\sigma^2 = \max(F_{min} / K,
-   \sigma_0^2)` (:math:`\sigma_0` = ``RESIDUAL_FLOOR_MM``; the same model as the
-   tracking's rotation uncertainty, :mod:`regtrack.tracking.uncertainty`), and a weak
-   prior centred on the detection, :math:`\sigma_s` = half the window.  Where the
-   outlines decide the nipple the prior does not move it; where they cannot (a round
-   front fits at any point) the detected point stays.  A nipple given by the user
-   (``nipple_px``) is not moved.
+   independent, with the variance of the best fit, :math:`\\sigma^2 = \\max(F_{min} / K,
+   \\sigma_0^2)` (:math:`\\sigma_0` = ``RESIDUAL_FLOOR_MM``; the same model as the
+   tracking's rotation uncertainty, :mod:`regtrack.tracking.uncertainty`), and a prior
+   centred on the detection, :math:`\\sigma_s = W / 2`.  Where the outlines decide the
+   nipple the prior does not move it; where they cannot (a round front fits at any point)
+   the detected point stays; a sharp apex (``u`` near 0) is kept as detected.  A nipple
+   given by the user (``nipple_px``) is not moved.
 2. *Rotation about the nipple*: a virtual point ``v`` maps to
    :math:`v(\\theta) = n_p + R(\\theta)(v - n_v)`.
 3. *Closest-point objective*: both contours are resampled at equal arc length; for each
@@ -278,6 +280,8 @@ def _search(obj: Objective, lo: float, hi: float, cfg: RegistrationConfig) -> Go
 
 #: Grid step (mm of skin line) of the nipple search before its golden-section refinement.
 NIPPLE_GRID_MM = 5.0
+#: The nipple search's half-window in runs ``u`` of the detected nipple (module docstring).
+NIPPLE_SEARCH_RUNS = 3.0
 #: Correlation length (mm) of the contour residuals and the floor (mm) of their spread in
 #: the nipple search: one independent residual per 10 mm of contour, none resolved below
 #: the 0.5 mm resampling (the tracking's defaults, regtrack.tracking.config).
@@ -285,22 +289,27 @@ RESIDUAL_CORRELATION_MM = 10.0
 RESIDUAL_FLOOR_MM = 0.5
 
 
-def nipple_detected(v: MammogramView) -> bool:
-    """Whether ``v``'s nipple was detected by the mammogram reader (not given)."""
+def nipple_window(v: MammogramView, cfg: RegistrationConfig) -> float:
+    """Half-window (mm of skin line) of the nipple search on the real view ``v``: 0 for a
+    nipple given by the user, else ``NIPPLE_SEARCH_RUNS`` times the reader's run ``u``, at
+    most ``cfg.nipple_search_mm``."""
     info = (v.meta or {}).get("nipple") or {}
-    return str(info.get("method", "")).startswith("detected")
+    if not str(info.get("method", "")).startswith("detected"):
+        return 0.0
+    u = float(info.get("tangential_uncertainty_mm") or 0.0)
+    return min(NIPPLE_SEARCH_RUNS * u, cfg.nipple_search_mm)
 
 
-def _nipple_on_skin(ob: Objective, contour: np.ndarray, lo: float, hi: float,
+def _nipple_on_skin(ob: Objective, contour: np.ndarray, window: float, lo: float, hi: float,
                     cfg: RegistrationConfig) -> tuple[np.ndarray, float, bool]:
-    """The real nipple on the open skin line ``contour`` within ``cfg.nipple_search_mm`` of
-    arc length of ``ob.nipple``, the most probable given the outlines (module docstring),
-    its signed arc length (mm) from ``ob.nipple``, and whether it lies at an end of the
-    searched stretch (the best fit may lie beyond it)."""
+    """The real nipple on the open skin line ``contour`` within ``window`` mm of arc length
+    of ``ob.nipple``, the most probable given the outlines (module docstring), its signed
+    arc length (mm) from ``ob.nipple``, and whether it lies at an end of the searched
+    stretch (the best fit may lie beyond it)."""
     c = G.resample(np.asarray(contour, float), cfg.resample_mm, closed=False)
     s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(c, axis=0), axis=1))])
     s0 = float(s[int(np.argmin(np.linalg.norm(c - ob.nipple, axis=1)))])
-    a, b = max(0.0, s0 - cfg.nipple_search_mm), min(float(s[-1]), s0 + cfg.nipple_search_mm)
+    a, b = max(0.0, s0 - window), min(float(s[-1]), s0 + window)
 
     def at(x: float) -> np.ndarray:
         return np.array([np.interp(x, s, c[:, 0]), np.interp(x, s, c[:, 1])])
@@ -314,7 +323,7 @@ def _nipple_on_skin(ob: Objective, contour: np.ndarray, lo: float, hi: float,
     fit = np.array([best(x) for x in grid])
     var = max(float(fit.min()) / max(len(ob.virtual), 1), RESIDUAL_FLOOR_MM ** 2)
     weight = cfg.resample_mm / RESIDUAL_CORRELATION_MM / (2.0 * var)
-    prior = 2.0 * (0.5 * cfg.nipple_search_mm) ** 2
+    prior = 2.0 * (0.5 * window) ** 2
 
     def posterior(x: float, f: float | None = None) -> float:
         return weight * (best(x) if f is None else f) + (x - s0) ** 2 / prior
@@ -377,16 +386,17 @@ def align(real: MammogramView, virtual: MammogramView, *,
     ob = _objective([virtual.breast_contour], [real.breast_contour], closed=False,
                     nv=nv, npr=npr, cfg=cfg)
     detected, slide = None, 0.0
-    if cfg.nipple_search_mm > 0.0 and nipple_detected(real):
+    window = nipple_window(real, cfg)
+    if window >= cfg.resample_mm:
         detected = npr
-        npr, slide, at_end = _nipple_on_skin(ob, real.breast_contour, lo, hi, cfg)
+        npr, slide, at_end = _nipple_on_skin(ob, real.breast_contour, window, lo, hi, cfg)
         ob = replace(ob, nipple=npr)
         log.info("%s: nipple placed %.1f mm along the skin line from the detected one",
                  real.view, slide)
         if at_end:
             warnings.append(f"the nipple search stopped at the end of the skin line or of "
-                            f"its {cfg.nipple_search_mm:g} mm window ({slide:+.1f} mm from the "
-                            f"detected nipple); check the outline, or mark the nipple "
+                            f"its {window:.0f} mm window ({slide:+.1f} mm from the detected "
+                            f"nipple); check the outline, or mark the nipple "
                             f"([views.{real.view}] nipple_px)")
     rb = _search(ob, lo, hi, cfg)
     if rb.at_edge:

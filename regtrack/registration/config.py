@@ -39,10 +39,11 @@ class RegistrationConfig:
                                   "paper's plain sum over every point", ge=0.0, le=50.0)
     nipple_search_mm: float = param(50.0, "mm", "a nipple the mammogram reader detected (not "
                                     "one given as nipple_px) is searched along the real skin "
-                                    "line within this arc length either side, jointly with "
-                                    "the rotation: the point superposed is where the virtual "
-                                    "outline fits best (F_b). 0 = the detected point, as in "
-                                    "the paper", ge=0.0, le=200.0)
+                                    "line, jointly with the rotation, within 3 times the "
+                                    "reader's uncertainty along the skin and at most this arc "
+                                    "length either side: the point superposed is where the "
+                                    "virtual outline fits best (regtrack.registration.align). "
+                                    "0 = the detected point, as in the paper", ge=0.0, le=200.0)
     use_tumour: bool = param(True, "-", "search theta_p,t on the tumour contours (required by "
                              "the paper's method; false: theta_p = theta_p,b)")
     min_breast_points: int = param(10, "-", "fewest points accepted in a breast contour", ge=3)
