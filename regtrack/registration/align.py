@@ -336,7 +336,7 @@ def _nipple_on_skin(ob: Objective, contour: np.ndarray, window: float, lo: float
                            float(grid[min(k + 1, len(grid) - 1)]), tol=0.1)
         if r.fun < vals[k]:
             x = r.x
-    return at(x), x - s0, min(x - a, b - x) < 0.5 * NIPPLE_GRID_MM
+    return at(x), x - s0, min(x - a, b - x) < 0.2  # the golden section's 0.1 mm, twice
 
 
 def breast_rotation(alignment: Alignment, nipple) -> float:
