@@ -83,7 +83,9 @@ def test_simulate_bad_config_names_the_key(tmp_path, model_file, capsys, bad, ma
 
 def test_simulate_function_api_gravity_then_unload():
     """Plain API: gravity on, then ramped back to zero: the body returns to its
-    reference state (hyperelastic, path independent) within the solver tolerance."""
+    reference state (hyperelastic, path independent) within the solver tolerance, and the
+    unloaded wall carries nothing: within 1e-9 N, ten times the residual an unloaded step
+    is solved to (force_tol x FORCE_FLOOR_N = 1e-10 N; the box weighs 0.02 N)."""
     from regtrack.mechanics.config import MechanicsConfig
     from regtrack.mechanics.steps import LoadStep, simulate
 
@@ -95,5 +97,5 @@ def test_simulate_function_api_gravity_then_unload():
     sag = np.abs(d.steps[0].u).max()
     assert sag > 0.1  # soft tissue sags visibly (mm)
     assert np.abs(d.u).max() < 1e-6 * sag
-    assert d.steps[1].chest_wall_reaction_n == pytest.approx(np.zeros(3), abs=1e-12)
+    assert d.steps[1].chest_wall_reaction_n == pytest.approx(np.zeros(3), abs=1e-9)
     assert d.config["mechanics"]["tissue_c1_kpa"] == 0.54
