@@ -21,8 +21,9 @@ script builds, *without regtrack's model, mechanics or virtual-mammogram stages*
    contact and ``*FRICTION`` mu drawn in 0.05-0.2; the lower plate overlaps the breast's
    lowest point by 0.5 mm (no free mode along the normal), the upper plate moves down
    until the gap is (1 - D) times the uncompressed thickness, D drawn in 0.30-0.50 (a run
-   that stops after at least ``T_ACCEPT`` of the plate travel is kept at its last
-   converged increment, and the gap reached is the one written to the DICOM); MLO:
+   that stops after at least ``T_ACCEPT`` of the plate travel, the upper plate pressing
+   on the breast, is kept at its last converged increment, and the gap reached is the one
+   written to the DICOM); MLO:
    plates rotated about the antero-posterior axis by an angle drawn in 40-60 deg, gravity
    first on the breast clamped at the wall, the chest-wall nodes then squeezed along the
    plate normal with the plates (instead of free along it), and the torso a rigid plane
@@ -127,6 +128,9 @@ GMSH_TIMEOUT_S = 120.0
 #: a CalculiX run that stops early is kept at its last converged increment when the upper
 #: plate has travelled at least this fraction of the way to the drawn gap
 T_ACCEPT = 0.7
+#: ... and presses on the breast with at least this force (mN): a plate that has not
+#: touched it (19 L's MLO stopped at 74 % of the travel with 0 N) images no compression
+MIN_CONTACT_MN = 1.0
 #: initial overlap of the lowest breast point with the lower plate (removes the free mode
 #: along the plate normal; the chest wall holds the breast in-plane only, see write_ccx)
 OVERLAP_MM = 0.5
@@ -673,6 +677,15 @@ def _run_ccx_once(work: Path, stem: str, timeout: int) -> tuple[int, float, str]
     return rc, time.perf_counter() - t0, (work / f"{stem}.log").read_text()
 
 
+def kept_early(t_end: float | None, force_mN: float | None, view: str) -> bool:
+    """Whether a CalculiX run that stopped at step time ``t_end`` is kept at that increment:
+    gravity applied in full, at least ``T_ACCEPT`` of the plate travel, and the upper plate
+    pressing with at least ``MIN_CONTACT_MN``."""
+    return (t_end is not None and t_end >= schedule(view)[1]
+            and plate_travel(t_end, view) >= T_ACCEPT
+            and force_mN is not None and abs(force_mN) >= MIN_CONTACT_MN)
+
+
 def run_ccx(work: Path, mesh: dict, view: str, side: str, p: dict, timeout: int) -> dict:
     stem = f"ccx_{view.lower()}"
     res = work / f"{stem}.npz"
@@ -701,7 +714,7 @@ def run_ccx(work: Path, mesh: dict, view: str, side: str, p: dict, timeout: int)
         # increment, at the plate gap reached then (that gap is what the DICOM says), when
         # the upper plate has travelled at least T_ACCEPT of the way
         travel = plate_travel(t_end, view)
-        if t_end is not None and t_end >= schedule(view)[1] and travel >= T_ACCEPT:
+        if kept_early(t_end, f, view):
             break
         tail = "\n".join(logtxt.splitlines()[-6:])
         msg = f"ccx {view} failed (rc {rc}, {dt:.0f} s, t = {t_end}, largest increment {max_inc:g})"

@@ -114,6 +114,19 @@ def test_plate_travel_follows_the_schedule(mt):
     assert mt.plate_travel(t) == pytest.approx(mt.HOLD + 0.5 * (1.0 - mt.HOLD))
 
 
+def test_a_stopped_run_is_kept_only_when_the_plate_presses(mt):
+    """Kept: gravity in full, T_ACCEPT of the travel and the upper plate pressing (19 L's
+    MLO stopped at 74 % of the travel with 3.5e-24 mN, an uncompressed breast, and was
+    kept before the force was checked)."""
+    t = 0.95
+    assert mt.plate_travel(t, "MLO") >= mt.T_ACCEPT
+    assert mt.kept_early(t, -12624.8, "MLO")
+    assert not mt.kept_early(t, -3.5e-24, "MLO")
+    assert not mt.kept_early(t, None, "MLO")
+    assert not mt.kept_early(0.1, -5000.0, "MLO")  # during gravity
+    assert not mt.kept_early(None, -5000.0, "CC")
+
+
 def test_rotation_sense_is_the_registrations(mt):
     from regtrack.registration.geometry import rotation
 
