@@ -289,15 +289,20 @@ RESIDUAL_CORRELATION_MM = 10.0
 RESIDUAL_FLOOR_MM = 0.5
 
 
-def nipple_window(v: MammogramView, cfg: RegistrationConfig) -> float:
-    """Half-window (mm of skin line) of the nipple search on the real view ``v``: 0 for a
-    nipple given by the user, else ``NIPPLE_SEARCH_RUNS`` times the reader's run ``u``, at
-    most ``cfg.nipple_search_mm``."""
-    info = (v.meta or {}).get("nipple") or {}
+def nipple_run(real) -> float:
+    """``u`` (mm) of the nipple on the real view: half the arc length over which the reader
+    detected it (0 when given, or when the view does not say)."""
+    info = (getattr(real, "meta", None) or {}).get("nipple") or {}
     if not str(info.get("method", "")).startswith("detected"):
         return 0.0
-    u = float(info.get("tangential_uncertainty_mm") or 0.0)
-    return min(NIPPLE_SEARCH_RUNS * u, cfg.nipple_search_mm)
+    return float(info.get("tangential_uncertainty_mm") or 0.0)
+
+
+def nipple_window(v: MammogramView, cfg: RegistrationConfig) -> float:
+    """Half-window (mm of skin line) of the nipple search on the real view ``v``:
+    ``NIPPLE_SEARCH_RUNS`` times the reader's run ``u`` (0 for a nipple given by the
+    user), at most ``cfg.nipple_search_mm``."""
+    return min(NIPPLE_SEARCH_RUNS * nipple_run(v), cfg.nipple_search_mm)
 
 
 def _nipple_on_skin(ob: Objective, contour: np.ndarray, window: float, lo: float, hi: float,

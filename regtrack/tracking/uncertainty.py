@@ -61,7 +61,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from regtrack.registration.align import breast_rotation
+from regtrack.registration.align import breast_rotation, nipple_run
 from regtrack.registration.geometry import rotation
 
 
@@ -139,13 +139,6 @@ def prediction_sigma(*, residual_mm: float, r_mm: float, theta_sigma_deg: float,
     sigma = math.sqrt(res ** 2 + rot ** 2 + model ** 2 + nip ** 2)
     return sigma, {"registration_residual": float(residual_mm), "rotation": float(rot),
                    "model": float(model), "nipple": float(nip)}
-
-
-def nipple_run(real) -> float:
-    """``u`` (mm) of the nipple on the real view: half the arc length over which the
-    detector found it (0 when given, or when the view does not say)."""
-    info = (getattr(real, "meta", None) or {}).get("nipple") or {}
-    return float(info.get("tangential_uncertainty_mm") or 0.0)
 
 
 def run_direction(contour, nipple, u_mm: float) -> np.ndarray | None:
