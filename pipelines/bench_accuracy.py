@@ -34,7 +34,7 @@ the mechanics differ.
 Usage::
 
     .venv/bin/python pipelines/bench_accuracy.py [--root reports/truth] [--only pel03R,...]
-        [--variants paper,paper_rot0,track] [--collect-only] [--field]
+        [--variants paper,paper_rot0,track] [--views CC] [--collect-only] [--field]
 """
 
 from __future__ import annotations
@@ -339,13 +339,15 @@ def _tracking_columns(lesions: list | None, tv: dict, side: str, suffix: str) ->
     return {k + suffix: v for k, v in row.items()}
 
 
-def collect(root: Path, name: str, truth: dict, res: Path) -> list[dict]:
+def collect(root: Path, name: str, truth: dict, res: Path, only_view: str | None = None) -> list[dict]:
     rows = []
     mp, m0, mt = (_metrics(res / f"{name}_{v}") for v in VARIANTS)
     lt = _lesions(res / f"{name}_track")
     lm = _lesions(res / f"{name}_track_marked")
     mpm, m0m = _metrics(res / f"{name}_paper_marked"), _metrics(res / f"{name}_paper_rot0_marked")
     for view, tv in truth["views"].items():
+        if only_view and view != only_view:
+            continue
         rot = tv["rotation_deg"]
         row = {"case": name, "view": view, "rotation_true_deg": rot,
                "D_true": tv["simulation"].get("D_reached", truth["params"]["D"][view]), "gap_true_mm": tv["simulation"]["gap_mm"],
@@ -475,6 +477,9 @@ def main(argv=None) -> int:
                          "measure one registration setting against the default; give --out "
                          "and --cache so that the default's results are kept and its "
                          "simulations re-used")
+    ap.add_argument("--views", default=None,
+                    help="one view (CC or MLO) to run and tabulate, e.g. where the other "
+                         "view's truth is not usable (default: every view of the truth)")
     ap.add_argument("--cache", default=None,
                     help="stage caches' folder (default OUT/cache): another run's, to re-use "
                          "its simulations")
@@ -502,8 +507,8 @@ def main(argv=None) -> int:
                     case = root / "cases" / f"{name}_track"
                     sets += sensitivity_sets(case, v)
                 runs[f"{name}_{v}"] = run_case(case, res / f"{name}_{v}", caches / name, a.timeout,
-                                               sets=sets)
-        rows += collect(root, name, truth, res)
+                                               views=a.views, sets=sets)
+        rows += collect(root, name, truth, res, a.views)
         if a.field:
             for view in truth["views"]:
                 field[(name, view)] = field_difference(root, name, view, root / "cases" / f"{name}_track",

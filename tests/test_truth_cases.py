@@ -290,3 +290,14 @@ def test_band_table_averages_each_band_and_the_difference(ba):
     assert rows[0]["n"] == 2 and np.allclose(rows[0]["mean_diff"], [1.5, 2.0, 0.0])
     assert rows[0]["rms_diff"] == pytest.approx(np.sqrt((9 + 16) / 2))
     assert rows[1]["n"] == 1 and rows[1]["rms_diff"] == 0.0 and np.allclose(rows[1]["u_truth"], [1, 2, 3])
+
+
+def test_collect_keeps_only_the_view_asked_for(ba, tmp_path):
+    """``--views CC``: a truth with both views gives rows for the CC only (an MLO truth that
+    is not usable stays out of the table), and without it both views."""
+    sim = {"gap_mm": 60.0, "angle_deg": 0.0}
+    view = {"rotation_deg": 2.0, "simulation": sim, "tumours": [], "nipple_dicom_rc": [10, 10]}
+    truth = {"side": "R", "params": {"friction": 0.1, "D": {"CC": 0.4, "MLO": 0.3}},
+             "views": {"CC": view, "MLO": view}}
+    assert [r["view"] for r in ba.collect(tmp_path, "pelX", truth, tmp_path, "CC")] == ["CC"]
+    assert [r["view"] for r in ba.collect(tmp_path, "pelX", truth, tmp_path)] == ["CC", "MLO"]
