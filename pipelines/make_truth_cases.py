@@ -335,6 +335,8 @@ def gmsh_tet10(pts: np.ndarray, faces: np.ndarray, size_mm: float) -> tuple[np.n
         coords = np.asarray(ncoord).reshape(-1, 3)
         et, en = gmsh.model.mesh.getElementsByType(11)
         conn = np.asarray(en, np.int64).reshape(-1, 10)
+    if not len(conn):  # gmsh can return a surface with no volume mesh without an error
+        raise RuntimeError("gmsh made no tetrahedra")
     # compact node numbering
     order = np.argsort(ntag)
     ntag = np.asarray(ntag)[order]
