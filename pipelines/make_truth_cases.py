@@ -115,10 +115,11 @@ T_G0_MLO, T_G1_MLO, HOLD_MLO = 0.0, 0.2, 0.0
 #: node), frictionless contact with the breast's free surface, as wide as the plates and
 #: this much (mm) beyond both plates along their normal
 TORSO_MARGIN_MM = 40.0
-#: largest increment of the step (pseudo-time); an MLO run that fails is run once more with
-#: the second value (05 R and 49 R then passed the gravity ramp, where they had failed)
+#: largest increment of the step (pseudo-time); a run that fails is run once more with the
+#: second value (the MLOs of 05 R and 49 R then passed the gravity ramp, where they had
+#: failed; the same rule for both views)
 MAX_INCREMENT = 0.03
-MLO_RETRY_MAX_INCREMENT = 0.01
+RETRY_MAX_INCREMENT = 0.01
 #: address-space cap of one CalculiX process (GiB); a few thousand tet10 need well under 1
 CCX_MEMORY_GB = 4
 #: Gaussian smoothing (voxels) of the breast mask before marching cubes, tried in order,
@@ -700,7 +701,7 @@ def run_ccx(work: Path, mesh: dict, view: str, side: str, p: dict, timeout: int)
             return meta | {"u": d["u"]}
         log.warning("%s: mesh changed (%d nodes, run had %d); running CalculiX again", res,
                     mesh["n_nodes"], d["u"].shape[0])
-    incs = [MAX_INCREMENT] + ([MLO_RETRY_MAX_INCREMENT] if view == "MLO" else [])
+    incs = [MAX_INCREMENT, RETRY_MAX_INCREMENT]
     for k, max_inc in enumerate(incs):
         if k:  # keep the failed try's log and status
             for ext in ("log", "sta"):
