@@ -477,7 +477,7 @@ def main(argv=None) -> int:
                          "measure one registration setting against the default; give --out "
                          "and --cache so that the default's results are kept and its "
                          "simulations re-used")
-    ap.add_argument("--views", default=None,
+    ap.add_argument("--views", default=None, type=str.upper, choices=("CC", "MLO"),
                     help="one view (CC or MLO) to run and tabulate, e.g. where the other "
                          "view's truth is not usable (default: every view of the truth)")
     ap.add_argument("--cache", default=None,
