@@ -339,7 +339,8 @@ def _tracking_columns(lesions: list | None, tv: dict, side: str, suffix: str) ->
     return {k + suffix: v for k, v in row.items()}
 
 
-def collect(root: Path, name: str, truth: dict, res: Path, only_view: str | None = None) -> list[dict]:
+def collect(root: Path, name: str, truth: dict, res: Path,
+            only_view: str | None = None) -> list[dict]:
     rows = []
     mp, m0, mt = (_metrics(res / f"{name}_{v}") for v in VARIANTS)
     lt = _lesions(res / f"{name}_track")
@@ -510,7 +511,7 @@ def main(argv=None) -> int:
                                                views=a.views, sets=sets)
         rows += collect(root, name, truth, res, a.views)
         if a.field:
-            for view in truth["views"]:
+            for view in [v for v in truth["views"] if a.views in (None, v)]:
                 field[(name, view)] = field_difference(root, name, view, root / "cases" / f"{name}_track",
                                                        caches / name)
         base = _lesions(res / f"{name}_track")
