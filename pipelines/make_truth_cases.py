@@ -130,6 +130,13 @@ GMSH_TIMEOUT_S = 120.0
 #: with edges of this fraction of the element size (gmsh's smallest element on the
 #: re-parametrised path) and filled as it is, as regtrack's own mesher does
 REMESH_EDGE = 0.6
+#: a view that CalculiX cannot finish at either increment is run again on a mesh of REFINE
+#: times the elements, up to REFINE_LEVELS times: the failures are single Newton iterates
+#: that explode where coarse tet10 next to the held chest-wall section are crushed (05 R's
+#: MLO failed at 95 % of gravity at 1200 and at 2400 elements with the increment 0.03, and
+#: finished at 2400 with 0.01)
+REFINE = 2.0
+REFINE_LEVELS = 1
 #: a CalculiX run that stops early is kept at its last converged increment when the upper
 #: plate has travelled at least this fraction of the way to the drawn gap
 T_ACCEPT = 0.7
@@ -411,7 +418,10 @@ def boundary_faces(tets: np.ndarray) -> list[tuple[int, int, tuple[int, int, int
     return out
 
 
-def build_mesh(geo: dict, side: str, target_tets: int) -> dict:
+def build_mesh(geo: dict, side: str, target_tets: int, origin_lps: np.ndarray | None = None) -> dict:
+    """The truth's tet10 mesh of about ``target_tets`` elements in the model frame (origin
+    the nipple: the apex of the smooth surface, or ``origin_lps`` when given, so that a
+    finer mesh of the same breast keeps the same material point)."""
     from regtrack.model.geometry import detect_nipple
 
     vol_mm3 = float(geo["mask"].sum() * np.prod(geo["spacing"]))
@@ -438,7 +448,8 @@ def build_mesh(geo: dict, side: str, target_tets: int) -> dict:
     B = model_basis(side, geo["plane"]["normal_lps"])
     # nipple (the model frame's origin): the apex of the smooth breast surface along the
     # chest-wall normal, the centre of its NIPPLE_CAP_MM cap; a material point, not a node
-    origin_lps = detect_nipple(pts, B[0], depth_mm=NIPPLE_CAP_MM)
+    if origin_lps is None:
+        origin_lps = detect_nipple(pts, B[0], depth_mm=NIPPLE_CAP_MM)
     x = (nodes_lps - origin_lps) @ B.T
     tets = fix_orientation(x, tets)
     vol = tet_volumes(x, tets)
@@ -1010,6 +1021,39 @@ def write_case(root: Path, name: str, exam: str, side: str, views: dict, with_ou
     return case
 
 
+def simulate_view(work: Path, mesh_of, view: str, side: str, p: dict, timeout: int) -> tuple[dict, int]:
+    """:func:`run_ccx` of ``view`` on ``mesh_of(0)[0]``; a view CalculiX cannot finish there
+    (at either increment) is run on the mesh of the next refinement level ``mesh_of(k)[0]``
+    (``REFINE ** k`` times the elements), in the folder ``work / refined<k>``, up to
+    ``REFINE_LEVELS``.  Returns the simulation and its level; raises RuntimeError with every
+    level's failure."""
+    errors = []
+    for level in range(REFINE_LEVELS + 1):
+        folder = work / f"refined{level}" if level else work
+        folder.mkdir(parents=True, exist_ok=True)
+        try:
+            return run_ccx(folder, mesh_of(level)[0], view, side, p, timeout), level
+        except RuntimeError as e:
+            errors.append(f"{mesh_of(level)[0]['n_tets']} elements: {str(e).splitlines()[0]}")
+            if level < REFINE_LEVELS:
+                log.warning("%s: %s; meshing %g times finer", view, errors[-1], REFINE)
+    raise RuntimeError("; ".join(errors))
+
+
+def model_tumours(geo: dict, mesh: dict) -> list[dict]:
+    """The MRI tumours of ``geo`` in the model frame of ``mesh`` (its basis and nipple
+    origin): surface points (at most 20,000, drawn) and centroid (mm)."""
+    B, o = mesh["basis"], mesh["origin_lps"]
+    out = []
+    for t in geo["tumours"]:
+        pts = (t["surface_points_lps"] - o) @ B.T
+        if len(pts) > 20000:
+            pts = pts[np.random.default_rng(0).choice(len(pts), 20000, replace=False)]
+        out.append({**{k: v for k, v in t.items() if k != "surface_points_lps"}, "points_model": pts,
+                    "centroid_model": (np.asarray(t["centroid_lps_mm"]) - o) @ B.T})
+    return out
+
+
 def make_case(exam: str, side: str, views: list[str], out: Path, seed: int, target_tets: int,
               timeout: int) -> dict:
     name = f"pel{exam}{side}"
@@ -1018,41 +1062,46 @@ def make_case(exam: str, side: str, views: list[str], out: Path, seed: int, targ
     p = draw_params(exam, side, seed)
     t0 = time.perf_counter()
     geo = breast_geometry(exam, side)
-    mesh = build_mesh(geo, side, target_tets)
-    log.info("%s: mesh %d nodes, %d tet10, size %.1f mm, groups %s, fixed %d", name, mesh["n_nodes"],
-             mesh["n_tets"], mesh["element_size_mm"], mesh["group_volume_mm3"], int(mesh["fixed"].sum()))
-    B, o = mesh["basis"], mesh["origin_lps"]
-    tumours_model = []
-    for t in geo["tumours"]:
-        pts = (t["surface_points_lps"] - o) @ B.T
-        if len(pts) > 20000:
-            pts = pts[np.random.default_rng(0).choice(len(pts), 20000, replace=False)]
-        tumours_model.append({**{k: v for k, v in t.items() if k != "surface_points_lps"},
-                              "points_model": pts,
-                              "centroid_model": (np.asarray(t["centroid_lps_mm"]) - o) @ B.T})
-    t_mesh = time.perf_counter() - t0
+    meshes: dict = {}
+
+    def mesh_of(level: int) -> tuple[dict, list, dict]:
+        """The mesh of refinement ``level`` (``REFINE ** level`` times ``target_tets``),
+        its tumours in the model frame and its record, made once."""
+        if level not in meshes:
+            t1 = time.perf_counter()
+            o = meshes[0][0]["origin_lps"] if level else None
+            m = build_mesh(geo, side, round(target_tets * REFINE**level), origin_lps=o)
+            log.info("%s: mesh %d nodes, %d tet10, size %.1f mm, groups %s, fixed %d", name, m["n_nodes"],
+                     m["n_tets"], m["element_size_mm"], m["group_volume_mm3"], int(m["fixed"].sum()))
+            rec = {k: m[k] for k in ("n_nodes", "n_tets", "element_size_mm", "surface", "volume_mm3",
+                                     "group_volume_mm3", "min_vol")} | {
+                "n_fixed": int(m["fixed"].sum()), "chest_cut_ant_mm": geo["cut_ant_mm"],
+                "nipple_lps_mm": m["origin_lps"].tolist(), "mesh_s": time.perf_counter() - t1,
+                "element": "C3D10 (gmsh order 2, straight-sided)"}
+            meshes[level] = (m, model_tumours(geo, m), rec)
+        return meshes[level]
+
+    mesh, tumours_model, rec = mesh_of(0)
     doc = {"note": "Hidden ground truth; regtrack never reads this file.", "exam": exam, "side": side,
-           "case": name, "params": p,
-           "mesh": {k: mesh[k] for k in ("n_nodes", "n_tets", "element_size_mm", "surface", "volume_mm3",
-                                          "group_volume_mm3", "min_vol")}
-           | {"n_fixed": int(mesh["fixed"].sum()), "chest_cut_ant_mm": geo["cut_ant_mm"],
-              "nipple_lps_mm": mesh["origin_lps"].tolist(), "mesh_s": t_mesh,
-              "element": "C3D10 (gmsh order 2, straight-sided)"},
+           "case": name, "params": p, "mesh": rec,
            "tumours_mri": [{k: v for k, v in t.items() if k not in ("points_model", "centroid_model")}
                            for t in tumours_model],
            "views": {}, "views_rot0": {}}
     per_variant = {"rot": {}, "rot0": {}}
     for v in views:
         try:
-            sim = run_ccx(work, mesh, v, side, p, timeout)
+            sim, level = simulate_view(work, mesh_of, v, side, p, timeout)
         except RuntimeError as e:  # the other view may still make a case
             log.error("%s %s: %s", name, v, str(e).splitlines()[0])
             doc.setdefault("failed_views", {})[v] = str(e).splitlines()[0]
             continue
+        mesh, tumours_model, rec = mesh_of(level)
         log.info("%s %s: ccx %.0f s, gap %.1f mm (T0 %.1f), force %.1f N", name, v, sim.get("ccx_s", -1),
                  sim["gap_mm"], sim["T0_mm"], abs(sim.get("force_upper_mN") or 0) / 1000)
         simmeta = {k: val for k, val in sim.items() if k != "u"}
         simmeta["max_displacement_mm"] = float(np.linalg.norm(sim["u"], axis=1).max())
+        if level:  # the view's own mesh
+            simmeta["mesh"] = rec
         for var, rotdeg in (("rot", p["rotation_deg"][v]), ("rot0", 0.0)):
             r = render_view(mesh, sim, v, side, p, tumours_model, rotdeg)
             dpath = work / f"{v.lower()}_{var}.dcm"

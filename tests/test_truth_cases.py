@@ -329,3 +329,25 @@ def test_remeshed_surface_fallback_fills_a_cut_ball(mt):
     assert abs(vol.sum() / (2 / 3 * np.pi * r**3) - 1) < 0.05
     for k, (a, b) in enumerate(mt.C3D10_EDGES):
         assert np.allclose(x[tets[:, 4 + k]], 0.5 * (x[tets[:, a]] + x[tets[:, b]]))
+
+
+def test_a_failed_view_is_run_on_the_refined_mesh(mt, tmp_path, monkeypatch):
+    """simulate_view: a view CalculiX cannot finish on the base mesh is run on the mesh of
+    the next level in its own folder; when every level fails, the error names each."""
+    meshes = {k: ({"n_tets": 1000 * 2**k}, [], {}) for k in range(mt.REFINE_LEVELS + 1)}
+    calls = []
+
+    def fake(work, mesh, view, side, p, timeout, ok=frozenset({2000})):
+        calls.append((work, mesh["n_tets"]))
+        if mesh["n_tets"] not in ok:
+            raise RuntimeError(f"ccx {view} failed (rc 201)\nlog tail")
+        return {"gap_mm": 50.0}
+
+    monkeypatch.setattr(mt, "run_ccx", fake)
+    sim, level = mt.simulate_view(tmp_path, meshes.__getitem__, "MLO", "R", {}, 10)
+    assert level == 1 and sim == {"gap_mm": 50.0}
+    assert calls == [(tmp_path, 1000), (tmp_path / "refined1", 2000)]
+    assert (tmp_path / "refined1").is_dir()
+    monkeypatch.setattr(mt, "run_ccx", lambda *a: fake(*a, ok=frozenset()))
+    with pytest.raises(RuntimeError, match=r"1000 elements: ccx MLO failed .*; 2000 elements: ccx MLO"):
+        mt.simulate_view(tmp_path, meshes.__getitem__, "MLO", "R", {}, 10)
