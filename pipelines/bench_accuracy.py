@@ -246,8 +246,13 @@ def field_difference(root: Path, name: str, view: str, case: Path, cache: Path,
     sys.modules[spec.name] = mt
     spec.loader.exec_module(mt)
     exam, side = name[3:-1], name[-1]
-    mesh = mt.build_mesh(mt.breast_geometry(exam, side), side, target_tets)
-    u = np.load(root / "work" / name / f"ccx_{view.lower()}.npz")["u"]
+    truth = json.loads((root / "truth" / f"{name}.json").read_text())
+    work, origin = root / "work" / name, None
+    if "mesh" in truth["views"][view]["simulation"]:  # run on the refined mesh (make_truth_cases)
+        work, origin = work / "refined1", np.asarray(truth["mesh"]["nipple_lps_mm"])
+        target_tets = round(target_tets * mt.REFINE)
+    mesh = mt.build_mesh(mt.breast_geometry(exam, side), side, target_tets, origin_lps=origin)
+    u = np.load(work / f"ccx_{view.lower()}.npz")["u"]
     if len(u) != mesh["n_nodes"]:
         raise RuntimeError(f"{name}: the rebuilt truth mesh has {mesh['n_nodes']} nodes, its "
                            f"CalculiX run {len(u)}; give the --target-tets of make_truth_cases")

@@ -126,9 +126,11 @@ CCX_MEMORY_GB = 4
 #: and the time one gmsh attempt may take (a good surface meshes in about 10 s)
 SMOOTHING_VOXELS = (1.0, 2.0, 3.0)
 GMSH_TIMEOUT_S = 120.0
-#: when gmsh cannot re-parametrise any of them: the first surface remeshed isotropically
+#: when gmsh cannot re-parametrise any of them: each surface again, remeshed isotropically
 #: with edges of this fraction of the element size (gmsh's smallest element on the
-#: re-parametrised path) and filled as it is, as regtrack's own mesher does
+#: re-parametrised path) and filled as it is, as regtrack's own mesher does (02 L, 12 R,
+#: 27 R at sigma 1; 47 L's sigma-1 surface folds through itself when remeshed, sigma 2
+#: does not)
 REMESH_EDGE = 0.6
 #: a view that CalculiX cannot finish at either increment is run again on a mesh of REFINE
 #: times the elements, up to REFINE_LEVELS times: the failures are single Newton iterates
@@ -428,23 +430,25 @@ def build_mesh(geo: dict, side: str, target_tets: int, origin_lps: np.ndarray | 
     size = float((vol_mm3 / target_tets * 6 * np.sqrt(2)) ** (1 / 3))
     t0 = time.perf_counter()
     # gmsh rejects some marching-cubes surfaces (overlapping facets, thin folds); a
-    # smoother mask is the retry, then an isotropically remeshed surface that gmsh fills
-    # as it is, the same for every exam
-    for sigma in SMOOTHING_VOXELS:
+    # smoother mask is the retry, then the same surfaces remeshed isotropically and filled
+    # as they are, the same for every exam
+    attempts = [(sigma, True) for sigma in SMOOTHING_VOXELS] + [(sigma, False) for sigma in SMOOTHING_VOXELS]
+    labels = [f"smoothed with sigma {sigma:g} voxels, " + ("re-parametrised by gmsh" if reparam else
+                                                          f"remeshed (edges {REMESH_EDGE * size:.1f} mm)")
+              for sigma, reparam in attempts]
+    for k, (sigma, reparametrise) in enumerate(attempts):
         pts, faces = surface_from_mask(geo, sigma=sigma)
+        surface = labels[k]
         try:
-            nodes_lps, tets = gmsh_tet10_timed(pts, faces, size, GMSH_TIMEOUT_S)
-            surface = f"smoothed with sigma {sigma:g} voxels, re-parametrised by gmsh"
+            sv, sf = (pts, faces) if reparametrise else remeshed_surface(pts, faces, size)
+            nodes_lps, tets = gmsh_tet10_timed(sv, sf, size, GMSH_TIMEOUT_S, reparametrise=reparametrise)
             break
         except RuntimeError as e:  # gmsh_tet10_timed: a gmsh error or its timeout
-            log.warning("gmsh failed on the surface smoothed with sigma %.1f voxels (%s)%s", sigma, e,
-                        "; smoothing more" if sigma != SMOOTHING_VOXELS[-1] else "")
-    else:
-        pts, faces = surface_from_mask(geo, sigma=SMOOTHING_VOXELS[0])
-        nodes_lps, tets = gmsh_tet10_timed(*remeshed_surface(pts, faces, size), size, GMSH_TIMEOUT_S,
-                                           reparametrise=False)
-        surface = f"smoothed with sigma {SMOOTHING_VOXELS[0]:g} voxels, remeshed (edges {REMESH_EDGE * size:.1f} mm)"
-        log.info("meshed on the %s surface", surface)
+            if k == len(attempts) - 1:
+                raise
+            log.warning("gmsh failed on the surface %s (%s); next: %s", surface, e, labels[k + 1])
+    if not reparametrise:
+        log.info("meshed on the surface %s", surface)
     B = model_basis(side, geo["plane"]["normal_lps"])
     # nipple (the model frame's origin): the apex of the smooth breast surface along the
     # chest-wall normal, the centre of its NIPPLE_CAP_MM cap; a material point, not a node
