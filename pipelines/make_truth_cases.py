@@ -6,9 +6,11 @@ script builds, *without regtrack's model, mechanics or virtual-mammogram stages*
 1. **Its own mesh.**  The breast region is the anatomical selection regtrack makes
    (chest-wall plane, inframammary fold, midline; see :func:`breast_geometry` for why),
    smoothed and resampled to 2 mm, marching cubes (scikit-image), gmsh re-meshing of that
-   surface and a tet10 volume mesh (straight-sided second order, C3D10) at an element size
-   chosen for about ``--target-tets`` elements (a few thousand nodes); the tissue class of
-   each element is the *detailed* label at its centroid.
+   surface (or, where gmsh cannot, an isotropic remeshing filled as it is) and a tet10
+   volume mesh (straight-sided second order, C3D10) at an element size chosen for about
+   ``--target-tets`` elements (a few thousand nodes; twice as many for a view CalculiX
+   cannot finish on it); the tissue class of each element is the *detailed* label at its
+   centroid.
 2. **A CalculiX 2.20 compression** per view (``ccx``, single-threaded): heterogeneous
    neo-Hookean tissue (``*HYPERELASTIC, NEO HOOKE``; fat labels 5-7 and skin, gland 1-3,
    transition 4 = mean, tumour -3/-4 = 10 x gland; c1 drawn per case); chest-wall nodes
