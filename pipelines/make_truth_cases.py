@@ -453,9 +453,11 @@ def build_mesh(geo: dict, side: str, target_tets: int, origin_lps: np.ndarray | 
         log.info("meshed on the surface %s", surface)
     B = model_basis(side, geo["plane"]["normal_lps"])
     # nipple (the model frame's origin): the apex of the smooth breast surface along the
-    # chest-wall normal, the centre of its NIPPLE_CAP_MM cap; a material point, not a node
+    # chest-wall normal, the centre of its NIPPLE_CAP_MM cap; a material point, not a node.
+    # The surface is the one meshed: a remeshed surface's long edges cut a nipple bump of
+    # the marching-cubes surface away, and its apex would lie outside the mesh (8 mm on 27 R)
     if origin_lps is None:
-        origin_lps = detect_nipple(pts, B[0], depth_mm=NIPPLE_CAP_MM)
+        origin_lps = detect_nipple(sv, B[0], depth_mm=NIPPLE_CAP_MM)
     x = (nodes_lps - origin_lps) @ B.T
     tets = fix_orientation(x, tets)
     vol = tet_volumes(x, tets)
