@@ -135,10 +135,11 @@ GMSH_TIMEOUT_S = 120.0
 #: does not)
 REMESH_EDGE = 0.6
 #: a view that CalculiX cannot finish at either increment is run again on a mesh of REFINE
-#: times the elements, up to REFINE_LEVELS times: the failures are single Newton iterates
-#: that explode where coarse tet10 next to the held chest-wall section are crushed (05 R's
-#: MLO failed at 95 % of gravity at 1200 and at 2400 elements with the increment 0.03, and
-#: finished at 2400 with 0.01)
+#: times the elements, up to REFINE_LEVELS times: a closer discretisation of the same
+#: problem, for failures that are single exploding Newton iterates (docs/truth-cases.md).
+#: 05 R's MLO failed at 95 % of gravity with the increment 0.03 at both sizes; with 0.01
+#: it reached 67 % of the travel at 1,200 target elements when a 900 s limit stopped it on
+#: a loaded host, and finished at 2,400 in 489 s
 REFINE = 2.0
 REFINE_LEVELS = 1
 #: a CalculiX run that stops early is kept at its last converged increment when the upper
@@ -298,7 +299,8 @@ def surface_from_mask(geo: dict, step_mm: float = 2.0,
 def remeshed_surface(pts: np.ndarray, faces: np.ndarray, size_mm: float) -> tuple[np.ndarray, np.ndarray]:
     """The marching-cubes surface remeshed isotropically (pymeshlab, edges ``REMESH_EDGE``
     of the element size), its enclosed volume restored (the chords of long edges cut the
-    curvature: -5 to -9 % on Pelicano 02 L, 05 R, 12 R, 27 R, 47 L)."""
+    curvature: -5.6 to -9.2 % on Pelicano 02 L, 05 R, 12 R, 27 R, 47 L at edges of 0.8 of
+    the element size)."""
     from regtrack.model.remesh import remesh, restore_volume
     from regtrack.model.surfaces import Surface
 
