@@ -87,7 +87,7 @@ def run_case(case: Path, out: Path, cache: Path, timeout: int, views: str | None
         except subprocess.TimeoutExpired:
             rc = 124
     dt = time.perf_counter() - t0
-    tail = (out.parent / f"{out.name}.log").read_text().splitlines()[-3:]
+    tail = (out.parent / f"{out.name}.log").read_text(errors="replace").splitlines()[-3:]
     log.info("%s%s: rc %d in %.0f s", case.name, f" ({views})" if views else "", rc, dt)
     res = {"rc": rc, "seconds": dt, "tail": tail}
     if rc != 0 and views is None:
