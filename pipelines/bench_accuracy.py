@@ -127,7 +127,7 @@ def _errors(out: Path) -> dict:
     for suffix, key in (("", "both"), ("_CC", "CC"), ("_MLO", "MLO")):
         lg = out.parent / f"{out.name}{suffix}.log"
         if lg.exists() and not (out.parent / f"{out.name}{suffix}" / "metrics.json").exists():
-            err = [ln for ln in lg.read_text().splitlines() if "error" in ln.lower()]
+            err = [ln for ln in lg.read_text(errors="replace").splitlines() if "error" in ln.lower()]
             if err:
                 res[key] = err[-1].strip()
     return res
