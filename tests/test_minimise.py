@@ -399,6 +399,32 @@ def test_an_increment_being_solved_reports_its_newton_iterations():
     assert all(h[0] == "" for h in heard)
 
 
+def test_inexact_inner_minimisations_change_the_path_not_the_result(monkeypatch):
+    """The minimisations followed by a multiplier and friction-lag update stop at a tenth of
+    the friction tolerance in force (``_inexact_scale``); the increment's accepted state
+    still meets the full tolerances, so the end state is the same as with every inner
+    minimisation converged: the box pinched between plates and sheared by a body force, with
+    friction 0.1: plate forces within the friction tolerance (0.5 %) and nodes within
+    the correction tolerance (0.01 mm) of each other."""
+    from regtrack.mechanics import minimise
+
+    def run():
+        prob, contacts = _box_between_plates(mu=0.1)
+        u, st, _ = minimise_step(prob, np.zeros_like(prob.X),
+                                 gravity=lambda t: np.array([0.0, 1e3, 0.0]) * t,
+                                 contacts=contacts, n_increments=2, options=SolverOptions())
+        return u, [c.report(u)["normal_force_N"] for c in contacts], st
+
+    assert minimise._inexact_scale(SolverOptions(), ContactConfig()) == pytest.approx(10.0)
+    u_loose, f_loose, st = run()
+    assert st.augmentations >= 1  # inexact minimisations were followed by updates
+    monkeypatch.setattr(minimise, "_inexact_scale", lambda o, cfg: 0.0)
+    u_exact, f_exact, _ = run()
+    assert min(f_exact) > 1e-3  # both plates carry the box
+    assert f_loose == pytest.approx(f_exact, rel=5e-3)
+    assert np.abs(u_loose - u_exact).max() <= 0.01
+
+
 def test_friction_error_of_a_barely_touching_plate_is_measured_against_the_load_scale():
     """The lag error of the slip bound is relative to the plate's normal force, or to the
     step's load scale when the plate barely touches: a 100 % error on 1e-6 N of contact is

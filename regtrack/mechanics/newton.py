@@ -147,10 +147,12 @@ class Minimiser:
                     FORCE_FLOOR_N)
         return NewtonState(ue.reshape(-1, 3), energy, R, pe, ev, f_ref, skin)
 
-    def converged(self, s: NewtonState) -> bool:
+    def converged(self, s: NewtonState, scale: float = 1.0) -> bool:
+        """Whether the residual and its resultant meet ``scale`` times their tolerances."""
         norm = float(np.linalg.norm(s.R[self.free]))
         resultant = float(np.linalg.norm(self.free_resultant(s.R)))
-        return norm <= self.o.force_tol * s.f_ref and resultant <= self.o.balance_tol * s.f_ref
+        return (norm <= scale * self.o.force_tol * s.f_ref
+                and resultant <= scale * self.o.balance_tol * s.f_ref)
 
     def free_resultant(self, R: np.ndarray) -> np.ndarray:
         """The resultant (3,) N of the residual's free components (a node may be held in
@@ -345,13 +347,22 @@ class Minimiser:
             best = trial
         return best
 
-    def solve(self, u: np.ndarray, fext: np.ndarray, plates: Sequence[PlatePotential]) -> NewtonState:
+    def solve(self, u: np.ndarray, fext: np.ndarray, plates: Sequence[PlatePotential], *,
+              loose: float = 0.0) -> NewtonState:
         """Minimise ``Pi`` from ``u`` (N, 3) at fixed loads and lags; raises
-        :class:`SolverDidNotConvergeError` after ``max_iterations``."""
+        :class:`SolverDidNotConvergeError` after ``max_iterations``.
+
+        ``loose > 0``: stop as soon as the residual and its resultant are within ``loose``
+        times their tolerances, without the correction test: the inexact inner
+        minimisation of an augmented-Lagrangian iteration whose multipliers are about to
+        be updated (Conn, Gould & Toint 1991; Nocedal & Wright section 17.4), whose state
+        is never accepted as the increment's result."""
         s = self.state(u, fext, plates, hessian=True)
         if s is None:
             raise SolverDidNotConvergeError("an element is inverted at the start of the increment")
         for _ in range(self.max_iterations):
+            if loose > 0 and self.converged(s, loose):
+                return s
             forces_ok = self.converged(s)
             du = self.direction(s)
             if forces_ok and np.abs(du[self.free]).max(initial=0.0) <= self.o.disp_abs_tol_mm:
