@@ -117,7 +117,7 @@ def test_the_verdict_flags_a_mismatched_fit():
                       nipple={"confidence": 1.0, "method": "given (nipple_px)"})
     assert all(c.ok for c in good)
     assert verdict_line(good) == "All 6 quality checks passed."
-    # skin through skin (no self-contact in the model) is flagged past 1 mm, not at 0.4 mm
+    # skin through skin is flagged past 1 mm, not at 0.4 mm
     sim = {"summary": {"force_imbalance_rel": 7e-8, "skin_overlap_mm": 2.7}}
     folded = check_view("CC", {"BS_Av": 56.8, "theta_p": 3.7, "d_B": 5.7}, simulation=sim)
     assert [c.short for c in folded if c.ok is False] == ["skin in tissue"]

@@ -343,13 +343,15 @@ class ProtocolRunner:
         if over.depth > self.config.skin_overlap_warn_mm:
             k = int(over.nodes[np.argmax(over.d)])
             x = self.body.points[k] + self.u[k]
+            why = ("a crease sharper than the mesh, which the self-contact barrier cannot hold"
+                   if self.config.self_contact_gap_mm > 0 else
+                   "self-contact is off: [contact] self_contact_gap_mm = 0")
             msg = (f"step '{step.name}': {len(over.nodes)} skin nodes end inside the tissue, the "
                    f"deepest {over.depth:.1f} mm at ({x[0]:.0f}, {x[1]:.0f}, {x[2]:.0f}) mm, "
                    f"{x[0] - self.body.points[:, 0].min():.0f} mm in front of the chest-wall "
                    f"plane (over [contact] skin_overlap_warn_mm = "
                    f"{self.config.skin_overlap_warn_mm:g}): the skin folded through itself "
-                   "there (the model has no self-contact), so its shape and stresses there are "
-                   "not physical")
+                   f"there ({why}), so its shape and stresses there are not physical")
             log.warning(msg)
             rec.warnings.append(msg)
         if T0 is not None:
