@@ -215,10 +215,11 @@ def _increment(m: Minimiser, origin: np.ndarray, starts: Sequence[np.ndarray], t
     # an inner minimisation whose multipliers will be updated stops at this multiple of the
     # force tolerances (_inexact_scale); the state an increment returns meets them in full
     scale = _inexact_scale(m.o, cfg)
-    loose = True
+    loose, start = True, None
     k = 0
     while True:
-        s = m.solve(u, fext, plates, loose=scale if loose else 0.0)
+        s = m.solve(u, fext, plates, loose=scale if loose else 0.0, start=start)
+        start = None
         u = s.u
         pen = max((pl.max_violation(e) for pl, e in zip(plates, s.plates)), default=0.0)
         ferr = max((pl.friction_error(e, s.f_ref) for pl, e in zip(plates, s.plates)), default=0.0)
@@ -230,7 +231,7 @@ def _increment(m: Minimiser, origin: np.ndarray, starts: Sequence[np.ndarray], t
         if done and not loose:
             return s
         if done:  # the contact holds: minimise to the full tolerance at these multipliers
-            loose = False
+            loose, start = False, s
             continue
         if k + 1 == n_aug:  # the multipliers of n_aug updates tried
             break
@@ -249,11 +250,9 @@ def _inexact_scale(o, cfg) -> float:
     """The factor on the force tolerances of an inexact inner minimisation, before a
     multiplier and friction-lag update: the residual may be as large as a fifth of the
     friction bound's tolerance (``friction_tol`` of the same force reference ``F_ref``),
-    so that the lag update sees the contact pressures to well within what it is judged by.
-    At the defaults ``0.005 / (5 x 1e-4) = 10``: on Pelicano exam 40 R CC 118 Newton
-    iterations instead of 137, the plate force within 1e-5; a residual as large as the
-    friction tolerance itself (100) stalled the friction lag at the plate's first
-    contact.  Without contact: 1 (only the correction test is skipped)."""
+    so that the lag update sees the contact pressures to well within what it is judged by
+    (10 at the defaults; measurements in docs/performance-mechanics.md).  Without contact:
+    1 (only the correction test is skipped)."""
     if cfg is None:
         return 1.0
     return max(1.0, cfg.friction_tol / (5.0 * o.force_tol))

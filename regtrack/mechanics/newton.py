@@ -348,7 +348,7 @@ class Minimiser:
         return best
 
     def solve(self, u: np.ndarray, fext: np.ndarray, plates: Sequence[PlatePotential], *,
-              loose: float = 0.0) -> NewtonState:
+              loose: float = 0.0, start: NewtonState | None = None) -> NewtonState:
         """Minimise ``Pi`` from ``u`` (N, 3) at fixed loads and lags; raises
         :class:`SolverDidNotConvergeError` after ``max_iterations``.
 
@@ -356,8 +356,10 @@ class Minimiser:
         times their tolerances, without the correction test: the inexact inner
         minimisation of an augmented-Lagrangian iteration whose multipliers are about to
         be updated (Conn, Gould & Toint 1991; Nocedal & Wright section 17.4), whose state
-        is never accepted as the increment's result."""
-        s = self.state(u, fext, plates, hessian=True)
+        is never accepted as the increment's result.  ``start``: the state at ``u`` with
+        its Hessian, when the caller has it at the same loads and lags (not evaluated
+        again)."""
+        s = start if start is not None else self.state(u, fext, plates, hessian=True)
         if s is None:
             raise SolverDidNotConvergeError("an element is inverted at the start of the increment")
         for _ in range(self.max_iterations):
