@@ -192,6 +192,34 @@ def test_two_tumours():
     assert compute_metrics(al, real, virt).dice_tumour > 0.99
 
 
+def test_a_model_lesion_the_image_does_not_show_is_left_out():
+    """A second lesion of the model lies beyond the detector edge (or was not outlined):
+    compared with the one outline there is, it would pull theta_p,t by degrees; paired,
+    the rotation is the known one and d_T, Dice are those of the outlined lesion."""
+    t1, t2 = _ellipse((45.0, 25.0), 6.0, 4.0), _ellipse((20.0, -45.0), 5.0, 5.0, rot=0.0)
+    real, virt = _views(-7.5, np.array([1.0, 1.0]), tumour=t1)
+    virt.tumour_contours.append(rotate_about(t2, real.nipple, 7.5) + [1.0, 1.0])
+    al = align(real, virt)
+    assert al.tumour_pairs == [(0, 0)]
+    assert al.theta_p_t == pytest.approx(-7.5, abs=0.1)
+    assert any("virtual tumour 2 has no outline" in w for w in al.warnings)
+    m = compute_metrics(al, real, virt)
+    assert m.d_T < 0.05 and m.dice_tumour > 0.99 and m.tumour_distance is not None
+
+
+def test_an_outline_without_a_lesion_in_the_model_is_left_out():
+    """The converse: two outlines on the image, listed in the other order than the
+    model's lesions, and the model holds only the second: paired, not mixed."""
+    t1, t2 = _ellipse((45.0, 25.0), 6.0, 4.0), _ellipse((20.0, -45.0), 5.0, 5.0, rot=0.0)
+    real, virt = _views(12.0, np.array([-2.0, 3.0]), tumour=t2)
+    real.tumour_contours.insert(0, t1)
+    al = align(real, virt)
+    assert al.tumour_pairs == [(0, 1)]
+    assert al.theta_p_t == pytest.approx(12.0, abs=0.1)
+    assert any("tumour outline 1 of the real view" in w for w in al.warnings)
+    assert compute_metrics(al, real, virt).d_T < 0.05
+
+
 def test_virtual_skin_line_reaching_past_the_real_one_does_not_bias_the_rotation():
     """The real skin line stops at the image edge (here 25 mm of its chest-wall end are cut
     off); the virtual one, the full outline turned by 6 deg, reaches further.  Its extra

@@ -191,3 +191,25 @@ def test_cli_run_and_validate_agree(tmp_path, tracking):
                        check=False, capture_output=True, text=True, cwd=REPO)
     assert r.returncode == 0, r.stderr[-2000:]
     assert json.loads((tmp_path / "out" / "metrics.json").read_text())["mode"] == "tracking"
+
+
+def test_each_predicted_lesion_is_scored_against_its_own_outline():
+    """Paper mode with two lesions in the model and one outline on the image: the lesion
+    near the outline is scored against it, the other gets no error (not the distance to
+    an outline it does not belong to, nor to the centroid of a union)."""
+    from regtrack.tracking.lesions import LesionPrediction, _score_against_outlines
+
+    def lesion(k, xy):
+        return LesionPrediction("CC", k, np.asarray(xy, float), None, None, 1.0, {}, 0.0, 0.1,
+                                50.0, 0.0)
+
+    square = np.array([[40.0, 20.0], [50.0, 20.0], [50.0, 30.0], [40.0, 30.0]])  # centroid (45, 25)
+    far, near = lesion(1, [10.0, -60.0]), lesion(2, [47.0, 25.0])
+    _score_against_outlines([far, near], [square])
+    assert far.error_mm is None and far.annotated_mm is None
+    assert near.error_mm == pytest.approx(2.0)
+    np.testing.assert_allclose(near.annotated_mm, [45.0, 25.0])
+    # two outlines, two lesions, listed in the other order: each with its own
+    other = square + [-40.0, -80.0]  # centroid (5, -55)
+    _score_against_outlines([far, near], [square, other])
+    assert far.error_mm == pytest.approx(np.hypot(5.0, 5.0)) and near.error_mm == pytest.approx(2.0)

@@ -155,8 +155,9 @@ def compute_metrics(alignment: Alignment, real: MammogramView, virtual: Mammogra
       (:func:`compression_degree`).
     * :math:`d_T = \\lVert c(T_r) - c(T_v) \\rVert`, :math:`d_B = \\lVert c(B_r) - c(B_v)
       \\rVert` (mm): distances between the area centroids ``c`` of the real and aligned
-      virtual tumour regions (union of the tumour polygons) and breast regions (open
-      contour closed by its chest-wall chord).  ``d_T`` and the tumour Dice are computed
+      virtual tumour regions (the union of the paired tumour polygons: each outline
+      paired with at most one on the other side, :func:`.geometry.pair_outlines`) and
+      breast regions (open contour closed by its chest-wall chord).  ``d_T`` and the tumour Dice are computed
       whenever both views have tumour contours, also when the registration did not use
       them; :math:`TS_{Av}` only when it did (NaN otherwise).
     * Distance statistics (mm): :func:`distance_stats` of the aligned virtual contours.
@@ -179,17 +180,18 @@ def compute_metrics(alignment: Alignment, real: MammogramView, virtual: Mammogra
     if alignment.tumour_objective is not None:
         ts_av = similarity_percent(alignment.tumour_objective, alignment.theta_p)
         ts_av_t = similarity_percent(alignment.tumour_objective, alignment.theta_p_t)
-    real_t = [c for c in real.tumour_contours if _is_area(c)]
-    virt_t = [c for c in (alignment.tumour_contours or []) if _is_area(c)]
-    if real_t and virt_t:
-        # also on a breast-only registration (outlines given, use_tumour = false): then d_T
-        # is the error of a prediction that did not see the tumour
-        tr, tv = _union(real_t), _union(virt_t)
+    real_t, virt_t = list(real.tumour_contours), list(alignment.tumour_contours or [])
+    # also on a breast-only registration (outlines given, use_tumour = false): then d_T is
+    # the error of a prediction that did not see the tumour, its outlines paired at theta_p
+    pairs = alignment.tumour_pairs or G.pair_outlines(virt_t, real_t)
+    pairs = [(j, k) for j, k in pairs if _is_area(virt_t[j]) and _is_area(real_t[k])]
+    if pairs:
+        tr, tv = _union([real_t[k] for _, k in pairs]), _union([virt_t[j] for j, _ in pairs])
         d_T = float(math.hypot(tr.centroid.x - tv.centroid.x, tr.centroid.y - tv.centroid.y))
         dice_t = dice(tr, tv)
-        if len(real_t) == 1 and len(virt_t) == 1:
-            tstats = distance_stats(virt_t[0], real_t[0],
-                                    closed=True, spacing=spacing)
+        if len(pairs) == 1:
+            (j, k), = pairs
+            tstats = distance_stats(virt_t[j], real_t[k], closed=True, spacing=spacing)
     return Metrics(
         view=alignment.view,
         bs_av=similarity_percent(alignment.breast_objective, alignment.theta_p),

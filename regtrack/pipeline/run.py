@@ -305,7 +305,8 @@ def lesions_doc(case_id: str, results) -> dict:
                   "to D, c1 and nu, and how far the prediction moves when the registration "
                   "is repeated with the nipple moved along the run of the apex where it was "
                   "detected (regtrack.tracking.uncertainty); error_mm: distance to the "
-                  "area centroid of the annotated outline (paper mode)",
+                  "area centroid of the annotated outline paired with the lesion (paper "
+                  "mode; regtrack.registration.geometry.pair_points)",
         "views": {r.view: {"mode": r.extra.get("mode"),
                            "lesions": [p.to_dict() for p in r.extra.get("lesions") or []]}
                   for r in results if r.extra.get("mode")},

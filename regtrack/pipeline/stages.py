@@ -299,7 +299,8 @@ def align_stage(ctx, mesh: MeshOutput, sim: SimOutput, vm, real, view: str) -> V
                               real=real, alignment=al_b, D=D, sigma_D=sigma_D,
                               config=ctx.configs.tracking)
     if lesions:
-        first = lesions[0]
+        # the row's lesion: in paper mode the first one paired with an outline
+        first = next((p for p in lesions if p.error_mm is not None), lesions[0])
         row.update({"n_lesions": len(lesions), "lesion_x_mm": float(first.centroid_mm[0]),
                     "lesion_y_mm": float(first.centroid_mm[1]),
                     "lesion_row_px": None if first.centroid_px is None else float(first.centroid_px[0]),

@@ -35,7 +35,12 @@
 
    for the breast (open skin line) and :math:`F_t` likewise for the tumour contour(s).
    Virtual breast points matched to an end of the real skin line are left out of
-   :math:`F_b` (``reject_ends_mm``, see :class:`Objective`).
+   :math:`F_b` (``reject_ends_mm``, see :class:`Objective`).  With several tumours, each
+   virtual outline is compared with one real outline only: the pairs of least total
+   centroid distance once the virtual view is turned by :math:`\theta_{p,b}`
+   (:func:`.geometry.pair_outlines`); a lesion of the model that the image does not show
+   (outside the detector, or not outlined) is left out instead of being matched to
+   another lesion's outline (warned).
 4. *Golden-section search* of :math:`F_b` and :math:`F_t` separately on
    :math:`[\\theta_0 - w, \\theta_0 + w]` (``w = bracket_deg``, default 30 deg; nominal
    :math:`\\theta_0 = 0` for both views because the MLO 45 deg pre-rotation is in the
@@ -127,6 +132,9 @@ class Alignment:
         The reader's detected nipple (mm) and the arc length (mm, signed along the skin
         line) from it to ``nipple`` when the registration searched it (None, 0 when the
         nipple was given or not searched).
+    tumour_pairs : list of (int, int)
+        ``(j, k)``: virtual tumour outline ``j`` compared with real outline ``k`` in
+        :math:`F_t` (empty when the tumour is not used).
     F_b, F_t : dict
         Objective values (mm^2) at ``theta = 0``, at its own optimum and at ``theta_p``.
     evaluations_b, evaluations_t : int
@@ -161,6 +169,7 @@ class Alignment:
     warnings: list[str] = field(default_factory=list)
     detected_nipple: np.ndarray | None = None
     nipple_slide_mm: float = 0.0
+    tumour_pairs: list[tuple[int, int]] = field(default_factory=list)
 
     def transform(self, xy, theta_deg: float | None = None) -> np.ndarray:
         """Map virtual points (mm) into the real frame: ``n_p + R(theta)(v - n_v)``
@@ -180,6 +189,7 @@ class Alignment:
             "nipple_slide_mm": self.nipple_slide_mm,
             "F_b_mm2": self.F_b, "F_t_mm2": self.F_t,
             "evaluations_b": self.evaluations_b, "evaluations_t": self.evaluations_t,
+            "tumour_pairs": [list(p) for p in self.tumour_pairs],
             "bracket_deg": list(self.bracket_deg),
             "breast_contour_mm": self.breast_contour.tolist(),
             "tumour_contours_mm": [c.tolist() for c in self.tumour_contours],
@@ -251,19 +261,29 @@ def check_view(v: MammogramView, who: str, cfg: RegistrationConfig) -> None:
                 "breast contour; check the tumour annotation's pixel grid and the view's flip")
 
 
-def _objective(virtual: list[np.ndarray], real: list[np.ndarray], *, closed: bool,
-               nv: np.ndarray, npr: np.ndarray, cfg: RegistrationConfig) -> Objective:
-    rs = [G.resample(r, cfg.resample_mm, closed=closed) for r in real]
-    vs = [G.resample(v, cfg.resample_mm, closed=closed) for v in virtual]
-    if closed and len(rs) > 1:
-        # several tumours: match against all real tumour points (segment refinement per contour
-        # would cross contours, so use vertices only)
-        cp = G.ClosestPoints(np.vstack(rs), closed=False, segment=False)
-    else:
-        cp = G.ClosestPoints(rs[0], closed=closed, segment=cfg.match == "segment")
-    if closed:
-        return Objective(np.vstack(vs) - nv, cp, npr)
-    return Objective(np.vstack(vs) - nv, cp, npr, ends=rs[0][[0, -1]], reject_mm=cfg.reject_ends_mm)
+def _breast_objective(virtual: np.ndarray, real: np.ndarray, *, nv: np.ndarray, npr: np.ndarray,
+                      cfg: RegistrationConfig) -> Objective:
+    r = G.resample(real, cfg.resample_mm, closed=False)
+    v = G.resample(virtual, cfg.resample_mm, closed=False)
+    cp = G.ClosestPoints(r, closed=False, segment=cfg.match == "segment")
+    return Objective(v - nv, cp, npr, ends=r[[0, -1]], reject_mm=cfg.reject_ends_mm)
+
+
+def _tumour_objective(virtual: list[np.ndarray], real: list[np.ndarray],
+                      pairs: list[tuple[int, int]], *, nv: np.ndarray, npr: np.ndarray,
+                      cfg: RegistrationConfig) -> Objective:
+    """F_t over the paired outlines: each virtual outline's points matched on its own real
+    outline only (:func:`.geometry.pair_outlines`)."""
+    vs, parts, n = [], [], 0
+    for j, k in pairs:
+        v = G.resample(virtual[j], cfg.resample_mm, closed=True)
+        r = G.resample(real[k], cfg.resample_mm, closed=True)
+        parts.append((slice(n, n + len(v)),
+                      G.ClosestPoints(r, closed=True, segment=cfg.match == "segment")))
+        vs.append(v)
+        n += len(v)
+    cp = parts[0][1] if len(parts) == 1 else G.PairedClosestPoints(parts)
+    return Objective(np.vstack(vs) - nv, cp, npr)
 
 
 def _search(obj: Objective, lo: float, hi: float, cfg: RegistrationConfig) -> GoldenResult:
@@ -388,8 +408,7 @@ def align(real: MammogramView, virtual: MammogramView, *,
     lo, hi = th0 - cfg.bracket_deg, th0 + cfg.bracket_deg
     warnings: list[str] = []
 
-    ob = _objective([virtual.breast_contour], [real.breast_contour], closed=False,
-                    nv=nv, npr=npr, cfg=cfg)
+    ob = _breast_objective(virtual.breast_contour, real.breast_contour, nv=nv, npr=npr, cfg=cfg)
     detected, slide = None, 0.0
     window = nipple_window(real, cfg)
     if window >= cfg.resample_mm:
@@ -407,10 +426,18 @@ def align(real: MammogramView, virtual: MammogramView, *,
     if rb.at_edge:
         warnings.append(f"theta_p,b = {rb.x:.2f} deg is at the edge of the search bracket "
                         f"[{lo:g}, {hi:g}]; widen [registration] bracket_deg")
-    ot, rt = None, None
+    ot, rt, pairs = None, None, []
     if cfg.use_tumour:
-        ot = _objective(list(virtual.tumour_contours), list(real.tumour_contours), closed=True,
-                        nv=nv, npr=npr, cfg=cfg)
+        vt, rtc = list(virtual.tumour_contours), list(real.tumour_contours)
+        pairs = G.pair_outlines([(np.asarray(c, float) - nv) @ G.rotation(rb.x).T + npr for c in vt],
+                                rtc)
+        for j in sorted(set(range(len(vt))) - {j for j, _ in pairs}):
+            warnings.append(f"virtual tumour {j + 1} has no outline on the real view (outside the "
+                            "image, or not outlined): left out of theta_p,t")
+        for k in sorted(set(range(len(rtc))) - {k for _, k in pairs}):
+            warnings.append(f"tumour outline {k + 1} of the real view has no tumour in the model "
+                            "near it: left out of theta_p,t")
+        ot = _tumour_objective(vt, rtc, pairs, nv=nv, npr=npr, cfg=cfg)
         rt = _search(ot, lo, hi, cfg)
         if rt.at_edge:
             warnings.append(f"theta_p,t = {rt.x:.2f} deg is at the edge of the search bracket "
@@ -434,4 +461,4 @@ def align(real: MammogramView, virtual: MammogramView, *,
         bracket_deg=(lo, hi), breast_contour=rot(virtual.breast_contour),
         tumour_contours=[rot(t) for t in virtual.tumour_contours],
         breast_objective=ob, tumour_objective=ot, config=cfg, warnings=warnings,
-        detected_nipple=detected, nipple_slide_mm=float(slide))
+        detected_nipple=detected, nipple_slide_mm=float(slide), tumour_pairs=pairs)

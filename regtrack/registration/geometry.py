@@ -1,4 +1,5 @@
-"""2-D contour geometry: resampling, rigid rotation about a point, closest points."""
+"""2-D contour geometry: resampling, rigid rotation about a point, closest points, and the
+pairing of virtual and real outlines."""
 
 from __future__ import annotations
 
@@ -87,6 +88,59 @@ class ClosestPoints:
             better = ok & (d < bestd)
             best[better], bestd[better] = c[better], d[better]
         return best
+
+
+class PairedClosestPoints:
+    """Closest points of stacked query contours, each searched on its own polyline only:
+    ``parts`` lists ``(rows, ClosestPoints)``, ``rows`` the slice of the queries that
+    belong to that polyline."""
+
+    def __init__(self, parts: list[tuple[slice, ClosestPoints]]):
+        self.parts = parts
+
+    def __call__(self, q: np.ndarray) -> np.ndarray:
+        q = np.asarray(q, float)
+        out = np.empty_like(q)
+        for rows, cp in self.parts:
+            out[rows] = cp(q[rows])
+        return out
+
+
+def area_centroid(poly: np.ndarray) -> np.ndarray:
+    """(2,) area centroid (mm) of a closed contour (its vertex mean when it has no area)."""
+    g = polygon(poly)
+    if g.is_empty or g.area <= 0.0:
+        return np.asarray(poly, float).mean(axis=0)
+    return np.array([g.centroid.x, g.centroid.y])
+
+
+def pair_points(a: np.ndarray, b: np.ndarray) -> list[tuple[int, int]]:
+    """One-to-one pairs ``(j, k)`` of points ``a[j]`` and ``b[k]`` (mm) with the least total
+    distance (the assignment problem, solved exactly: Kuhn-Munkres, scipy's
+    ``linear_sum_assignment``); the points left over on the longer side have no pair.
+    Sorted by ``j``."""
+    a, b = np.asarray(a, float).reshape(-1, 2), np.asarray(b, float).reshape(-1, 2)
+    if not len(a) or not len(b):
+        return []
+    from scipy.optimize import linear_sum_assignment
+
+    j, k = linear_sum_assignment(np.linalg.norm(a[:, None, :] - b[None], axis=2))
+    return sorted(zip(j.tolist(), k.tolist()))
+
+
+def pair_outlines(virtual: list[np.ndarray], real: list[np.ndarray]) -> list[tuple[int, int]]:
+    """One-to-one pairs ``(j, k)`` of virtual outline ``j`` and real outline ``k``, both in the
+    real frame (mm), with the least total distance between their area centroids
+    (:func:`pair_points`).
+
+    A model may hold a lesion that the mammogram does not show (outside the detector, or
+    not outlined) and an image an outline the model has no lesion for; the outlines left
+    over on either side have no pair, so that nothing is compared with the wrong lesion.
+    With one outline on each side this is the single pair ``(0, 0)``.
+    """
+    if not virtual or not real:
+        return []
+    return pair_points([area_centroid(v) for v in virtual], [area_centroid(r) for r in real])
 
 
 def polygon(poly: np.ndarray):

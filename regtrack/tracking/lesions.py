@@ -36,8 +36,9 @@ class LesionPrediction:
 
     ``centroid_px`` is the (row, col) of the DICOM's own grid; ``terms_mm`` the four
     uncertainty terms (:func:`regtrack.tracking.uncertainty.prediction_sigma`); ``error_mm`` the distance from the predicted
-    centroid to the area centroid of the annotated outline (paper mode; None in tracking
-    mode), ``annotated_mm`` that centroid; ``mri_lps_mm`` the lesion's volume centroid in
+    centroid to the area centroid of the annotated outline paired with the lesion (paper
+    mode; None in tracking mode and for a lesion no outline is paired with),
+    ``annotated_mm`` that centroid; ``mri_lps_mm`` the lesion's volume centroid in
     the MRI (DICOM patient frame, LPS mm); ``nipple_mm`` / ``nipple_px`` the nipple on the
     mammogram, the centre of the registration's rotation.
     """
@@ -76,19 +77,6 @@ class LesionPrediction:
                 "nipple_px_rc": arr(self.nipple_px), "notes": self.notes}
 
 
-def _area_centroid(contours) -> np.ndarray | None:
-    from shapely.ops import unary_union
-
-    from regtrack.registration.geometry import polygon
-
-    if not contours:
-        return None
-    u = unary_union([polygon(np.asarray(c, float)) for c in contours])
-    if u.is_empty or u.area <= 0:
-        return None
-    return np.array([u.centroid.x, u.centroid.y])
-
-
 def predict_lesions(model, *, view: str, positions, virtual, real, alignment, D: float | None,
                     sigma_D: float, config: TrackingConfig | None = None) -> list[LesionPrediction]:
     """Every tumour of ``model`` predicted on the ``real`` mammogram of ``view``.
@@ -121,7 +109,6 @@ def predict_lesions(model, *, view: str, positions, virtual, real, alignment, D:
     vm = ViewMap(view, np.asarray(positions, float), virtual.frame,
                  InPlane.from_alignment(alignment), PixelFrame.from_view(real), virtual.source,
                  unc.residual, real, unc)
-    annotated = _area_centroid(real.tumour_contours)
     nip = vm.inplane.nipple
     nip_px = None if vm.pixels is None else vm.pixels.mm_to_px(nip)
     vol = np.abs(model.tet_volumes())
@@ -140,10 +127,25 @@ def predict_lesions(model, *, view: str, positions, virtual, real, alignment, D:
         r = float(np.linalg.norm(xy - nip))
         px = None if vm.pixels is None else vm.pixels.mm_to_px(xy)
         opx = None if (vm.pixels is None or outline is None) else vm.pixels.mm_to_px(outline)
-        err = None if annotated is None else float(np.linalg.norm(xy - annotated))
         lps = model.frame.to_patient(ref[None])[0]
         out.append(LesionPrediction(view, int(k), xy, px, outline, float(sig[0]), terms[0],
-                                    float(alignment.theta_p), unc.theta_sigma_deg, r, shift, err,
-                                    annotated, opx, mri_lps_mm=lps, nipple_mm=nip,
+                                    float(alignment.theta_p), unc.theta_sigma_deg, r, shift,
+                                    outline_px=opx, mri_lps_mm=lps, nipple_mm=nip,
                                     nipple_px=nip_px))
+    _score_against_outlines(out, real.tumour_contours)
     return out
+
+
+def _score_against_outlines(lesions: list[LesionPrediction], outlines) -> None:
+    """Paper mode: each predicted lesion's ``error_mm`` against the area centroid of the
+    annotated outline paired with it (the pairs of least total centroid distance,
+    :func:`regtrack.registration.geometry.pair_points`); a lesion that no outline is left
+    for (the image does not show it, or it was not outlined) keeps ``error_mm`` None."""
+    from regtrack.registration.geometry import area_centroid, pair_points
+
+    if not outlines or not lesions:
+        return
+    ref = [area_centroid(np.asarray(c, float)) for c in outlines]
+    for j, k in pair_points([p.centroid_mm for p in lesions], ref):
+        lesions[j].annotated_mm = ref[k]
+        lesions[j].error_mm = float(np.linalg.norm(lesions[j].centroid_mm - ref[k]))
