@@ -160,3 +160,22 @@ def test_headers_without_study_or_instance_uids(tmp_path, caplog):
     groups = hd.sr.srread(paths[0]).content.get_planar_roi_measurement_groups()
     assert {str(g.tracking_identifier).split(" on ")[1][:2] for g in groups} == {"CC"}
     assert any("SOPInstanceUID" in r.message for r in caplog.records)
+
+
+def test_a_lesion_predicted_off_the_image_has_no_region_on_it(tmp_path):
+    """A lesion of the model that falls beyond the mammogram's edge is not written as an
+    image region of that mammogram (its coordinates would lie off the image); the other
+    lesions and the metrics are."""
+    from regtrack.report.dicom_sr import write_dicom_results
+    from regtrack.tracking.lesions import OUTSIDE_IMAGE
+
+    off = _outcome("CC", None)
+    inside = off.extra["lesions"][0]
+    outside = LesionPrediction("CC", 2, np.array([-6.0, 140.0]), np.array([1400.0, -60.0]), None,
+                               4.0, {}, 1.0, 0.2, 90.0, 0.0, notes=[OUTSIDE_IMAGE])
+    off.extra["lesions"] = [inside, outside]
+    paths = write_dicom_results(tmp_path / "out", [off], {"CC": _header(tmp_path, "CC")},
+                                case_id="anon-1", pdf_path=None, keep_identifiers=False)
+    groups = hd.sr.srread(paths[0]).content.get_planar_roi_measurement_groups()
+    assert sorted(str(g.tracking_identifier) for g in groups) == [
+        "MRI lesion 1 on CC: centroid", "MRI lesion 1 on CC: outline"]

@@ -213,3 +213,18 @@ def test_each_predicted_lesion_is_scored_against_its_own_outline():
     other = square + [-40.0, -80.0]  # centroid (5, -55)
     _score_against_outlines([far, near], [square, other])
     assert far.error_mm == pytest.approx(np.hypot(5.0, 5.0)) and near.error_mm == pytest.approx(2.0)
+
+
+def test_a_lesion_off_the_detector_is_noted():
+    """The (row, col) of the stored DICOM grid against its shape: inside, on the last
+    pixel, and beyond the chest-wall edge (a negative column) or the bottom."""
+    from types import SimpleNamespace
+
+    from regtrack.tracking.lesions import _outside_image
+
+    pixels = SimpleNamespace(orientation=SimpleNamespace(source_shape=(1739, 910)))
+    assert not _outside_image(pixels, np.array([735.0, 132.0]))
+    assert not _outside_image(pixels, np.array([1738.0, 909.0]))
+    assert _outside_image(pixels, np.array([1388.0, -66.0]))
+    assert _outside_image(pixels, np.array([1740.0, 10.0]))
+    assert not _outside_image(None, np.array([-5.0, -5.0]))  # no pixel frame: nothing to say

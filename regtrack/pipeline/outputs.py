@@ -258,8 +258,9 @@ def report_notes(results: list, prov: dict) -> list[str]:
             px = ("" if p.centroid_px is None
                   else f", pixel (row {p.centroid_px[0]:.0f}, column {p.centroid_px[1]:.0f})")
             err = "" if p.error_mm is None else f"; {p.error_mm:.1f} mm from the outline's centroid"
+            notes = "".join(f"; {n}" for n in p.notes)
             lines.append(f"{r.view} lesion {p.lesion}: ({p.centroid_mm[0]:.1f}, "
-                         f"{p.centroid_mm[1]:.1f}) mm{px} ± {p.sigma_mm:.1f} mm (1σ){err}")
+                         f"{p.centroid_mm[1]:.1f}) mm{px} ± {p.sigma_mm:.1f} mm (1σ){err}{notes}")
     labels = {"final_plate_gap": "plate gap", "plate_angle": "plate angle",
               "projection": "projection", "compression_force": "compression force"}
     for view, geo in (prov.get("geometry") or {}).items():

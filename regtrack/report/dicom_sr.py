@@ -101,7 +101,12 @@ def _roi_group(identifier: str, region, measurements: list | None = None):
 
 
 def _lesion_groups(view: str, header, lesion) -> list:
-    """The outline and centroid groups (TID 1410) of one lesion on one mammogram."""
+    """The outline and centroid groups (TID 1410) of one lesion on one mammogram; none for
+    a lesion predicted off the image (an image region must lie on its image)."""
+    from regtrack.tracking.lesions import OUTSIDE_IMAGE
+
+    if OUTSIDE_IMAGE in lesion.notes:
+        return []
     hd = _hd()
     src = hd.sr.SourceImageForRegion(referenced_sop_class_uid=header.SOPClassUID,
                                      referenced_sop_instance_uid=header.SOPInstanceUID)

@@ -128,12 +128,27 @@ def predict_lesions(model, *, view: str, positions, virtual, real, alignment, D:
         px = None if vm.pixels is None else vm.pixels.mm_to_px(xy)
         opx = None if (vm.pixels is None or outline is None) else vm.pixels.mm_to_px(outline)
         lps = model.frame.to_patient(ref[None])[0]
+        notes = [OUTSIDE_IMAGE] if _outside_image(vm.pixels, px) else []
         out.append(LesionPrediction(view, int(k), xy, px, outline, float(sig[0]), terms[0],
                                     float(alignment.theta_p), unc.theta_sigma_deg, r, shift,
-                                    outline_px=opx, mri_lps_mm=lps, nipple_mm=nip,
+                                    outline_px=opx, notes=notes, mri_lps_mm=lps, nipple_mm=nip,
                                     nipple_px=nip_px))
     _score_against_outlines(out, real.tumour_contours)
     return out
+
+
+#: The note of a lesion predicted off the detector (beyond the image's chest-wall edge, or
+#: past a side the positioning left out).
+OUTSIDE_IMAGE = "outside the image: this mammogram does not show the lesion"
+
+
+def _outside_image(pixels, px) -> bool:
+    """Whether the (row, col) ``px`` of the DICOM's grid lies off its stored image."""
+    o = None if pixels is None else pixels.orientation
+    if px is None or o is None:
+        return False
+    rows, cols = o.source_shape[:2]
+    return not (0.0 <= px[0] <= rows - 1 and 0.0 <= px[1] <= cols - 1)
 
 
 def _score_against_outlines(lesions: list[LesionPrediction], outlines) -> None:
