@@ -220,6 +220,25 @@ def test_an_outline_without_a_lesion_in_the_model_is_left_out():
     assert compute_metrics(al, real, virt).d_T < 0.05
 
 
+def test_a_tumour_cut_by_the_image_edge_is_compared_where_the_image_shows_it():
+    """A lesion at the chest wall: the image shows only its part at x >= 0, which is what
+    can be outlined. The virtual outline's points off the image are left out of F_t, so
+    the known rotation is found; compared with the cut edge they pull it away."""
+    from shapely.geometry import box
+
+    from regtrack.registration.geometry import polygon
+
+    full = _ellipse((0.0, 25.0), 9.0, 6.0, rot=0.4)  # half of it off the image
+    cut = np.asarray(polygon(full).intersection(box(0.0, -200.0, 300.0, 200.0)).exterior.coords)[:-1]
+    real, virt = _views(6.0, np.array([2.0, -1.0]), tumour=cut)
+    virt.tumour_contours[0] = resample(rotate_about(full, real.nipple, -6.0), 0.3, closed=True) + [2.0, -1.0]
+    plain = align(real, virt).theta_p_t
+    real.meta = {"image": {"spacing_mm": [0.1, 0.1],
+                           "orientation": {"source_shape": [2000, 1200], "transpose": False}}}
+    assert align(real, virt).theta_p_t == pytest.approx(6.0, abs=0.1)
+    assert abs(plain - 6.0) > 0.8  # without the rule: 4.9 deg
+
+
 def test_virtual_skin_line_reaching_past_the_real_one_does_not_bias_the_rotation():
     """The real skin line stops at the image edge (here 25 mm of its chest-wall end are cut
     off); the virtual one, the full outline turned by 6 deg, reaches further.  Its extra

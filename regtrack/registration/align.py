@@ -40,7 +40,8 @@
    centroid distance once the virtual view is turned by :math:`\theta_{p,b}`
    (:func:`.geometry.pair_outlines`); a lesion of the model that the image does not show
    (outside the detector, or not outlined) is left out instead of being matched to
-   another lesion's outline (warned).
+   another lesion's outline (warned).  Virtual tumour points off the real image are left
+   out of :math:`F_t` (a lesion cut by the image edge is outlined only where it shows).
 4. *Golden-section search* of :math:`F_b` and :math:`F_t` separately on
    :math:`[\\theta_0 - w, \\theta_0 + w]` (``w = bracket_deg``, default 30 deg; nominal
    :math:`\\theta_0 = 0` for both views because the MLO 45 deg pre-rotation is in the
@@ -72,7 +73,10 @@ class Objective:
     virtual point whose closest real point lies within ``reject_mm`` of an end is left out
     (the boundary rule of ICP, Turk & Levoy 1994): the real skin line stops at the image
     edge or the pectoral line while the projected model may reach further, and those
-    points, all matched to the end, would pull the rotation.  With ``k`` of the ``K``
+    points, all matched to the end, would pull the rotation.  With ``extent`` (the real
+    image's width and height, mm, canonical frame from its corner), a virtual point off
+    the image is left out: a tumour cut by the image edge is outlined only where the
+    image shows it.  With ``k`` of the ``K``
     points kept, :math:`F = (K / k) \sum_{kept} d_i^2`, which is the paper's plain sum
     when nothing is left out.  :meth:`distances` always returns all ``K`` points (the
     paper's metrics use them).
@@ -83,6 +87,7 @@ class Objective:
     nipple: np.ndarray           # real nipple n_p
     ends: np.ndarray | None = None   # (2, 2) end points of an open real contour
     reject_mm: float = 0.0
+    extent: np.ndarray | None = None  # (width, height) mm of the real image: points off it are left out
 
     def points(self, theta_deg: float) -> np.ndarray:
         """Virtual points after superposition and rotation by ``theta_deg``."""
@@ -92,10 +97,12 @@ class Objective:
         p = self.points(theta_deg)
         c = self.closest(p)
         d = np.linalg.norm(p - c, axis=1)
-        if self.ends is None or self.reject_mm <= 0.0:
-            return d, np.ones(len(d), bool)
-        to_end = np.linalg.norm(c[:, None, :] - self.ends[None], axis=2).min(axis=1)
-        return d, to_end > self.reject_mm
+        keep = np.ones(len(d), bool)
+        if self.ends is not None and self.reject_mm > 0.0:
+            keep &= np.linalg.norm(c[:, None, :] - self.ends[None], axis=2).min(axis=1) > self.reject_mm
+        if self.extent is not None:
+            keep &= (p >= 0.0).all(axis=1) & (p <= self.extent).all(axis=1)
+        return d, keep
 
     def distances(self, theta_deg: float) -> np.ndarray:
         """Per-point closest distances (mm) at ``theta_deg`` (every point)."""
@@ -271,9 +278,9 @@ def _breast_objective(virtual: np.ndarray, real: np.ndarray, *, nv: np.ndarray, 
 
 def _tumour_objective(virtual: list[np.ndarray], real: list[np.ndarray],
                       pairs: list[tuple[int, int]], *, nv: np.ndarray, npr: np.ndarray,
-                      cfg: RegistrationConfig) -> Objective:
+                      cfg: RegistrationConfig, extent: np.ndarray | None = None) -> Objective:
     """F_t over the paired outlines: each virtual outline's points matched on its own real
-    outline only (:func:`.geometry.pair_outlines`)."""
+    outline only (:func:`.geometry.pair_outlines`), those off the real image left out."""
     vs, parts, n = [], [], 0
     for j, k in pairs:
         v = G.resample(virtual[j], cfg.resample_mm, closed=True)
@@ -283,7 +290,21 @@ def _tumour_objective(virtual: list[np.ndarray], real: list[np.ndarray],
         vs.append(v)
         n += len(v)
     cp = parts[0][1] if len(parts) == 1 else G.PairedClosestPoints(parts)
-    return Objective(np.vstack(vs) - nv, cp, npr)
+    return Objective(np.vstack(vs) - nv, cp, npr, extent=extent)
+
+
+def image_extent(v: MammogramView) -> np.ndarray | None:
+    """(width, height) mm of a real view's image in the canonical frame (x from the
+    chest-wall edge, y down, from the image's corner), from the reader's pixel grid; None
+    when the view does not say (a view not read from an image)."""
+    im = (v.meta or {}).get("image") or {}
+    o, sp = im.get("orientation"), im.get("spacing_mm")
+    if not o or sp is None:
+        return None
+    rows, cols = o["source_shape"][:2]
+    if o.get("transpose"):
+        rows, cols = cols, rows
+    return np.array([cols * float(sp[1]), rows * float(sp[0])])
 
 
 def _search(obj: Objective, lo: float, hi: float, cfg: RegistrationConfig) -> GoldenResult:
@@ -437,7 +458,7 @@ def align(real: MammogramView, virtual: MammogramView, *,
         for k in sorted(set(range(len(rtc))) - {k for _, k in pairs}):
             warnings.append(f"tumour outline {k + 1} of the real view has no tumour in the model "
                             "near it: left out of theta_p,t")
-        ot = _tumour_objective(vt, rtc, pairs, nv=nv, npr=npr, cfg=cfg)
+        ot = _tumour_objective(vt, rtc, pairs, nv=nv, npr=npr, cfg=cfg, extent=image_extent(real))
         rt = _search(ot, lo, hi, cfg)
         if rt.at_edge:
             warnings.append(f"theta_p,t = {rt.x:.2f} deg is at the edge of the search bracket "
