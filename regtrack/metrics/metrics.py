@@ -183,8 +183,11 @@ def compute_metrics(alignment: Alignment, real: MammogramView, virtual: Mammogra
     real_t, virt_t = list(real.tumour_contours), list(alignment.tumour_contours or [])
     # also on a breast-only registration (outlines given, use_tumour = false): then d_T is
     # the error of a prediction that did not see the tumour, its outlines paired at theta_p
-    pairs = alignment.tumour_pairs or G.pair_outlines(virt_t, real_t)
-    pairs = [(j, k) for j, k in pairs if _is_area(virt_t[j]) and _is_area(real_t[k])]
+    vi = [j for j, c in enumerate(virt_t) if _is_area(c)]
+    ri = [k for k, c in enumerate(real_t) if _is_area(c)]
+    pairs = alignment.tumour_pairs or [
+        (vi[a], ri[b]) for a, b in G.pair_outlines([virt_t[j] for j in vi], [real_t[k] for k in ri])]
+    pairs = [(j, k) for j, k in pairs if j in vi and k in ri]
     if pairs:
         tr, tv = _union([real_t[k] for _, k in pairs]), _union([virt_t[j] for j, _ in pairs])
         d_T = float(math.hypot(tr.centroid.x - tv.centroid.x, tr.centroid.y - tv.centroid.y))

@@ -108,9 +108,12 @@ class PairedClosestPoints:
 
 def area_centroid(poly: np.ndarray) -> np.ndarray:
     """(2,) area centroid (mm) of a closed contour (its vertex mean when it has no area)."""
-    g = polygon(poly)
+    p = np.asarray(poly, float).reshape(-1, 2)
+    if len(np.unique(p, axis=0)) < 3:
+        return p.mean(axis=0) if len(p) else np.full(2, np.nan)
+    g = polygon(p)
     if g.is_empty or g.area <= 0.0:
-        return np.asarray(poly, float).mean(axis=0)
+        return p.mean(axis=0)
     return np.array([g.centroid.x, g.centroid.y])
 
 
