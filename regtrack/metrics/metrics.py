@@ -109,12 +109,6 @@ def dice(a, b) -> float:
     return float(2.0 * a.intersection(b).area / s) if s > 0 else float("nan")
 
 
-def _is_area(contour) -> bool:
-    """A contour that encloses a region: at least three distinct points."""
-    c = np.asarray(contour, float).reshape(-1, 2)
-    return len(np.unique(c, axis=0)) >= 3
-
-
 def _union(contours: list[np.ndarray]):
     from shapely.ops import unary_union
 
@@ -183,11 +177,7 @@ def compute_metrics(alignment: Alignment, real: MammogramView, virtual: Mammogra
     real_t, virt_t = list(real.tumour_contours), list(alignment.tumour_contours or [])
     # also on a breast-only registration (outlines given, use_tumour = false): then d_T is
     # the error of a prediction that did not see the tumour, its outlines paired at theta_p
-    vi = [j for j, c in enumerate(virt_t) if _is_area(c)]
-    ri = [k for k, c in enumerate(real_t) if _is_area(c)]
-    pairs = alignment.tumour_pairs or [
-        (vi[a], ri[b]) for a, b in G.pair_outlines([virt_t[j] for j in vi], [real_t[k] for k in ri])]
-    pairs = [(j, k) for j, k in pairs if j in vi and k in ri]
+    pairs = alignment.tumour_pairs or G.pair_outlines(virt_t, real_t)
     if pairs:
         tr, tv = _union([real_t[k] for _, k in pairs]), _union([virt_t[j] for j, _ in pairs])
         d_T = float(math.hypot(tr.centroid.x - tv.centroid.x, tr.centroid.y - tv.centroid.y))

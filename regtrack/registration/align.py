@@ -297,13 +297,13 @@ def image_extent(v: MammogramView) -> np.ndarray | None:
     """(width, height) mm of a real view's image in the canonical frame (x from the
     chest-wall edge, y down, from the image's corner), from the reader's pixel grid; None
     when the view does not say (a view not read from an image)."""
+    from regtrack.imaging.mammogram.orient import Orientation
+
     im = (v.meta or {}).get("image") or {}
     o, sp = im.get("orientation"), im.get("spacing_mm")
     if not o or sp is None:
         return None
-    rows, cols = o["source_shape"][:2]
-    if o.get("transpose"):
-        rows, cols = cols, rows
+    rows, cols = Orientation(tuple(o["source_shape"][:2]), bool(o.get("transpose"))).shape
     return np.array([cols * float(sp[1]), rows * float(sp[0])])
 
 

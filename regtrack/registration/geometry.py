@@ -106,13 +106,17 @@ class PairedClosestPoints:
         return out
 
 
+def has_area(contour) -> bool:
+    """A contour that can enclose a region: finite, with at least three distinct points."""
+    p = np.asarray(contour, float).reshape(-1, 2)
+    return bool(np.isfinite(p).all()) and len(np.unique(p, axis=0)) >= 3
+
+
 def area_centroid(poly: np.ndarray) -> np.ndarray:
     """(2,) area centroid (mm) of a closed contour (its vertex mean when it has no area)."""
     p = np.asarray(poly, float).reshape(-1, 2)
-    if len(np.unique(p, axis=0)) < 3:
-        return p.mean(axis=0) if len(p) else np.full(2, np.nan)
-    g = polygon(p)
-    if g.is_empty or g.area <= 0.0:
+    g = polygon(p) if has_area(p) else None
+    if g is None or g.is_empty or g.area <= 0.0:
         return p.mean(axis=0)
     return np.array([g.centroid.x, g.centroid.y])
 
@@ -139,11 +143,13 @@ def pair_outlines(virtual: list[np.ndarray], real: list[np.ndarray]) -> list[tup
     A model may hold a lesion that the mammogram does not show (outside the detector, or
     not outlined) and an image an outline the model has no lesion for; the outlines left
     over on either side have no pair, so that nothing is compared with the wrong lesion.
-    With one outline on each side this is the single pair ``(0, 0)``.
+    With one outline on each side this is the single pair ``(0, 0)``.  Only outlines with
+    an area (:func:`has_area`) are paired.
     """
-    if not virtual or not real:
-        return []
-    return pair_points([area_centroid(v) for v in virtual], [area_centroid(r) for r in real])
+    vi = [j for j, c in enumerate(virtual) if has_area(c)]
+    ri = [k for k, c in enumerate(real) if has_area(c)]
+    pairs = pair_points([area_centroid(virtual[j]) for j in vi], [area_centroid(real[k]) for k in ri])
+    return [(vi[a], ri[b]) for a, b in pairs]
 
 
 def polygon(poly: np.ndarray):
