@@ -7,6 +7,10 @@ Why the tolerances:
 * the potential's gradient: central differences of ``Pi_S`` along random directions (h =
   1e-6 mm) to 1e-6 relative; the distance is C1 across the triangle's Voronoi regions, so
   the directional derivative is exact away from measure-zero switches;
+* the distance's Hessian and a pair's Hessian: central differences (h = 1e-6 mm) of the
+  exact gradient, within one Voronoi region of the triangle (the probes are 0.3 mm or more
+  from a region's border), to 1e-7 absolute on entries of order 0.05-1 (1/mm) and 1e-6
+  relative on the pair's Hessian (round-off 1e-16 / h on gradients of order 1);
 * two equal boxes pressed together between clamped faces: by mirror symmetry the bonded
   stack has no shear on its mid-plane, so a frictionless contact there carries the force of
   the bonded 8 mm box compressed by the same amount less the contact gap; 3 % covers the
@@ -24,10 +28,10 @@ from regtrack.mechanics.config import MechanicsConfig
 from regtrack.mechanics.contact import ContactConfig, tributary_areas
 from regtrack.mechanics.meshes import boundary_faces, box_model
 from regtrack.mechanics.minimise import minimise_step
-from regtrack.mechanics.overlap import overlaps
+from regtrack.mechanics.overlap import closest_on_triangle, overlaps
 from regtrack.mechanics.placement import BodySetup, skin_barrier
 from regtrack.mechanics.problem import build_problem
-from regtrack.mechanics.selfcontact import CCD_SAFETY, SkinBarrier, barrier
+from regtrack.mechanics.selfcontact import CCD_SAFETY, SkinBarrier, barrier, distance_hessian
 from regtrack.model.types import BreastModel
 
 DHAT = 0.5
@@ -87,6 +91,79 @@ def test_the_gradient_is_that_of_the_potential_and_the_hessian_is_psd():
     np.add.at(H, idx, vals)
     w = np.linalg.eigvalsh(H)
     assert np.allclose(H, H.T) and w.min() >= -1e-10 * w.max()
+
+
+#: a triangle and points above its face, beside each edge and beyond each corner
+_TRIANGLE = np.array([[0.0, 0.0, 0.0], [10.0, 0.0, 0.0], [2.0, 8.0, 0.0]])
+_PROBES = {"face": (3.0, 2.0, 0.3), "edge 0-1": (5.0, -1.5, 0.3), "edge 1-2": (7.0, 5.0, 0.2),
+           "edge 2-0": (-0.8, 4.0, 0.4), "corner 0": (-1.0, -1.0, 0.3),
+           "corner 1": (11.0, -0.5, 0.2), "corner 2": (2.0, 9.0, 0.3)}
+
+
+def _distance_gradient(y: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """dd/dy (12,) of the point-triangle distance at ``y`` = (point, 3 corners), with the
+    weights and ``r`` of the closest point."""
+    p, c = y[:3], y[3:].reshape(3, 3)
+    q, w = closest_on_triangle(p[None], c[None, 0], c[None, 1], c[None, 2])
+    r = p - q[0]
+    n = r / np.linalg.norm(r)
+    return np.concatenate([n, *(-w[0, k] * n for k in range(3))]), w[0], r
+
+
+@pytest.mark.parametrize("region", list(_PROBES))
+def test_the_distance_hessian_is_that_of_the_distance(region):
+    """``distance_hessian`` against central differences of the exact gradient, in every
+    Voronoi region of a triangle turned at random in space."""
+    rng = np.random.default_rng(len(region))
+    R = np.linalg.qr(rng.standard_normal((3, 3)))[0]
+    y = np.concatenate([np.array(_PROBES[region]) @ R.T, (_TRIANGLE @ R.T).ravel()])
+    _, w, r = _distance_gradient(y)
+    H = distance_hessian(r[None], w[None], y[3:].reshape(1, 3, 3))[0]
+    h = 1e-6
+    fd = np.stack([(_distance_gradient(y + h * e)[0] - _distance_gradient(y - h * e)[0]) / (2 * h)
+                   for e in np.eye(12)], axis=1)
+    assert np.abs(fd).max() > 0.05
+    assert np.allclose(H, fd, rtol=0.0, atol=1e-7)
+
+
+#: points within the barrier's reach of ``_TRIANGLE``: above the face, beside an edge, beyond a corner
+_NEAR = {"face": (3.0, 2.0, 0.3), "edge 1-2": (6.15, 4.15, 0.2), "corner 0": (-0.2, -0.25, 0.2)}
+
+
+@pytest.mark.parametrize("region", list(_NEAR))
+def test_a_pairs_hessian_is_its_whole_hessian_projected(region):
+    """One node within reach of one triangle (its own triangle turned away): the barrier's
+    Hessian is the finite-difference Hessian of its energy with the negative eigenvalues
+    clamped, including the distance's own curvature (``b' d^2d``), not only ``b'' g g^T``."""
+    T = _TRIANGLE
+    p = np.array(_NEAR[region])
+    out = p[:2] - T[:, :2].mean(axis=0)
+    a = np.append(out / np.linalg.norm(out), 1.0)             # up and away from the triangle
+    b = np.array([-a[1], a[0], 0.0])
+    X = np.vstack([T, p, p + 6.0 * a + 3.0 * b, p + 6.0 * a - 3.0 * b])
+    F = np.array([[0, 1, 2], [3, 4, 5]])
+    bar = SkinBarrier(X, F, np.ones(len(X)), kappa=0.02, dhat=DHAT)
+    u = np.zeros_like(X)
+    e = bar.evaluate(u, hessian=True)
+    # beyond a corner, the node and that corner are each other's nearest (the same term twice)
+    assert e.n_active == (2 if region.startswith("corner") else 1)
+    pairs, _ = bar.near(u, 0.01 * np.ones_like(u))
+    h = 1e-6
+    fd = np.stack([(bar.evaluate(u + h * v.reshape(-1, 3), pairs).grad
+                    - bar.evaluate(u - h * v.reshape(-1, 3), pairs).grad) / (2 * h)
+                   for v in np.eye(u.size)], axis=1)
+    lam, V = np.linalg.eigh(0.5 * (fd + fd.T))
+    want = V @ np.diag(np.maximum(lam, 0.0)) @ V.T
+    rows, cols, vals = e.hess
+    H = np.zeros_like(fd)
+    np.add.at(H, (rows, cols), vals)
+    assert np.allclose(H, want, rtol=1e-6, atol=1e-6 * np.abs(want).max())
+    # the Gauss-Newton part alone (rank one, along the gradient) misses the distance's
+    # curvature along a triangle turning under the node; beyond a corner that curvature is
+    # negative (the distance to a point is convex, b' < 0) and the projection removes it
+    g = e.grad / np.linalg.norm(e.grad)
+    rank_one = np.allclose(H, np.outer(g, g) * (g @ H @ g), rtol=1e-3, atol=1e-3 * np.abs(want).max())
+    assert rank_one == region.startswith("corner")
 
 
 def test_no_step_crosses_a_triangle():

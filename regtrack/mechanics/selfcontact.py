@@ -25,12 +25,25 @@ boundary node can enter the tissue: the skin may touch itself, pressing with ``-
 b'(d)`` (MPa), but not go through.
 
 Derivatives (envelope theorem; ``q = sum_k w_k v_k`` the closest point of ``T`` with its
-barycentric weights, ``n = (x_i - q) / d``): ``dd/dx_i = n``, ``dd/dv_k = -w_k n``: exact in
-every Voronoi region of the triangle.  The Hessian handed to Newton is the Gauss-Newton
-part ``kappa A_i b''(d) g g^T`` (``g`` the 12 derivatives above): ``b'' > 0`` on ``(0,
-dhat)``, so it is positive semi-definite.  The part ``kappa A_i b'(d) d^2d/dx^2`` is left
-out: ``b' < 0`` and the distance is convex in the node, so in the node's own block it is
-negative semi-definite and would be clamped by a projection anyway.
+barycentric weights, ``n = (x_i - q) / d``): ``g = dd/dy`` is ``n`` for ``x_i`` and ``-w_k
+n`` for ``v_k`` (``y`` the pair's 12 coordinates): exact in every Voronoi region of the
+triangle.  The Hessian of a pair's term, ``kappa A_i (b''(d) g g^T + b'(d) d^2d/dy^2)``, is
+projected onto the positive semi-definite cone (its 12 eigenvalues clamped at zero; IPC,
+section 4.3).  Its second part matters: the distance is concave along a triangle turning
+under a node, and without that curvature Newton's steps overshoot a fold's equilibrium and
+alternate across it, each only a few percent shorter than the last.  ``d^2d/dy^2`` (:func:`distance_hessian`) follows from
+``f = |r|^2 / 2``, ``r = x_i - v_a - E t``: the closest point in the region's own
+parameters ``t`` (a face: the weights of ``v_1``, ``v_2``; an edge: that of its second
+end; a corner: none) with ``E`` the edges from ``v_a``, and the minimum over ``t``
+differentiated twice (implicit function theorem):
+
+.. math::
+
+    \nabla^2 f = A^T A - G^T (E^T E)^{-1} G, \qquad
+    \nabla^2 d = (\nabla^2 f - g g^T) / d,
+
+``A = dr/dy = [I, -w_0 I, -w_1 I, -w_2 I]`` and row ``j`` of ``G`` the derivative of
+``e_j . r`` (``e_j^T A``, plus ``r`` at ``v_j`` and ``-r`` at ``v_a``).
 
 Steps that cannot cross (additive continuous collision detection; Li et al., *Codimensional
 IPC*, 2021): moving the nodes by ``alpha Delta``, with ``c`` the mean motion of the pair's
@@ -105,6 +118,54 @@ def barrier(d: np.ndarray, dhat: float) -> tuple[np.ndarray, np.ndarray, np.ndar
     return b, b1, b2
 
 
+def distance_hessian(r: np.ndarray, w: np.ndarray, corners: np.ndarray) -> np.ndarray:
+    """``d^2 d / dy^2`` (P, 12, 12), 1/mm, of the distances ``d = |r|`` between points and
+    triangles (module docstring): ``r`` (P, 3) from the closest point to the point, ``w``
+    (P, 3) its barycentric weights (zero off the Voronoi region's corners), ``corners``
+    (P, 3, 3) the triangles; ``y`` = (point, corner 0, corner 1, corner 2) coordinates."""
+    P = len(r)
+    d = np.linalg.norm(r, axis=1)
+    c = np.concatenate([np.ones((P, 1)), -w], axis=1)                      # A = c (x) I
+    eye = np.eye(3)
+    AtA = (c[:, :, None, None, None] * c[:, None, None, :, None] * eye[None, None, :, None, :])
+    H = AtA.reshape(P, 12, 12)
+    # the region's free parameters: the active corners after the first one
+    active = w > 0.0
+    a = np.argmax(active, axis=1)                                          # v_a
+    G = np.zeros((P, 2, 12))
+    E = np.zeros((P, 2, 3))
+    mask = np.zeros((P, 2), bool)
+    rows = np.arange(P)
+    slot = np.zeros(P, np.int64)
+    for j in range(3):
+        use = active[:, j] & (j != a)
+        k = slot[use]
+        e = corners[use, j] - corners[rows[use], a[use]]
+        E[use, k] = e
+        mask[use, k] = True
+        g = (c[use, :, None] * e[:, None, :]).reshape(-1, 12)              # e_j^T A
+        g[:, 3 + 3 * j: 6 + 3 * j] += r[use]
+        ia = 3 + 3 * a[use]
+        g[np.arange(len(ia))[:, None], ia[:, None] + np.arange(3)] -= r[use]
+        G[use, k] = g
+        slot[use] += 1
+    EtE = np.einsum("pik,pjk->pij", E, E)
+    EtE[~mask] = 0.0
+    EtE[:, 0, 0] = np.where(mask[:, 0], EtE[:, 0, 0], 1.0)
+    EtE[:, 1, 1] = np.where(mask[:, 1], EtE[:, 1, 1], 1.0)
+    EtE[:, 0, 1] = np.where(mask[:, 0] & mask[:, 1], EtE[:, 0, 1], 0.0)
+    EtE[:, 1, 0] = EtE[:, 0, 1]
+    H -= np.einsum("pki,pkl,plj->pij", G, np.linalg.inv(EtE), G)
+    grad = (c[:, :, None] * (r / d[:, None])[:, None, :]).reshape(P, 12)
+    return (H - grad[:, :, None] * grad[:, None, :]) / d[:, None, None]
+
+
+def _psd(H: np.ndarray) -> np.ndarray:
+    """The symmetric matrices ``H`` (P, n, n) with their negative eigenvalues clamped to zero."""
+    lam, V = np.linalg.eigh(0.5 * (H + np.swapaxes(H, 1, 2)))
+    return np.einsum("pik,pk,pjk->pij", V, np.maximum(lam, 0.0), V)
+
+
 def _midrange(v: np.ndarray) -> np.ndarray:
     """The middle (3,) of the bounding box of the vectors ``v`` (K, 3): the common
     translation whose removal leaves the smallest largest vector."""
@@ -139,7 +200,7 @@ class Pairs:
 
 @dataclass
 class BarrierEval:
-    """The barrier at one state: ``energy`` (N mm), ``grad`` (3N,) N, the Gauss-Newton
+    """The barrier at one state: ``energy`` (N mm), ``grad`` (3N,) N, the projected
     Hessian as ``(rows, cols, vals)`` dof triplets (N/mm; None unless asked), the number of
     pairs within reach and the smallest distance (mm; inf without pairs)."""
 
@@ -362,7 +423,12 @@ class SkinBarrier:
         hess = None
         if hessian:
             gf = g.reshape(-1, 12)
-            vals = (k * b2)[:, None, None] * gf[:, :, None] * gf[:, None, :]
+            vals = np.zeros((len(node), 12, 12))
+            act = np.flatnonzero(d < self.dhat)        # beyond the reach: zero blocks
+            if len(act):
+                Hd = distance_hessian(x[node[act]] - q[act], w[act], x[self.faces[tri[act]]])
+                vals[act] = _psd(k[act, None, None] * (b2[act, None, None] * gf[act, :, None]
+                                                       * gf[act, None, :] + b1[act, None, None] * Hd))
             rows = np.repeat(dofs, 12, axis=1).reshape(-1)
             cols = np.tile(dofs, (1, 12)).reshape(-1)
             hess = (rows, cols, vals.reshape(-1))
