@@ -155,7 +155,8 @@ def distance_hessian(r: np.ndarray, w: np.ndarray, corners: np.ndarray) -> np.nd
     EtE[:, 1, 1] = np.where(mask[:, 1], EtE[:, 1, 1], 1.0)
     EtE[:, 0, 1] = np.where(mask[:, 0] & mask[:, 1], EtE[:, 0, 1], 0.0)
     EtE[:, 1, 0] = EtE[:, 0, 1]
-    H -= np.einsum("pki,pkl,plj->pij", G, np.linalg.inv(EtE), G)
+    # pinv: a triangle crushed to a segment has a singular E^T E (no curvature term there)
+    H -= np.swapaxes(G, 1, 2) @ np.linalg.pinv(EtE, rcond=1e-10, hermitian=True) @ G
     grad = (c[:, :, None] * (r / d[:, None])[:, None, :]).reshape(P, 12)
     return (H - grad[:, :, None] * grad[:, None, :]) / d[:, None, None]
 
@@ -163,7 +164,7 @@ def distance_hessian(r: np.ndarray, w: np.ndarray, corners: np.ndarray) -> np.nd
 def _psd(H: np.ndarray) -> np.ndarray:
     """The symmetric matrices ``H`` (P, n, n) with their negative eigenvalues clamped to zero."""
     lam, V = np.linalg.eigh(0.5 * (H + np.swapaxes(H, 1, 2)))
-    return np.einsum("pik,pk,pjk->pij", V, np.maximum(lam, 0.0), V)
+    return (V * np.maximum(lam, 0.0)[:, None, :]) @ np.swapaxes(V, 1, 2)
 
 
 def _midrange(v: np.ndarray) -> np.ndarray:
