@@ -126,6 +126,14 @@ def test_the_distance_hessian_is_that_of_the_distance(region):
     assert np.allclose(H, fd, rtol=0.0, atol=1e-7)
 
 
+def test_the_distance_hessian_of_a_crushed_triangle_is_finite():
+    """A triangle crushed to a segment (its corners on a line) has no face region; the
+    point's distance to it is that to the segment, whose Hessian is finite."""
+    corners = np.array([[[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [2.0, 0.0, 0.0]]])
+    H = distance_hessian(np.array([[0.0, 0.0, 0.3]]), np.array([[0.3, 0.4, 0.3]]), corners)
+    assert np.all(np.isfinite(H)) and np.allclose(H, np.swapaxes(H, 1, 2))
+
+
 #: points within the barrier's reach of ``_TRIANGLE``: above the face, beside an edge, beyond a corner
 _NEAR = {"face": (3.0, 2.0, 0.3), "edge 1-2": (6.15, 4.15, 0.2), "corner 0": (-0.2, -0.25, 0.2)}
 
