@@ -31,11 +31,11 @@ triangle.  The Hessian of a pair's term, ``kappa A_i (b''(d) g g^T + b'(d) d^2d/
 projected onto the positive semi-definite cone (its 12 eigenvalues clamped at zero; IPC,
 section 4.3).  Its second part matters: the distance is concave along a triangle turning
 under a node, and without that curvature Newton's steps overshoot a fold's equilibrium and
-alternate across it, each only a few percent shorter than the last.  ``d^2d/dy^2`` (:func:`distance_hessian`) follows from
-``f = |r|^2 / 2``, ``r = x_i - v_a - E t``: the closest point in the region's own
-parameters ``t`` (a face: the weights of ``v_1``, ``v_2``; an edge: that of its second
-end; a corner: none) with ``E`` the edges from ``v_a``, and the minimum over ``t``
-differentiated twice (implicit function theorem):
+alternate across it, each only a few percent shorter than the last.  ``d^2d/dy^2``
+(:func:`distance_hessian`) follows from ``f = |r|^2 / 2``, ``r = x_i - v_a - E t``: the
+closest point in the region's own parameters ``t`` (a face: the weights of ``v_1``,
+``v_2``; an edge: that of its second end; a corner: none) with ``E`` the edges from
+``v_a``, and the minimum over ``t`` differentiated twice (implicit function theorem):
 
 .. math::
 
@@ -149,12 +149,7 @@ def distance_hessian(r: np.ndarray, w: np.ndarray, corners: np.ndarray) -> np.nd
         g[np.arange(len(ia))[:, None], ia[:, None] + np.arange(3)] -= r[use]
         G[use, k] = g
         slot[use] += 1
-    EtE = np.einsum("pik,pjk->pij", E, E)
-    EtE[~mask] = 0.0
-    EtE[:, 0, 0] = np.where(mask[:, 0], EtE[:, 0, 0], 1.0)
-    EtE[:, 1, 1] = np.where(mask[:, 1], EtE[:, 1, 1], 1.0)
-    EtE[:, 0, 1] = np.where(mask[:, 0] & mask[:, 1], EtE[:, 0, 1], 0.0)
-    EtE[:, 1, 0] = EtE[:, 0, 1]
+    EtE = E @ np.swapaxes(E, 1, 2) + (~mask)[:, :, None] * np.eye(2)       # 1 for an unused slot
     # pinv: a triangle crushed to a segment has a singular E^T E (no curvature term there)
     H -= np.swapaxes(G, 1, 2) @ np.linalg.pinv(EtE, rcond=1e-10, hermitian=True) @ G
     grad = (c[:, :, None] * (r / d[:, None])[:, None, :]).reshape(P, 12)
@@ -428,8 +423,9 @@ class SkinBarrier:
             act = np.flatnonzero(d < self.dhat)        # beyond the reach: zero blocks
             if len(act):
                 Hd = distance_hessian(x[node[act]] - q[act], w[act], x[self.faces[tri[act]]])
-                vals[act] = _psd(k[act, None, None] * (b2[act, None, None] * gf[act, :, None]
-                                                       * gf[act, None, :] + b1[act, None, None] * Hd))
+                ga = gf[act]
+                vals[act] = _psd(k[act, None, None] * (b2[act, None, None] * ga[:, :, None]
+                                                       * ga[:, None, :] + b1[act, None, None] * Hd))
             rows = np.repeat(dofs, 12, axis=1).reshape(-1)
             cols = np.tile(dofs, (1, 12)).reshape(-1)
             hess = (rows, cols, vals.reshape(-1))
