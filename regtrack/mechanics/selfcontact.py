@@ -135,19 +135,17 @@ def distance_hessian(r: np.ndarray, w: np.ndarray, corners: np.ndarray) -> np.nd
     G = np.zeros((P, 2, 12))
     E = np.zeros((P, 2, 3))
     mask = np.zeros((P, 2), bool)
-    rows = np.arange(P)
     slot = np.zeros(P, np.int64)
     for j in range(3):
-        use = active[:, j] & (j != a)
+        use = np.flatnonzero(active[:, j] & (j != a))
         k = slot[use]
-        e = corners[use, j] - corners[rows[use], a[use]]
+        e = corners[use, j] - corners[use, a[use]]
         E[use, k] = e
         mask[use, k] = True
-        g = (c[use, :, None] * e[:, None, :]).reshape(-1, 12)              # e_j^T A
-        g[:, 3 + 3 * j: 6 + 3 * j] += r[use]
-        ia = 3 + 3 * a[use]
-        g[np.arange(len(ia))[:, None], ia[:, None] + np.arange(3)] -= r[use]
-        G[use, k] = g
+        g = c[use, :, None] * e[:, None, :]                                # e_j^T A, (n, 4, 3)
+        g[:, 1 + j] += r[use]
+        g[np.arange(len(use)), 1 + a[use]] -= r[use]
+        G[use, k] = g.reshape(-1, 12)
         slot[use] += 1
     EtE = E @ np.swapaxes(E, 1, 2) + (~mask)[:, :, None] * np.eye(2)       # 1 for an unused slot
     # pinv: a triangle crushed to a segment has a singular E^T E (no curvature term there)
