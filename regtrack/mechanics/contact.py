@@ -69,10 +69,12 @@ class ContactConfig:
                                       gt=0.0, le=5.0)
     max_penetration_mm: float = param(0.1, "mm", "guard rail: a converged step with a deeper "
                                       "penetration is rejected", gt=0.0)
-    friction_tol: float = param(0.005, "-", "accepted error of the lagged friction bound at "
+    friction_tol: float = param(0.001, "-", "accepted error of the lagged friction bound at "
                                 "the end of an increment, relative to mu times the plate's "
-                                "normal force (or the step's load scale, when larger)", gt=0.0,
-                                le=0.5)
+                                "normal force (or the step's load scale, when larger); a "
+                                "frictional end state is determined only to this, so it is "
+                                "tight enough that rounding moves no node by 0.1 mm",
+                                gt=0.0, le=0.5)
     first_plate_increment_mm: float = param(2.0, "mm", "protocols: largest plate travel of the "
                                             "first increment of a plate move (the first "
                                             "contact of a plate is the hardest increment)",
