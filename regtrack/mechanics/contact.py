@@ -72,10 +72,8 @@ class ContactConfig:
     friction_tol: float = param(0.001, "-", "accepted error of the lagged friction bound at "
                                 "the end of an increment, relative to mu times the plate's "
                                 "normal force (or the step's load scale, when larger); a "
-                                "frictional end state is determined only to this (Pelicano "
-                                "exam 12 R CC: 2.5 mm between rounding variants at 0.005, "
-                                "0.009 mm at 0.001)",
-                                gt=0.0, le=0.5)
+                                "frictional end state is determined only to this tolerance "
+                                "(docs/physics.md)", gt=0.0, le=0.5)
     first_plate_increment_mm: float = param(2.0, "mm", "protocols: largest plate travel of the "
                                             "first increment of a plate move (the first "
                                             "contact of a plate is the hardest increment)",
