@@ -20,6 +20,7 @@ from regtrack.mechanics.config import MechanicsConfig
 from regtrack.mechanics.meshes import hemisphere_model
 from regtrack.mechanics.protocol import shipped_protocol
 from regtrack.mechanics.run_view import run_protocol_on_model, write_outputs
+from regtrack.mechanics.support import squeeze_weights
 
 
 @pytest.fixture(scope="module")
@@ -36,7 +37,7 @@ def _balance(model, rec):
 @pytest.mark.slow
 @pytest.mark.parametrize("view, target", [("cc", 0.38), ("mlo", 0.28)])
 def test_shipped_protocol_runs_on_hemisphere(model, view, target, tmp_path):
-    res, timing = run_protocol_on_model(model, shipped_protocol(view), mechanics=MechanicsConfig())
+    res, _ = run_protocol_on_model(model, shipped_protocol(view), mechanics=MechanicsConfig())
     assert res.complete
     last = res.steps[-1]
     assert last.D == pytest.approx(target, abs=1e-9)
@@ -46,17 +47,24 @@ def test_shipped_protocol_runs_on_hemisphere(model, view, target, tmp_path):
     for rec in res.steps:
         if "chest_wall_reaction_N" in rec.solver:
             assert np.abs(_balance(model, rec)).max() < MechanicsConfig().solver.balance_tol * max(up, 1.0), rec.name
-    # once both plates hold the breast its base follows them along their normal and is held
-    # across it (regtrack.mechanics.support): the wall carries nothing along the normal, and
-    # the base moves across it by at most 1/HELD_FACTOR of what the layer would let it
-    n = np.asarray(last.plates["lower"]["normal"])
+    # once both plates hold the breast the body beyond the chest wall is squeezed with them
+    # (regtrack.mechanics.support): the base follows, each node along the normal by its
+    # share w of the travel (on average within 5 % of the travel: the layer's stretch),
+    # and moves across it far less (the tissue's sideways bulge dragging the layer: under
+    # 10 % of the travel; 6 % measured on the CC)
+    touch = res.steps[-2].u  # the upper plate touches after the standing gravity, unsolved
+    low = last.plates["lower"]
+    n = np.asarray(low["normal"])
     t = np.cross([1.0, 0.0, 0.0], n)
     t /= np.linalg.norm(t)
-    react = np.asarray(last.solver["chest_wall_reaction_N"])
-    assert abs(react @ n) < 1e-3 * up
     base = model.fixed
-    assert np.abs(last.u[base] @ n).max() > 2.0
-    assert np.abs(last.u[base] @ t).max() < 0.05
+    w = squeeze_weights(model.points[base] + touch[base], low["origin_mm"], n, last.T0_mm)
+    moved = (last.u[base] - touch[base]) @ n
+    travel = last.T0_mm - last.gap_mm
+    between = (w > 0) & (w < 1)
+    assert between.sum() > 10
+    assert abs(np.mean(-moved[between] - w[between] * travel)) < 0.05 * travel
+    assert np.abs((last.u[base] - touch[base]) @ t).max() < 0.1 * travel
     files = write_outputs(res, model, tmp_path, stem=f"hemi_{view}")
     doc = json.loads(files["json"].read_text())
     assert doc["summary"]["D"] == pytest.approx(target)

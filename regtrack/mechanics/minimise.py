@@ -263,9 +263,8 @@ def minimiser_from_problem(problem: Problem, *, options=None, progress: Progress
     :func:`minimise_step`: as the :class:`.protocol_run.StepControl` asks, a plate move in
     increments of ``max_increment`` (its plate travel cap), a single increment, or a
     gravity change in ``1 / initial_increment`` increments.  Once both plates hold the
-    breast (``control.plate_normal``) the chest-wall base follows them
-    (:meth:`.support.WallSupport.following`), released over the step from the layer when
-    ``control.release``.  The stats carry the chest-wall
+    breast the chest-wall layer's far side moves with them (``control.body_motion``,
+    :meth:`.support.WallSupport.moved`).  The stats carry the chest-wall
     reaction (N) and the force balance; a state whose balance misses ``stall_force_tol``
     (0.5 % by default) is never returned."""
     o = options or problem.config.solver
@@ -281,16 +280,15 @@ def minimiser_from_problem(problem: Problem, *, options=None, progress: Progress
             n = int(np.ceil(1.0 / o.initial_increment - 1e-9))
         cfg = contribs[0].config if contribs else None
         layer = problem.support
-        ramp = None
-        if layer is not None and control.plate_normal is not None:
-            problem.support = layer.following(control.plate_normal)
-            if control.release:
-                def ramp(t):
-                    return layer.following(control.plate_normal, released=t)
+        moved = None
+        if layer is not None and control.body_motion is not None:
+            def moved(t):
+                return layer.moved(control.body_motion(t))
+            problem.support = moved(1.0)  # the step's end: its reaction and balance
         try:
             u, st, r = minimise_step(problem, u0, gravity=lambda t: g0 + t * (g1 - g0), contacts=contribs,
                                      n_increments=n, options=o, config=cfg, progress=progress,
-                                     step_name=name, T0_mm=control.T0_mm, support=ramp)
+                                     step_name=name, T0_mm=control.T0_mm, support=moved)
             out = st.to_dict()
             if problem.model.fixed.any():
                 out["chest_wall_reaction_N"] = chest_wall_reaction(problem, u, r).tolist()

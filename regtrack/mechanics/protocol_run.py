@@ -16,14 +16,14 @@ near the wall is reported apart (``edge_band_mm``; ``upper_body_force_N`` in
 :func:`regtrack.mechanics.run_view.summarise`).
 
 Targets of an upper-plate move: the plate is first brought to touch the breast (no
-force).  At the upper plate's first touch both plates hold the breast, so its chest-wall
-base is released along their normal (:mod:`.support`), gradually over a step in which the
-breast settles on the lower plate under its weight; the plate then touches it again, which measures the uncompressed
-thickness ``T_0`` (plate gap at that touch) in the condition it is compressed in;
-then it travels to the gap ``(1 - D) T_0`` (degree), the given gap (gap), or until the
-plate force reaches the target within ``force_tol`` (force: marching + secant, each trial
-solved from the last accepted state).  After every step the penetration guard rail
-rejects a state with a node deeper than ``max_penetration_mm`` in a plate.
+force), which measures the uncompressed thickness ``T_0`` (plate gap at that touch).  From
+then on both plates hold the breast and the body beyond the chest wall is squeezed with
+them (:mod:`.support`: each chest-wall node's layer anchored to the plates' displacement
+interpolated by its height between them at the touch).  The plate then travels to the gap
+``(1 - D) T_0`` (degree), the given gap (gap), or until the plate force reaches the target
+within ``force_tol`` (force: marching + secant, each trial solved from the last accepted
+state).  After every step the penetration guard rail rejects a state with a node deeper
+than ``max_penetration_mm`` in a plate.
 
 Force balance: every step reports ``solver.force_balance`` (:func:`.problem.force_balance`), the
 resultant of the residual over the free nodes (the sum of chest-wall reaction, plate
@@ -46,6 +46,7 @@ from regtrack.mechanics.linsolve import serial_openblas
 from regtrack.mechanics.overlap import overlaps
 from regtrack.mechanics.placement import BodySetup, behind_chest_wall, chest_wall, make_plates
 from regtrack.mechanics.protocol import G_STANDARD, Protocol, Step
+from regtrack.mechanics.support import squeeze_weights
 
 log = logging.getLogger(__name__)
 
@@ -58,18 +59,16 @@ class StepControl:
     max_increment : the largest pseudo-time increment (a plate move's travel cap / its
         distance), or None for the solver's own gravity increments.
     T0_mm : the uncompressed thickness, for the progress's ``D = 1 - gap / T0``.
-    plate_normal : the plates' normal (3,) (model frame) once both plates hold the breast
-        (from the upper plate's touch on): the chest-wall base then follows them along it
-        (:meth:`.support.WallSupport.following`); None while the breast hangs free.
-    release : the step releases the base: its support goes from the layer to following
-        the plates over the step's pseudo-time (the settle after the upper plate's touch).
+    body_motion : ``body_motion(t) -> (N, 3)`` mm, the displacement at pseudo-time ``t``
+        of the body beyond the chest-wall layer at each node, squeezed with the plates once
+        both hold the breast (:meth:`.support.WallSupport.moved`); None while the breast
+        hangs free (the body at rest).
     """
 
     single: bool = False
     max_increment: float | None = None
     T0_mm: float | None = None
-    plate_normal: tuple[float, float, float] | None = None
-    release: bool = False
+    body_motion: Callable[[float], np.ndarray] | None = None
 
 
 #: ``solve(u0, g0, g1, contacts, step_name, control) -> (u, stats)``: one protocol step
@@ -184,19 +183,36 @@ class ProtocolRunner:
         self.loads: dict[str, np.ndarray] = {}
         self.records: list[StepRecord] = []
         self._tmean0: float | None = None
-        self._held = False  # both plates hold the breast (the upper one has touched it)
+        # once both plates hold the breast (the upper one has touched it): each node's
+        # place between them (0 lower, 1 upper) and the plates' origins then (mm)
+        self._squeeze: tuple[np.ndarray, dict[str, np.ndarray]] | None = None
 
     # -- one solve ------------------------------------------------------------------
+    def _body_motion(self) -> Callable[[float], np.ndarray] | None:
+        """The body's displacement beyond the chest-wall layer over the coming solve: each
+        node moved with the plates in proportion to its place between them at the upper
+        plate's first touch (None before it)."""
+        if self._squeeze is None:
+            return None
+        w, touch = self._squeeze
+
+        def shift(name: str, t: float) -> np.ndarray:
+            pc = self.plates[name]
+            a, b = pc.motion if pc.motion is not None else (pc.plate.origin, pc.plate.origin)
+            return a + t * (b - a) - touch[name]
+
+        def motion(t: float) -> np.ndarray:
+            return np.outer(1.0 - w, shift("lower", t)) + np.outer(w, shift("upper", t))
+        return motion
+
     def _solve(self, g_end: np.ndarray, name: str, *, single: bool = False,
-               max_increment: float | None = None, T0_mm: float | None = None,
-               release: bool = False) -> dict:
+               max_increment: float | None = None, T0_mm: float | None = None) -> dict:
         contribs = list(self.contacts.values())
         for c in contribs:
             c.begin_step(name)
         control = StepControl(single=single, T0_mm=T0_mm, max_increment=(
             max_increment if max_increment is not None and max_increment < 1.0 else None),
-            plate_normal=tuple(float(v) for v in self.n) if self._held else None,
-            release=release)
+            body_motion=self._body_motion())
         u, stats = self.solve(self.u, self.g, g_end, contribs, name, control)
         self.u = np.asarray(u, float).reshape(-1, 3)
         self.g = np.asarray(g_end, float)
@@ -294,14 +310,13 @@ class ProtocolRunner:
                 stats = self._move(pc, float(step.distance_mm), step.name)
             else:
                 _touch(pc, self.u)
-                if step.plate == "upper" and not self._held:
-                    # both plates hold the breast from here on: its base is released along
-                    # their normal over a step in which the breast settles on the lower
-                    # plate, and the upper plate touches it again, so that T0 is measured
-                    # as it is compressed
-                    self._held = True
-                    stats = self._solve(self.g, step.name, release=True)
-                    _touch(pc, self.u)
+                if step.plate == "upper" and self._squeeze is None:
+                    # both plates hold the breast from here on, and the body beyond the
+                    # chest wall is squeezed with them
+                    low = self.plates["lower"].plate
+                    w = squeeze_weights(self.body.points + self.u, low.origin, self.n,
+                                        _gap(self.plates, self.n))
+                    self._squeeze = (w, {k: c.plate.origin.copy() for k, c in self.plates.items()})
                 if step.to != "contact":
                     if step.plate != "upper":
                         raise ConfigError(f"step '{step.name}': to = '{step.to}' moves the upper "

@@ -1,40 +1,42 @@
-r"""The chest-wall support: the breast base on the chest wall, following the plates.
+r"""The chest-wall support: the breast base on the chest wall, on a layer of tissue.
 
 The model is cut from the MRI at the chest wall.  Its chest-wall face (the plane
 ``x = x_cw``, normal ``+x`` in the model frame) is held normal to the wall (``u_x = 0``:
-the torso is rigid) and, tangentially:
+the torso is rigid) and, tangentially, lies on an elastic foundation: the shear stiffness
+of a layer of the breast's own tissue ``h`` thick between the base and the body beyond
+the cut (the retromammary fat),
 
-* **while the breast hangs free** (the gravity steps before the plates hold it): on an
-  elastic foundation, the shear stiffness of a layer of the breast's own tissue ``h``
-  thick between the base and the ribs (the retromammary fat),
+.. math::
+
+    \Pi_s(u) = \tfrac12 \sum_i k A_i\, |u_i - b_i|^2, \qquad k = \mu / h,
+    \quad \mu = 2 \bar c_1 ,
+
+over each node's in-wall components ``(u_y, u_z)``, with ``b_i`` the in-wall
+displacement of the body on the layer's far side:
+
+* **while the breast hangs free** (the gravity steps before the plates hold it): the body
+  is at rest, ``b_i = 0``;
+* **once both plates hold the breast** (from the upper plate's first touch, where the
+  uncompressed thickness ``T_0`` is measured: :mod:`.protocol_run`): the body is squeezed
+  with the plates, each node's ``b_i`` the plates' displacements since that touch
+  interpolated by its height between them then (:func:`squeeze_weights`),
 
   .. math::
 
-      \Pi_s(u) = \tfrac12 \sum_i k A_i (u_{iy}^2 + u_{iz}^2), \qquad k = \mu / h,
-      \quad \mu = 2 \bar c_1 ;
-
-* **once both plates hold the breast** (from the upper plate's first touch, after which
-  the breast settles on the lower plate before its uncompressed thickness is measured:
-  :mod:`.protocol_run`; :meth:`WallSupport.following`; the settle releases the base
-  gradually, its stiffness along the normal ramped from the layer's to zero over the
-  step's pseudo-time, as any load is applied): free along
-  ``n_w``, the plates' normal in the wall's plane, and held across it, along
-  ``t = x \times n_w``:
-
-  .. math::
-
-      \Pi_s(u) = \tfrac12 \sum_i F_h\, k A_i (u_i \cdot t)^2 .
+      b_i = (1 - w_i)\, \Delta_{lower} + w_i\, \Delta_{upper}, \qquad
+      w_i = \mathrm{clip}(h_i / T_0, 0, 1).
 
 Why: the base section is taller than the final plate gap on every exam (about 1.6 times
 for a CC), so the base must move along the plates' normal as far as they squeeze it, 20 mm
 and more at its top and bottom, where the tissue the model does not contain moves with
-it.  A layer resisting that motion sheared a few millimetres of fat by several times its
-thickness, carried most of the plate force at the wall and tilted the breast; a clamped
-base (the paper's model) cannot be compressed at all between plates whose faces reach the
-wall.  Nothing makes the base move across the plates' normal, where the body's tissue
-continues past the cut on either side: there it is held, as in the paper, by the same
-layer ``F_h`` = ``HELD_FACTOR`` times thinner (a penalty: it moves across by
-``1 / F_h`` of what the layer would let it).
+it.  A layer anchored to a body at rest sheared a few millimetres of fat by several times
+its thickness, carried most of the plate force at the wall and tilted the breast; a
+clamped base (the paper's model) cannot be compressed at all between plates whose faces
+reach the wall; a base left free along the plates' normal has no stiffness there but its
+contact with the lower plate, so that where the breast settles depends on rounding (the
+flat valley measured in docs/performance.md).  The squeezed body is the load path of the
+tissue beyond the cut: the layer carries the part of the breast's weight it carried when
+the plates closed, and is stretched only by how far the base departs from that squeeze.
 
 ``A_i`` is the node's share of the chest-wall face (mm^2), ``k`` in N/mm^3 and ``c1`` the
 tissue's mean neo-Hookean constant (MPa).  ``h -> 0`` is the clamped wall.
@@ -44,19 +46,15 @@ Units: mm, N, MPa.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
-
-#: how much stiffer the base is held across the plates' normal than the layer: a layer
-#: ``h / HELD_FACTOR`` thick (5 micrometres for the default 5 mm)
-HELD_FACTOR = 1000.0
 
 
 @dataclass(frozen=True)
 class WallSupport:
-    """The tangential support of the chest-wall nodes, ``Pi_s = 1/2 u^T K_s u`` with the
-    2 x 2 block ``k_i U`` on each node's ``(u_y, u_z)``.
+    """The tangential support of the chest-wall nodes,
+    ``Pi_s = 1/2 sum_i k_i |u_i - b_i|^2`` over each node's in-wall ``(u_y, u_z)``.
 
     Attributes
     ----------
@@ -66,49 +64,54 @@ class WallSupport:
         The layer's spring stiffness ``mu A_i / h`` per node (N/mm).
     layer_mm : float
         The layer thickness ``h`` (mm).
-    unit : (2, 2) float
-        ``U``: the identity on the layer; ``F_h t t^T`` following the plates.
+    target : (M, 2) float or None
+        ``b_i``: the in-wall displacement (mm) of the body beyond the layer (None: at rest).
     """
 
     nodes: np.ndarray
     k: np.ndarray
     layer_mm: float
-    unit: np.ndarray = field(default_factory=lambda: np.eye(2))
+    target: np.ndarray | None = None
+
+    def _stretch(self, u: np.ndarray) -> np.ndarray:
+        v = np.asarray(u, float).reshape(-1, 3)[self.nodes, 1:]
+        return v if self.target is None else v - self.target
 
     def energy(self, u: np.ndarray) -> float:
         """``Pi_s`` (N mm) at the displacement ``u`` (N, 3) mm."""
-        v = np.asarray(u, float).reshape(-1, 3)[self.nodes, 1:]
-        return 0.5 * float(np.sum(self.k * np.einsum("mi,ij,mj->m", v, self.unit, v)))
+        v = self._stretch(u)
+        return 0.5 * float(np.sum(self.k[:, None] * v * v))
 
     def gradient(self, u: np.ndarray) -> np.ndarray:
         """``dPi_s/du`` (3N,) N: minus the force the support exerts on the body."""
         u = np.asarray(u, float).reshape(-1, 3)
         g = np.zeros_like(u)
-        g[self.nodes, 1:] = self.k[:, None] * (u[self.nodes, 1:] @ self.unit.T)
+        g[self.nodes, 1:] = self.k[:, None] * self._stretch(u)
         return g.reshape(-1)
 
     def entries(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """``(rows, cols, values)`` of ``K_s``: dof indices and N/mm, four per node (the
-        same positions whatever ``unit``)."""
+        """``(rows, cols, values)`` of ``K_s``: dof indices and N/mm, a 2 x 2 block per
+        node (diagonal; the off-diagonal positions kept with zeros for the pattern)."""
         d = 3 * self.nodes[:, None] + np.array([1, 2])[None, :]  # (M, 2): dofs y, z
         rows = np.repeat(d, 2, axis=1).reshape(-1)
         cols = np.tile(d, (1, 2)).reshape(-1)
-        return rows, cols, (self.k[:, None, None] * self.unit[None]).reshape(-1)
+        return rows, cols, (self.k[:, None, None] * np.eye(2)[None]).reshape(-1)
 
-    def following(self, plate_normal, released: float = 1.0) -> WallSupport:
-        """The support once both plates hold the breast: free along the plates' normal
-        (3,) (model frame) projected on the wall, held across it.  ``released`` in [0, 1]
-        blends it with this layer, ``U = (1 - s) I + s F_h t t^T``: the release as a load
-        applied over a step (the stiffness along the normal goes from the layer's to 0).  A
-        normal along the wall's own (no in-wall component) leaves the layer as it is."""
-        n = np.asarray(plate_normal, float)[1:]
-        norm = float(np.linalg.norm(n))
-        if norm < 1e-6:
-            return self
-        t = np.array([-n[1], n[0]]) / norm
-        s = float(np.clip(released, 0.0, 1.0))
-        return WallSupport(self.nodes, self.k, self.layer_mm,
-                           (1.0 - s) * self.unit + s * HELD_FACTOR * np.outer(t, t))
+    def moved(self, body_u: np.ndarray) -> WallSupport:
+        """The support with the body beyond the layer displaced by ``body_u`` (N, 3) mm
+        (its in-wall components at the chest-wall nodes)."""
+        b = np.asarray(body_u, float).reshape(-1, 3)[self.nodes, 1:]
+        return WallSupport(self.nodes, self.k, self.layer_mm, b.copy())
+
+
+def squeeze_weights(x: np.ndarray, lower_origin: np.ndarray, normal: np.ndarray,
+                    gap_mm: float) -> np.ndarray:
+    """Where each point ``x`` (N, 3) mm lies between the plates: ``w = clip(h / gap, 0,
+    1)``, ``h`` its height above the lower plate's face along the plates' ``normal``
+    (lower to upper), ``gap`` the plate gap: 0 on and below the lower plate, 1 at and
+    above the upper one."""
+    h = (np.asarray(x, float) - np.asarray(lower_origin, float)) @ np.asarray(normal, float)
+    return np.clip(h / float(gap_mm), 0.0, 1.0)
 
 
 def wall_face(points: np.ndarray, tets: np.ndarray, fixed: np.ndarray) -> np.ndarray:
