@@ -10,8 +10,8 @@ thickness between the undeformed and the deformed configuration)
 * ``T_0`` (mm): thickness of the *uncompressed* breast between the plates: the extent,
   along the plate normal ``n``, of the surface nodes lying over the plate (anterior to its
   chest-wall edge) above the lower plate face, taken when the compression plate first
-  touches the breast (standing, resting on the lower plate with its chest-wall base free
-  along the plates' normal, as it is compressed: :mod:`regtrack.mechanics.protocol_run`);
+  touches the breast (standing, on the lower plate and hanging on its chest-wall base:
+  :mod:`regtrack.mechanics.protocol_run`);
 * ``T`` (mm): the compressed thickness = the gap between the two plate faces.
 
 This is the clinical definition (the compressed breast thickness read on the unit) and

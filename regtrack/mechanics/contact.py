@@ -91,11 +91,11 @@ class ContactConfig:
                                      "wall is squeezed 5 to 12 mm behind that plane (Pelicano "
                                      "exams 03 and 10): inside the torso")
     chest_wall_layer_mm: float = param(5.0, "mm", "protocols: the chest-wall nodes are held "
-                                       "normal to the wall; while the breast hangs free, "
-                                       "tangentially by the shear stiffness 2 c1 / h per unit "
-                                       "area of a layer of its tissue this thick (the "
-                                       "retromammary fat); once both plates hold it, they follow "
-                                       "the plates along their normal and are held across it "
+                                       "normal to the wall and tangentially by the shear "
+                                       "stiffness 2 c1 / h per unit area of a layer of its "
+                                       "tissue this thick (the retromammary fat), whose far side "
+                                       "is at rest while the breast hangs free and is squeezed "
+                                       "with the plates once both hold it "
                                        "(regtrack.mechanics.support).  0 clamps them (the "
                                        "paper's model), which the plates cannot compress: the "
                                        "base is taller than the final gap", ge=0.0, le=100.0)

@@ -44,9 +44,10 @@ class MammoTruthParams:
     friction: float = param(0.0, "-", "skin-plate Coulomb friction (pipeline default 0.1; with 0.15 the "
                             "standing-gravity step stalled on the phantom, see the case README)", ge=0, le=1)
     chest_wall_layer_mm: float = param(5.0, "mm", "the breast base lies on the chest wall on a "
-                                       "layer of its tissue this thick, and follows the plates once "
-                                       "both hold it (regtrack.mechanics.support; the pipeline's "
-                                       "default); 0 clamps it", ge=0, le=100)
+                                       "layer of its tissue this thick, whose far side is squeezed "
+                                       "with the plates once both hold it "
+                                       "(regtrack.mechanics.support; the pipeline's default); 0 "
+                                       "clamps it", ge=0, le=100)
     target_D_cc: float = param(0.38, "-", "compression degree of the CC view", gt=0.05, lt=0.8)
     target_D_mlo: float = param(0.28, "-", "compression degree of the MLO view", gt=0.05, lt=0.8)
     # --- patient positioning in the image plane (canonical frame, about the nipple)
