@@ -76,7 +76,7 @@ class Problem:
     tissue_c1: TissueStiffness | None = None  # c1 of the tissue elements (tissue_model), summary
     parts: list[parallel.Part] | None = None  # the element kernel's threads (P1, P1-ANP)
     support: WallSupport | None = None  # the sliding chest wall's layer (None: clamped)
-    support_pos: np.ndarray | None = None  # positions of its (y, z) blocks in the pattern
+    support_pos: np.ndarray | None = None  # positions of its (y, z) diagonal entries in the pattern
     self_contact: Any = None  # the outer surface's barrier (.selfcontact.SkinBarrier; None: off)
 
     @property

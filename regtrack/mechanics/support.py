@@ -90,18 +90,16 @@ class WallSupport:
         return g.reshape(-1)
 
     def entries(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """``(rows, cols, values)`` of ``K_s``: dof indices and N/mm, a 2 x 2 block per
-        node (diagonal; the off-diagonal positions kept with zeros for the pattern)."""
-        d = 3 * self.nodes[:, None] + np.array([1, 2])[None, :]  # (M, 2): dofs y, z
-        rows = np.repeat(d, 2, axis=1).reshape(-1)
-        cols = np.tile(d, (1, 2)).reshape(-1)
-        return rows, cols, (self.k[:, None, None] * np.eye(2)[None]).reshape(-1)
+        """``(rows, cols, values)`` of ``K_s``: dof indices and N/mm, ``k_i`` on the
+        diagonal of each node's ``u_y`` and ``u_z``."""
+        d = (3 * self.nodes[:, None] + np.array([1, 2])[None, :]).reshape(-1)
+        return d, d, np.repeat(self.k, 2)
 
     def moved(self, body_u: np.ndarray) -> WallSupport:
         """The support with the body beyond the layer displaced by ``body_u`` (N, 3) mm
         (its in-wall components at the chest-wall nodes)."""
-        b = np.asarray(body_u, float).reshape(-1, 3)[self.nodes, 1:]
-        return WallSupport(self.nodes, self.k, self.layer_mm, b.copy())
+        b = np.asarray(body_u, float).reshape(-1, 3)[self.nodes, 1:]  # a copy
+        return WallSupport(self.nodes, self.k, self.layer_mm, b)
 
 
 def squeeze_weights(x: np.ndarray, lower_origin: np.ndarray, normal: np.ndarray,
