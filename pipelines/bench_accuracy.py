@@ -9,8 +9,12 @@ reads):
 * ``<case>_paper_rot0`` (the same case, unrotated): the frame check; theta_p there is the
   registration's own bias, and theta_p(rot) - theta_p(rot0) - rotation isolates the frame;
 * ``<case>_track``      (rotated DICOMs, no outline): tracking mode; the predicted lesion
-  centroid (``lesions.json``, DICOM pixels) against the true projected tumour's area
-  centroid, in mm on the detector (pixel spacing of the DICOM).  The regtrack lesion is
+  centroid (``lesions.json``, DICOM pixels) against the true lesion centroid, in mm on the
+  detector (pixel spacing of the DICOM): the truth tumour's volume centroid carried by
+  its displacement field and projected (:func:`truth_centroid`), the point regtrack
+  predicts.  The error against the area centroid of the truth's outline as the image
+  shows it is reported beside it (``lesion_error_track_outline_mm``); the two differ where
+  the image's edge cuts the lesion.  The regtrack lesion is
   matched to the truth tumour by its MRI centroid (``mri_lps_mm``), never by the image;
   :func:`error_parts` splits that error into the nipple found on the mammogram, the
   registration's rotation and the rest (the mechanics and the projection);
@@ -131,6 +135,19 @@ def _errors(out: Path) -> dict:
             if err:
                 res[key] = err[-1].strip()
     return res
+
+
+def truth_centroid(tumour: dict) -> np.ndarray:
+    """(row, col) of a truth tumour's centroid on its DICOM: its volume centroid carried by
+    the truth's displacement field and projected through its cone beam
+    (``volume_centroid_projected_dicom_rc``), the same point regtrack predicts (the
+    lesion's mass centroid carried by its own deformation and projected).  The area
+    centroid of the projected outline (``centroid_dicom_rc``) is what an outline drawn on
+    the image gives; it is a different point where the lesion's projection is not
+    symmetric, and a biased one where the image's edge cuts the lesion (truth files made
+    before the volume centroid was stored: that one)."""
+    return np.asarray(tumour.get("volume_centroid_projected_dicom_rc") or tumour["centroid_dicom_rc"],
+                      float)
 
 
 def match_lesion(lesions: list, truth_tumour: dict) -> dict | None:
@@ -310,7 +327,7 @@ def error_parts(lesion: dict, tumour: dict, tv: dict, side: str) -> dict:
     from regtrack.registration.geometry import rotation
 
     c = _canonical_mm(lesion["centroid_px_rc"], tv, side)
-    t = _canonical_mm(tumour["centroid_dicom_rc"], tv, side)
+    t = _canonical_mm(truth_centroid(tumour), tv, side)
     n = _canonical_mm(tv["nipple_dicom_rc"], tv, side)
     nr = n if lesion.get("nipple_px_rc") is None else _canonical_mm(lesion["nipple_px_rc"], tv, side)
     th = lesion.get("theta_p_b_deg")
@@ -336,8 +353,11 @@ def _tracking_columns(lesions: list | None, tv: dict, side: str, suffix: str) ->
         tt = tv["tumours"][0]  # the largest tumour
         le = match_lesion(lesions, tt)
         if le is not None:
-            d = np.asarray(le["centroid_px_rc"]) - np.asarray(tt["centroid_dicom_rc"])
-            row.update({"lesion_error_track_mm": float(np.linalg.norm(d) * tv["pixel_mm"]),
+            c = np.asarray(le["centroid_px_rc"], float)
+            row.update({"lesion_error_track_mm": float(np.linalg.norm(c - truth_centroid(tt)) * tv["pixel_mm"]),
+                        "lesion_error_track_outline_mm":
+                            float(np.linalg.norm(c - np.asarray(tt["centroid_dicom_rc"])) * tv["pixel_mm"]),
+                        "lesion_notes": "; ".join(le.get("notes") or []),
                         "lesion_mri_match_mm": le["mri_match_mm"], "lesion_sigma_mm": le.get("sigma_mm"),
                         "n_lesions_regtrack": len(lesions)})
             row.update(error_parts(le, tt, tv, side))
@@ -395,7 +415,7 @@ def collect(root: Path, name: str, truth: dict, res: Path,
 
 COLS = ["case", "view", "rotation_true_deg", "theta_p_paper", "theta_error_deg", "theta_p_rot0",
         "theta_error_vs_rot0_deg", "d_T_paper", "lesion_error_paper_mm", "lesion_error_track_mm",
-        "lesion_sigma_mm", "lesion_error_true_theta_mm", "lesion_error_x_mm", "lesion_error_y_mm",
+        "lesion_error_track_outline_mm", "lesion_notes", "lesion_sigma_mm", "lesion_error_true_theta_mm", "lesion_error_x_mm", "lesion_error_y_mm",
         "lesion_r_true_mm", "theta_error_b_track_deg", "nipple_error_mm", "lesion_error_track_mm_marked",
         "lesion_sigma_mm_marked", "lesion_error_true_theta_mm_marked", "theta_error_b_track_deg_marked",
         "nipple_error_mm_marked", "theta_error_deg_marked", "theta_p_rot0_marked", "n_lesions_regtrack", "lesion_mri_match_mm", "D_true", "D_regtrack", "gap_true_mm",
@@ -415,14 +435,15 @@ def write_tables(rows: list[dict], out: Path) -> None:
         return "-" if x is None else (f"{x:.{nd}f}" if isinstance(x, float) else str(x))
 
     show = ["case", "view", "rotation_true_deg", "theta_p_paper", "theta_error_deg", "theta_p_rot0",
-            "theta_error_vs_rot0_deg", "d_T_paper", "lesion_error_track_mm", "lesion_sigma_mm",
-            "lesion_error_true_theta_mm", "lesion_error_x_mm", "lesion_error_y_mm", "lesion_error_paper_mm",
+            "theta_error_vs_rot0_deg", "d_T_paper", "lesion_error_track_mm",
+            "lesion_error_track_outline_mm", "lesion_sigma_mm", "lesion_error_true_theta_mm", "lesion_error_x_mm", "lesion_error_y_mm", "lesion_error_paper_mm",
             "D_true", "D_regtrack", "angle_true_deg", "angle_regtrack_deg"]
     lines = ["| " + " | ".join(show) + " |", "|" + "---|" * len(show)]
     for r in rows:
         lines.append("| " + " | ".join(f(r.get(k)) for k in show) + " |")
     med = {k: _median([r.get(k) for r in rows]) for k in ("theta_error_deg", "theta_error_vs_rot0_deg",
                                                             "d_T_paper", "lesion_error_track_mm",
+                                                            "lesion_error_track_outline_mm",
                                                             "lesion_error_paper_mm", "theta_p_rot0",
                                                             "lesion_error_true_theta_mm",
                                                             "lesion_error_track_mm_marked",
@@ -430,11 +451,15 @@ def write_tables(rows: list[dict], out: Path) -> None:
     absmed = _median([abs(r["theta_error_deg"]) for r in rows if r.get("theta_error_deg") is not None])
     absmed_m = _median([abs(r["theta_error_deg_marked"]) for r in rows
                         if r.get("theta_error_deg_marked") is not None])
-    worst = max([r["lesion_error_track_mm"] for r in rows if r.get("lesion_error_track_mm") is not None],
-                default=None)
+    def worst_of(k):
+        return max([r[k] for r in rows if r.get(k) is not None], default=None)
+
+    worst, worst_o = worst_of("lesion_error_track_mm"), worst_of("lesion_error_track_outline_mm")
     lines += ["", f"Medians over {len(rows)} case-views: |theta error| {f(absmed)} deg (signed {f(med['theta_error_deg'])}), "
               f"theta_p on the unrotated copy {f(med['theta_p_rot0'])} deg, d_T {f(med['d_T_paper'])} mm, "
               f"tracking-mode lesion centroid error {f(med['lesion_error_track_mm'])} mm (worst {f(worst)} mm), "
+              f"against the area centroid of the outline the image shows "
+              f"{f(med['lesion_error_track_outline_mm'])} mm (worst {f(worst_o)} mm), "
               f"paper-mode lesion error {f(med['lesion_error_paper_mm'])} mm; "
               f"tracking error with the true rotation {f(med['lesion_error_true_theta_mm'])} mm; "
               f"tracking with the nipple marked {f(med['lesion_error_track_mm_marked'])} mm; "

@@ -179,3 +179,34 @@ def test_a_lesion_predicted_off_the_image_has_no_region_on_it(tmp_path):
     groups = hd.sr.srread(paths[0]).content.get_planar_roi_measurement_groups()
     assert sorted(str(g.tracking_identifier) for g in groups) == [
         "MRI lesion 1 on CC: centroid", "MRI lesion 1 on CC: outline"]
+
+
+def test_a_lesion_across_the_image_edge_is_clipped_to_the_image(tmp_path):
+    """A predicted outline that crosses the image's last column is written clipped to the
+    image (every point on it, the area of the part on the image), and its centroid only
+    where that lies on the image."""
+    from shapely.geometry import Polygon
+
+    from regtrack.report.dicom_sr import write_dicom_results
+
+    ds = pydicom.dcmread(_header(tmp_path, "CC"))
+    ds.Rows, ds.Columns = 300, 230  # the outline spans columns 200-240
+    header = _write(tmp_path / "cc_small.dcm", ds)
+    out = _outcome("CC", None)
+    shifted = LesionPrediction("CC", 2, np.array([23.5, 11.5]), np.array([115.0, 235.0]), None,
+                               2.5, {}, 1.0, 0.2, 50.0, 5.0,
+                               outline_px=out.extra["lesions"][0].outline_px + [0.0, 15.0])
+    out.extra["lesions"].append(shifted)
+    paths = write_dicom_results(tmp_path / "out", [out], {"CC": header}, case_id="anon-1",
+                                pdf_path=None, keep_identifiers=False)
+    groups = hd.sr.srread(paths[0]).content.get_planar_roi_measurement_groups()
+    names = sorted(str(g.tracking_identifier) for g in groups)
+    assert names == ["MRI lesion 1 on CC: centroid", "MRI lesion 1 on CC: outline",
+                     "MRI lesion 2 on CC: outline"]  # lesion 2's centroid (column 235) is off
+    for g in groups:
+        if str(g.tracking_identifier).endswith("outline"):
+            cr = np.asarray(g.roi.value, float)
+            assert (cr[:, 0] <= 229.0).all() and (cr[:, 1] <= 299.0).all()
+            first = str(g.tracking_identifier).startswith("MRI lesion 1")
+            # columns 200-229 of 200-240 (lesion 1), 215-229 of 215-255 (lesion 2); rows 100-130
+            assert Polygon(cr).area == pytest.approx((29.0 if first else 14.0) * 30.0)

@@ -216,15 +216,34 @@ def test_each_predicted_lesion_is_scored_against_its_own_outline():
 
 
 def test_a_lesion_off_the_detector_is_noted():
-    """The (row, col) of the stored DICOM grid against its shape: inside, on the last
-    pixel, and beyond the chest-wall edge (a negative column) or the bottom."""
-    from types import SimpleNamespace
+    """The share of a predicted outline on the image, by its clipped area: a 10 x 10 mm
+    square wholly on a 100 x 140 mm image, a quarter of it across the chest-wall edge
+    (x < 0), three quarters of it with its centroid off the image, and wholly beyond the
+    bottom edge; an outline without area counts as its centroid."""
+    from regtrack.tracking.lesions import (
+        CENTROID_OFF,
+        OUTSIDE_IMAGE,
+        image_notes,
+        on_image_fraction,
+    )
 
-    from regtrack.tracking.lesions import _outside_image
+    extent = (100.0, 140.0)
+    square = np.array([[0.0, 0.0], [10.0, 0.0], [10.0, 10.0], [0.0, 10.0]])
 
-    pixels = SimpleNamespace(orientation=SimpleNamespace(source_shape=(1739, 910)))
-    assert not _outside_image(pixels, np.array([735.0, 132.0]))
-    assert not _outside_image(pixels, np.array([1738.0, 909.0]))
-    assert _outside_image(pixels, np.array([1388.0, -66.0]))
-    assert _outside_image(pixels, np.array([1740.0, 10.0]))
-    assert not _outside_image(None, np.array([-5.0, -5.0]))  # no pixel frame: nothing to say
+    def check(shift, fraction):
+        poly = square + shift
+        f = on_image_fraction(poly, poly.mean(0), extent)
+        assert f == pytest.approx(fraction, abs=1e-12)
+        return image_notes(f, poly.mean(0), extent)
+
+    assert check([40.0, 60.0], 1.0) == []
+    notes = check([-2.5, 60.0], 0.75)
+    assert notes == ["partly beyond the image edge: 75 % of its projected area on this mammogram"]
+    notes = check([-7.5, 60.0], 0.25)
+    assert len(notes) == 1 and notes[0].startswith("partly beyond the image edge: 25 %")
+    assert notes[0].endswith(CENTROID_OFF)
+    assert check([40.0, 141.0], 0.0) == [OUTSIDE_IMAGE]
+    segment = np.array([[5.0, 5.0], [6.0, 6.0], [5.0, 5.0]])  # no area: the centroid decides
+    assert on_image_fraction(segment, [5.5, 5.5], extent) == 1.0
+    assert on_image_fraction(None, [-1.0, 5.0], extent) == 0.0
+    assert image_notes(None, [-1.0, 5.0], extent) == []  # no extent known: nothing to say

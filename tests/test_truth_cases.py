@@ -164,6 +164,27 @@ def test_bench_matches_the_lesion_on_the_mri_side(ba):
     assert m["centroid_px_rc"] == [9, 9] and m["mri_match_mm"] == pytest.approx(np.hypot(2, 1))
 
 
+def test_tracking_error_is_measured_to_the_lesion_centroid(ba):
+    """The tracking error is taken to the truth lesion's projected volume centroid (the
+    point regtrack predicts); the distance to the area centroid of the outline the image
+    shows is reported beside it.  A lesion cut by the image edge: its visible outline's
+    centroid lies 5 mm (50 px) from its own; a prediction 3 mm (30 px) from the lesion's
+    centroid is 3 mm off, not 5.83 mm.  A truth file without the volume centroid falls
+    back to the outline's."""
+    tv = {"image_shape": [1000, 800], "pixel_mm": 0.1, "nipple_dicom_rc": [500.0, 100.0],
+          "rotation_deg": 0.0, "tumours": [{"centroid_lps_mm": [0.0, 0.0, 0.0],
+                                            "centroid_dicom_rc": [400.0, 750.0],
+                                            "volume_centroid_projected_dicom_rc": [400.0, 800.0]}]}
+    lesions = [{"mri_lps_mm": [1.0, 0.0, 0.0], "centroid_px_rc": [430.0, 800.0],
+                "notes": ["partly beyond the image edge"]}]
+    row = ba._tracking_columns(lesions, tv, "L", "")
+    assert row["lesion_error_track_mm"] == pytest.approx(3.0)
+    assert row["lesion_error_track_outline_mm"] == pytest.approx(np.hypot(3.0, 5.0))
+    assert row["lesion_notes"] == "partly beyond the image edge"
+    del tv["tumours"][0]["volume_centroid_projected_dicom_rc"]
+    assert ba._tracking_columns(lesions, tv, "L", "")["lesion_error_track_mm"] == pytest.approx(np.hypot(3.0, 5.0))
+
+
 @pytest.mark.parametrize("side", ["L", "R"])
 def test_error_parts_remove_exactly_the_rotation_error(ba, side):
     """A prediction that is the true lesion turned about the nipple by the registration's

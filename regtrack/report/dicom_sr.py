@@ -101,8 +101,10 @@ def _roi_group(identifier: str, region, measurements: list | None = None):
 
 
 def _lesion_groups(view: str, header, lesion) -> list:
-    """The outline and centroid groups (TID 1410) of one lesion on one mammogram; none for
-    a lesion predicted off the image (an image region must lie on its image)."""
+    """The outline and centroid groups (TID 1410) of one lesion on one mammogram.  An
+    image region must lie on its image: a lesion predicted wholly off the image has none,
+    one across an edge has its outline clipped to the image and its centroid only where
+    that lies on it."""
     from regtrack.tracking.lesions import OUTSIDE_IMAGE
 
     if OUTSIDE_IMAGE in lesion.notes:
@@ -117,18 +119,41 @@ def _lesion_groups(view: str, header, lesion) -> list:
                                  "Predicted lesion error against the outline", "mm"))
     name = f"MRI lesion {lesion.lesion} on {view}"
     groups = []
-    if lesion.outline_px is not None and len(lesion.outline_px) >= 3:
-        rc = np.asarray(lesion.outline_px, float)
-        cr = np.vstack([rc[:, ::-1], rc[:1, ::-1]])  # (column, row), closed
+    size = (getattr(header, "Columns", None), getattr(header, "Rows", None))
+    bounds = (float(size[0]) - 1.0, float(size[1]) - 1.0) if all(size) else None
+    cr = _clipped_outline(lesion.outline_px, bounds)
+    if cr is not None:
         groups.append(_roi_group(f"{name}: outline", hd.sr.ImageRegion(
             graphic_type=hd.sr.GraphicTypeValues.POLYLINE, graphic_data=cr, source_image=src),
             meas))
     if lesion.centroid_px is not None:
         c = np.asarray(lesion.centroid_px, float)[::-1][None]
-        groups.append(_roi_group(f"{name}: centroid", hd.sr.ImageRegion(
-            graphic_type=hd.sr.GraphicTypeValues.POINT, graphic_data=c, source_image=src),
-            meas))
+        if bounds is None or ((c >= 0.0) & (c <= bounds)).all():
+            groups.append(_roi_group(f"{name}: centroid", hd.sr.ImageRegion(
+                graphic_type=hd.sr.GraphicTypeValues.POINT, graphic_data=c, source_image=src),
+                meas))
     return groups
+
+
+def _clipped_outline(outline_px, bounds) -> np.ndarray | None:
+    """A closed (column, row) polyline of the (row, col) outline clipped to the pixel
+    centres' rectangle ``[0, bounds[0]] x [0, bounds[1]]`` (its largest piece on the
+    image; not clipped where ``bounds`` is None, a header without Rows and Columns); None
+    without an outline or where no area of it is on the image."""
+    from shapely.geometry import box
+
+    from regtrack.registration.geometry import has_area, polygon
+
+    if outline_px is None or not has_area(outline_px):
+        return None
+    cr = np.asarray(outline_px, float)[:, ::-1]
+    if bounds is None or ((cr >= 0.0) & (cr <= bounds)).all():
+        return np.vstack([cr, cr[:1]])  # wholly on the image: as predicted, closed
+    g = polygon(cr).intersection(box(0.0, 0.0, *bounds))
+    parts = [p for p in getattr(g, "geoms", [g]) if p.geom_type == "Polygon" and p.area > 0.0]
+    if not parts:
+        return None
+    return np.asarray(max(parts, key=lambda p: p.area).exterior.coords, float)
 
 
 def _mri_lesion_groups(results: list, frame_of_reference_uid: str) -> list:

@@ -40,7 +40,9 @@ class LesionPrediction:
     mode; None in tracking mode and for a lesion no outline is paired with),
     ``annotated_mm`` that centroid; ``mri_lps_mm`` the lesion's volume centroid in
     the MRI (DICOM patient frame, LPS mm); ``nipple_mm`` / ``nipple_px`` the nipple on the
-    mammogram, the centre of the registration's rotation.
+    mammogram, the centre of the registration's rotation; ``on_image`` the fraction of the
+    predicted outline's area that lies on the image (:func:`on_image_fraction`; None where
+    the image's extent is not known).
     """
 
     view: str
@@ -61,6 +63,7 @@ class LesionPrediction:
     mri_lps_mm: np.ndarray | None = None
     nipple_mm: np.ndarray | None = None
     nipple_px: np.ndarray | None = None
+    on_image: float | None = None
 
     def to_dict(self) -> dict:
         def arr(a):
@@ -74,7 +77,8 @@ class LesionPrediction:
                 "annotated_centroid_mm": arr(self.annotated_mm),
                 "outline_mm": arr(self.outline_mm), "outline_px_rc": arr(self.outline_px),
                 "mri_lps_mm": arr(self.mri_lps_mm), "nipple_mm": arr(self.nipple_mm),
-                "nipple_px_rc": arr(self.nipple_px), "notes": self.notes}
+                "nipple_px_rc": arr(self.nipple_px), "on_image_fraction": self.on_image,
+                "notes": self.notes}
 
 
 def predict_lesions(model, *, view: str, positions, virtual, real, alignment, D: float | None,
@@ -97,6 +101,7 @@ def predict_lesions(model, *, view: str, positions, virtual, real, alignment, D:
         Compression degree of the simulation and its 1-sigma uncertainty (-).
     """
     from regtrack.model.types import TUMOUR
+    from regtrack.registration.align import image_extent
     from regtrack.tracking.mri_to_view import region_outline
     from regtrack.tracking.viewmap import InPlane, PixelFrame, ViewMap
 
@@ -112,6 +117,7 @@ def predict_lesions(model, *, view: str, positions, virtual, real, alignment, D:
     nip = vm.inplane.nipple
     nip_px = None if vm.pixels is None else vm.pixels.mm_to_px(nip)
     vol = np.abs(model.tet_volumes())
+    extent = image_extent(real)
     out = []
     for k in np.unique(ids[sel]):
         m = sel & (ids == k)
@@ -128,27 +134,63 @@ def predict_lesions(model, *, view: str, positions, virtual, real, alignment, D:
         px = None if vm.pixels is None else vm.pixels.mm_to_px(xy)
         opx = None if (vm.pixels is None or outline is None) else vm.pixels.mm_to_px(outline)
         lps = model.frame.to_patient(ref[None])[0]
-        notes = [OUTSIDE_IMAGE] if _outside_image(vm.pixels, px) else []
+        frac = None if extent is None else on_image_fraction(outline, xy, extent)
         out.append(LesionPrediction(view, int(k), xy, px, outline, float(sig[0]), terms[0],
                                     float(alignment.theta_p), unc.theta_sigma_deg, r, shift,
-                                    outline_px=opx, notes=notes, mri_lps_mm=lps, nipple_mm=nip,
-                                    nipple_px=nip_px))
+                                    outline_px=opx, notes=image_notes(frac, xy, extent),
+                                    mri_lps_mm=lps, nipple_mm=nip, nipple_px=nip_px,
+                                    on_image=frac))
     _score_against_outlines(out, real.tumour_contours)
     return out
 
 
-#: The note of a lesion predicted off the detector (beyond the image's chest-wall edge, or
-#: past a side the positioning left out).
+#: The note of a lesion predicted wholly off the detector (beyond the image's chest-wall
+#: edge, or past a side the positioning left out).
 OUTSIDE_IMAGE = "outside the image: this mammogram does not show the lesion"
 
+#: The note of a lesion whose predicted outline crosses the image's edge.
+PARTLY_OUTSIDE = "partly beyond the image edge: {pct:.0f} % of its projected area on this mammogram"
 
-def _outside_image(pixels, px) -> bool:
-    """Whether the (row, col) ``px`` of the DICOM's grid lies off its stored image."""
-    o = None if pixels is None else pixels.orientation
-    if px is None or o is None:
-        return False
-    rows, cols = o.source_shape[:2]
-    return not (0.0 <= px[0] <= rows - 1 and 0.0 <= px[1] <= cols - 1)
+#: Appended to :data:`PARTLY_OUTSIDE` where the predicted centroid is off the image: the
+#: visible part's centre is then not the lesion's centre.
+CENTROID_OFF = "; its centroid lies off the image"
+
+
+def on_image_fraction(outline_mm, centroid_mm, extent) -> float:
+    """Fraction (0-1) of a predicted lesion's projected area that lies on the image.
+
+    ``outline_mm`` is the predicted outline and ``centroid_mm`` its centroid in the real
+    view's canonical frame (mm from the image's corner, x from the chest-wall edge, y
+    down); ``extent`` the image's (width, height) in mm
+    (:func:`regtrack.registration.align.image_extent`).  The outline's area is clipped to
+    the rectangle ``[0, width] x [0, height]``.  A lesion without an outline with an area
+    (too small to project one) counts as a point: 1 on the image, 0 off it.
+    """
+    from shapely.geometry import box
+
+    from regtrack.registration.geometry import has_area, polygon
+
+    w, h = (float(v) for v in extent)
+    if outline_mm is not None and has_area(outline_mm):
+        g = polygon(np.asarray(outline_mm, float))
+        if g.area > 0.0:
+            return float(min(1.0, g.intersection(box(0.0, 0.0, w, h)).area / g.area))
+    x, y = np.asarray(centroid_mm, float)
+    return float(0.0 <= x <= w and 0.0 <= y <= h)
+
+
+def image_notes(fraction: float | None, centroid_mm, extent) -> list[str]:
+    """The notes on where a predicted lesion lies against the image's edges: none where
+    it lies wholly on the image (or the extent is not known), :data:`OUTSIDE_IMAGE` where
+    no part of it does, else :data:`PARTLY_OUTSIDE` with the share on the image."""
+    if fraction is None or fraction >= 1.0:
+        return []
+    if fraction <= 0.0:
+        return [OUTSIDE_IMAGE]
+    x, y = np.asarray(centroid_mm, float)
+    w, h = (float(v) for v in extent)
+    off = not (0.0 <= x <= w and 0.0 <= y <= h)
+    return [PARTLY_OUTSIDE.format(pct=max(1.0, 100.0 * fraction)) + (CENTROID_OFF if off else "")]
 
 
 def _score_against_outlines(lesions: list[LesionPrediction], outlines) -> None:
