@@ -149,7 +149,7 @@ def predict_lesions(model, *, view: str, positions, virtual, real, alignment, D:
 OUTSIDE_IMAGE = "outside the image: this mammogram does not show the lesion"
 
 #: The note of a lesion whose predicted outline crosses the image's edge.
-PARTLY_OUTSIDE = "partly beyond the image edge: {pct:.0f} % of its projected area on this mammogram"
+PARTLY_OUTSIDE = "partly beyond the image edge: {pct} of its projected area on this mammogram"
 
 #: Appended to :data:`PARTLY_OUTSIDE` where the predicted centroid is off the image: the
 #: visible part's centre is then not the lesion's centre.
@@ -190,7 +190,8 @@ def image_notes(fraction: float | None, centroid_mm, extent) -> list[str]:
     x, y = np.asarray(centroid_mm, float)
     w, h = (float(v) for v in extent)
     off = not (0.0 <= x <= w and 0.0 <= y <= h)
-    return [PARTLY_OUTSIDE.format(pct=max(1.0, 100.0 * fraction)) + (CENTROID_OFF if off else "")]
+    pct = "under 1 %" if fraction < 0.01 else f"{100.0 * fraction:.0f} %"
+    return [PARTLY_OUTSIDE.format(pct=pct) + (CENTROID_OFF if off else "")]
 
 
 def _score_against_outlines(lesions: list[LesionPrediction], outlines) -> None:
