@@ -245,6 +245,8 @@ def test_a_lesion_off_the_detector_is_noted():
     assert check([40.0, 141.0], 0.0) == [OUTSIDE_IMAGE]
     notes = check([-9.95, 60.0], 0.005)  # a sliver on the image
     assert notes[0].startswith("partly beyond the image edge: under 1 % of")
+    notes = check([-0.05, 60.0], 0.995)  # a sliver off the image
+    assert notes[0].startswith("partly beyond the image edge: over 99 % of")
     segment = np.array([[5.0, 5.0], [6.0, 6.0], [5.0, 5.0]])  # no area: the centroid decides
     assert on_image_fraction(segment, [5.5, 5.5], extent) == 1.0
     assert on_image_fraction(None, [-1.0, 5.0], extent) == 0.0

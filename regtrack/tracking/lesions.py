@@ -190,7 +190,8 @@ def image_notes(fraction: float | None, centroid_mm, extent) -> list[str]:
     x, y = np.asarray(centroid_mm, float)
     w, h = (float(v) for v in extent)
     off = not (0.0 <= x <= w and 0.0 <= y <= h)
-    pct = "under 1 %" if fraction < 0.01 else f"{100.0 * fraction:.0f} %"
+    pct = ("under 1 %" if fraction < 0.01 else "over 99 %" if fraction > 0.99
+           else f"{100.0 * fraction:.0f} %")
     return [PARTLY_OUTSIDE.format(pct=pct) + (CENTROID_OFF if off else "")]
 
 
