@@ -415,7 +415,8 @@ def collect(root: Path, name: str, truth: dict, res: Path,
 
 COLS = ["case", "view", "rotation_true_deg", "theta_p_paper", "theta_error_deg", "theta_p_rot0",
         "theta_error_vs_rot0_deg", "d_T_paper", "lesion_error_paper_mm", "lesion_error_track_mm",
-        "lesion_error_track_outline_mm", "lesion_notes", "lesion_sigma_mm", "lesion_error_true_theta_mm", "lesion_error_x_mm", "lesion_error_y_mm",
+        "lesion_error_track_outline_mm", "lesion_notes", "lesion_sigma_mm", "lesion_error_true_theta_mm",
+        "lesion_error_x_mm", "lesion_error_y_mm",
         "lesion_r_true_mm", "theta_error_b_track_deg", "nipple_error_mm", "lesion_error_track_mm_marked",
         "lesion_sigma_mm_marked", "lesion_error_true_theta_mm_marked", "theta_error_b_track_deg_marked",
         "nipple_error_mm_marked", "theta_error_deg_marked", "theta_p_rot0_marked", "n_lesions_regtrack", "lesion_mri_match_mm", "D_true", "D_regtrack", "gap_true_mm",
@@ -436,7 +437,8 @@ def write_tables(rows: list[dict], out: Path) -> None:
 
     show = ["case", "view", "rotation_true_deg", "theta_p_paper", "theta_error_deg", "theta_p_rot0",
             "theta_error_vs_rot0_deg", "d_T_paper", "lesion_error_track_mm",
-            "lesion_error_track_outline_mm", "lesion_sigma_mm", "lesion_error_true_theta_mm", "lesion_error_x_mm", "lesion_error_y_mm", "lesion_error_paper_mm",
+            "lesion_error_track_outline_mm", "lesion_sigma_mm", "lesion_error_true_theta_mm",
+            "lesion_error_x_mm", "lesion_error_y_mm", "lesion_error_paper_mm",
             "D_true", "D_regtrack", "angle_true_deg", "angle_regtrack_deg"]
     lines = ["| " + " | ".join(show) + " |", "|" + "---|" * len(show)]
     for r in rows:

@@ -175,8 +175,14 @@ def on_image_fraction(outline_mm, centroid_mm, extent) -> float:
         g = polygon(np.asarray(outline_mm, float))
         if g.area > 0.0:
             return float(min(1.0, g.intersection(box(0.0, 0.0, w, h)).area / g.area))
-    x, y = np.asarray(centroid_mm, float)
-    return float(0.0 <= x <= w and 0.0 <= y <= h)
+    return float(_inside(centroid_mm, extent))
+
+
+def _inside(xy, extent) -> bool:
+    """Whether the point ``xy`` (mm) lies on the image ``[0, width] x [0, height]``."""
+    x, y = np.asarray(xy, float)
+    w, h = (float(v) for v in extent)
+    return bool(0.0 <= x <= w and 0.0 <= y <= h)
 
 
 def image_notes(fraction: float | None, centroid_mm, extent) -> list[str]:
@@ -187,12 +193,9 @@ def image_notes(fraction: float | None, centroid_mm, extent) -> list[str]:
         return []
     if fraction <= 0.0:
         return [OUTSIDE_IMAGE]
-    x, y = np.asarray(centroid_mm, float)
-    w, h = (float(v) for v in extent)
-    off = not (0.0 <= x <= w and 0.0 <= y <= h)
     pct = ("under 1 %" if fraction < 0.01 else "over 99 %" if fraction > 0.99
            else f"{100.0 * fraction:.0f} %")
-    return [PARTLY_OUTSIDE.format(pct=pct) + (CENTROID_OFF if off else "")]
+    return [PARTLY_OUTSIDE.format(pct=pct) + ("" if _inside(centroid_mm, extent) else CENTROID_OFF)]
 
 
 def _score_against_outlines(lesions: list[LesionPrediction], outlines) -> None:
