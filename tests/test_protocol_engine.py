@@ -317,8 +317,37 @@ def test_chest_wall_contact_pushes_tissue_back_in_front_of_the_wall():
     assert f[node] == pytest.approx([wall.eps_n * 0.1 * wall.areas[i], 0.0, 0.0], rel=1e-9)
     assert np.count_nonzero(np.abs(f).sum(axis=1)) == 1
     runner = ProtocolRunner(body, shipped_protocol("cc"), mock_solver(body.points, body.fixed))
+    assert set(runner.contacts) == {"chest-wall"}  # the plates come in at the first plate step
+    runner.run()
     assert set(runner.contacts) == {"lower", "upper", "chest-wall"}
     assert set(runner.plates) == {"lower", "upper"}
+
+
+@pytest.mark.parametrize("view", ["cc", "mlo"])
+def test_plates_stand_back_until_the_first_plate_step(view):
+    """The breast hangs free until the protocol's first plate step, which places both plates
+    ``clearance_mm`` from the shape it has then: the unloaded reference is the same for
+    every view.  Known answer on the spring body: 10 g along +y moves every free node
+    ``10 * 0.02 N / 0.05 N/mm = 4 mm``, twice the 2 mm clearance of plates placed around the
+    reference shape (the CC's upper plate faces -y, the MLO's at 45 deg), with no plate
+    force; the lower plate then touches the moved body and the upper one starts 2 mm from
+    it."""
+    steps = [{"name": "unload", "action": "gravity", "load": "u", "direction": [0.0, 1.0, 0.0],
+              "factor": 10.0},
+             {"name": "touch", "action": "move_plate", "plate": "lower", "to": "contact"}]
+    table = {"name": view, "view": view.upper(), "steps": steps}
+    res, runner = _run(parse_protocol(table, where="test"))
+    body = _body()
+    free = ~body.fixed
+    np.testing.assert_allclose(res.steps[0].u[free], np.tile([0.0, 4.0, 0.0], (free.sum(), 1)),
+                               atol=1e-9)
+    assert res.steps[0].plates == {} and res.steps[0].gap_mm is None
+    assert "lower" not in res.steps[0].contact
+    x = body.points + res.steps[1].u
+    for name, gap in (("lower", 0.0), ("upper", 2.0)):
+        pc = runner.plates[name]
+        assert pc.min_gap(res.steps[1].u) == pytest.approx(gap, abs=1e-6), name
+        assert np.all(pc.plate.query(x[pc.nodes]).gap >= gap - 1e-6)
 
 
 def test_behind_chest_wall_depth_is_measured_from_the_most_posterior_node():

@@ -36,7 +36,7 @@ class SolverOptions:
                                "the residual over the free nodes is below this fraction of the "
                                "force reference too (the global force balance)",
                                gt=0, lt=1)
-    force_tol: float = param(1e-4, "-", "relative residual tolerance ||R_free||_2 <= force_tol F_ref "
+    force_tol: float = param(1e-5, "-", "relative residual tolerance ||R_free||_2 <= force_tol F_ref "
                              "(F_ref: the largest of weight, contact force and chest-wall reaction)",
                              gt=0, lt=1)
     disp_abs_tol_mm: float = param(0.01, "mm", "an increment has converged only when the Newton "

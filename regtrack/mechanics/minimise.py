@@ -251,7 +251,7 @@ def _inexact_scale(o, cfg) -> float:
     multiplier and friction-lag update: the residual may be as large as a fifth of the
     friction bound's tolerance (``friction_tol`` of the same force reference ``F_ref``),
     so that the lag update sees the contact pressures to well within what it is judged by
-    (2 at the defaults; measurements in docs/performance-mechanics.md).  Without contact:
+    (20 at the defaults; measurements in docs/performance-mechanics.md).  Without contact:
     1 (only the correction test is skipped)."""
     if cfg is None:
         return 1.0

@@ -5,7 +5,8 @@ Plate placement (plate frame ``n, e_x`` of :func:`regtrack.virtual.frames.plate_
 both plates have their chest-wall (posterior) edge rounded with ``edge_radius_mm`` ``r``,
 their flat face ending at ``x_cw + e`` (``e = posterior_edge_mm``, ``x_cw = min x`` the
 chest-wall plane), and are unbounded elsewhere.  The lower plate faces ``+n``, the upper
-one ``-n``; both start ``clearance_mm`` away from every free surface node, measured against
+one ``-n``; both start ``clearance_mm`` away from every free surface node of the shape the
+body has when they are placed (the first plate step of a protocol), measured against
 the whole plate surface (rounded edge included: a thick chest-wall base behind the edge
 would otherwise start inside the plate, 6.5 mm deep on the phantom's MLO with
 ``posterior_edge_mm = 10``).
@@ -161,13 +162,15 @@ def _surface_contact(body: BodySetup, config: ContactConfig
     return nodes, tributary_areas(X, body.surface)[nodes], eps
 
 
-def make_plates(body: BodySetup, protocol: Protocol, *, config: ContactConfig
-                ) -> tuple[dict[str, PlateContact], Any]:
-    """The lower and upper :class:`PlateContact` of a protocol, placed around the body."""
+def make_plates(body: BodySetup, protocol: Protocol, *, config: ContactConfig,
+                u: np.ndarray | None = None) -> tuple[dict[str, PlateContact], Any]:
+    """The lower and upper :class:`PlateContact` of a protocol, placed around the body as
+    displaced by ``u`` (N, 3) mm (None: the reference shape)."""
     from regtrack.virtual.frames import plate_frame
 
     frame = plate_frame(protocol.view, body.side, angle_deg=protocol.angle_deg)
     X = body.points
+    x = X if u is None else X + np.asarray(u, float).reshape(X.shape)
     nodes, areas, eps = _surface_contact(body, config)
     geo = protocol.plates
     problem = edge_wedge_problem(geo.posterior_edge_mm, geo.edge_radius_mm, config,
@@ -180,7 +183,7 @@ def make_plates(body: BodySetup, protocol: Protocol, *, config: ContactConfig
     if not over.any():
         raise ConfigError(f"plates: no surface node anterior to the plate edge x = "
                           f"{s_edge:.1f} mm; lower [plates] posterior_edge_mm")
-    h = X[nodes] @ n
+    h = x[nodes] @ n
     lo = float(h[over].min()) - geo.clearance_mm
     hi = float(h[over].max()) + geo.clearance_mm
     plates = {}
@@ -191,7 +194,7 @@ def make_plates(body: BodySetup, protocol: Protocol, *, config: ContactConfig
             centre = body.target if body.target is not None else X[nodes][over].mean(axis=0)
             pl = replace(pl, window=_opening(pl, centre, geo.window_mm))
         for _ in range(50):  # back off until the rounded edge clears the base behind it too
-            short = geo.clearance_mm - float(pl.query(X[nodes]).gap.min())
+            short = geo.clearance_mm - float(pl.query(x[nodes]).gap.min())
             if short <= 1e-9:
                 break
             pl = pl.translated(-(short + 1e-9) * pl.normal)

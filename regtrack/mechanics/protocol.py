@@ -9,7 +9,7 @@ A protocol is an ordered list of steps (Lapuebla-Ferri et al., four-step protoco
     [plates]                     # geometry of both plates (mm)
     edge_radius_mm = 10.0        # rounded (cylindrical) chest-wall edge
     posterior_edge_mm = 0.0      # chest-wall edge, anterior to the chest-wall plane
-    clearance_mm = 2.0           # initial distance of a plate from the breast
+    clearance_mm = 2.0           # plates' distance from the breast at the first plate step
     # window_mm = [40.0, 40.0]   # an opening in one plate (the biopsy grid's compression
     # window_plate = "lower"     # window), centred on the lesion's projection
 
@@ -74,7 +74,9 @@ class PlateGeometry:
                                      "edge_radius_mm is refused: the rounded edge would make an "
                                      "acute wedge with the wall (regtrack.mechanics.placement)",
                                      ge=-200, le=200)
-    clearance_mm: float = param(2.0, "mm", "initial distance of a plate from the breast",
+    clearance_mm: float = param(2.0, "mm", "distance of the plates from the breast when "
+                                "they are placed, at the first plate step (the breast "
+                                "hangs free before it)",
                                 ge=0, le=100)
     window_mm: list[float] | None = param(None, "mm", "[along e_x, across] opening of the grid "
                                           "plate, centred on the lesion (none: solid plates)")

@@ -11,7 +11,11 @@ which must return an equilibrium ``u`` (N, 3) mm after ramping the gravity vecto
 :func:`regtrack.mechanics.minimise.minimiser_from_problem` adapts the mechanics core's
 ``minimise_step``; tests use small mock solvers.
 
-Plate placement and the chest wall: :mod:`.placement`.  The force carried by the surface
+Plate placement and the chest wall: :mod:`.placement`.  The plates take part from the
+protocol's first plate step on: until then the breast hangs free (the prone gravity
+unloaded with no plate near it), and that step places both plates ``clearance_mm`` from
+the shape the body has then.  So the unloaded reference state is the same for every view,
+whichever way its plates will face.  The force carried by the surface
 near the wall is reported apart (``edge_band_mm``; ``upper_body_force_N`` in
 :func:`regtrack.mechanics.run_view.summarise`).
 
@@ -99,7 +103,7 @@ class StepRecord:
     gravity_ms2: np.ndarray
     plates: dict
     contact: dict
-    gap_mm: float
+    gap_mm: float | None  # None before the plates are placed
     T0_mm: float | None = None
     D: float | None = None
     D_mean: float | None = None
@@ -173,10 +177,11 @@ class ProtocolRunner:
         self.protocol = protocol
         self.solve = solve
         self.config = config or ContactConfig()
+        # placed around the reference shape here (a bad geometry is refused before any
+        # solve) and again around the current shape at the first plate step
         self.plates, self.frame = make_plates(body, protocol, config=self.config)
-        wall = chest_wall(body, self.config)
-        # every contact: the plates, and the chest wall (not a plate: never moved or drawn)
-        self.contacts = dict(self.plates, **({wall.name: wall} if wall is not None else {}))
+        self.plates_in = False
+        self.wall = chest_wall(body, self.config)
         self.n = self.frame.normal
         self.u = np.zeros_like(body.points)
         self.g = np.zeros(3)
@@ -186,6 +191,19 @@ class ProtocolRunner:
         # once both plates hold the breast (the upper one has touched it): each node's
         # place between them (0 lower, 1 upper) and the plates' origins then (mm)
         self._squeeze: tuple[np.ndarray, dict[str, np.ndarray]] | None = None
+
+    @property
+    def contacts(self) -> dict[str, PlateContact]:
+        """Every contact taking part: the chest wall (not a plate: never moved or drawn)
+        and, from the first plate step on, the plates."""
+        out = dict(self.plates) if self.plates_in else {}
+        return out | ({self.wall.name: self.wall} if self.wall is not None else {})
+
+    def _bring_plates(self) -> None:
+        """Place the plates ``clearance_mm`` from the body's current shape (first plate step)."""
+        if not self.plates_in:
+            self.plates, _ = make_plates(self.body, self.protocol, config=self.config, u=self.u)
+            self.plates_in = True
 
     # -- one solve ------------------------------------------------------------------
     def _body_motion(self) -> Callable[[float], np.ndarray] | None:
@@ -223,7 +241,7 @@ class ProtocolRunner:
 
     def _penetration(self) -> tuple[float, dict]:
         reps = {k: c.report(self.u) for k, c in self.contacts.items()}
-        return max(r["max_penetration_mm"] for r in reps.values()), reps
+        return max((r["max_penetration_mm"] for r in reps.values()), default=0.0), reps
 
     def _move(self, pc: PlateContact, distance: float, name: str, T0_mm: float | None = None
               ) -> dict:
@@ -305,6 +323,7 @@ class ProtocolRunner:
         elif step.action == "hold":
             stats = self._solve(self.g, step.name)
         else:
+            self._bring_plates()
             pc = self.plates[step.plate]
             if step.to == "position":
                 stats = self._move(pc, float(step.distance_mm), step.name)
@@ -339,9 +358,10 @@ class ProtocolRunner:
                 f"step '{step.name}': a surface node is {pen:.3f} mm inside a plate (limit "
                 f"{self.config.max_penetration_mm} mm); lower [contact] penetration_tol_mm "
                 "or raise penalty_factor")
-        gap = _gap(self.plates, self.n)
+        gap = _gap(self.plates, self.n) if self.plates_in else None
         rec = StepRecord(name=step.name, action=step.action, u=self.u.copy(), gravity_ms2=self.g.copy(),
-                         plates={k: c.plate.to_dict() for k, c in self.plates.items()},
+                         plates={k: c.plate.to_dict() for k, c in self.plates.items()
+                                 if self.plates_in},
                          contact=reps, gap_mm=gap, max_penetration_mm=pen, solver=stats)
         depth, count = behind_chest_wall(self.body.points, self.u, self.body.fixed)
         rec.behind_chest_wall_mm, rec.behind_chest_wall_nodes = depth, count
@@ -408,7 +428,8 @@ class ProtocolRunner:
             rec = self.records[-1]
             forces = ", ".join(f"{k} {round(v['normal_force_N'], 2) + 0.0:.2f} N"
                                for k, v in rec.contact.items())
-            log.info("  gap %.2f mm, D %s, penetration %.4f mm; forces: %s", rec.gap_mm,
+            log.info("  gap %s mm, D %s, penetration %.4f mm; forces: %s",
+                     "-" if rec.gap_mm is None else f"{rec.gap_mm:.2f}",
                      "-" if rec.D is None else f"{100 * rec.D:.1f} %", rec.max_penetration_mm,
                      forces or "no contact")
         return result

@@ -181,15 +181,16 @@ def summarise(result: ProtocolResult, timing: dict | None = None) -> dict:
     balance = [s.solver["force_balance"]["relative"] for s in result.steps
                if isinstance(s.solver.get("force_balance"), dict)]
     last = result.steps[-1]
-    upper = last.contact["upper"]["normal_force_N"]
-    edge = last.contact["upper"].get("edge_normal_force_N")
+    # a protocol with no plate step (gravity only) has no plate force
+    up, low = (last.contact.get(k) or {} for k in ("upper", "lower"))
+    upper, edge = up.get("normal_force_N"), up.get("edge_normal_force_N")
     return {"protocol": result.protocol.name, "view": result.protocol.view,
             "complete": result.complete, "D": last.D, "D_mean": last.D_mean,
             "plate_gap_mm": last.gap_mm, "T0_mm": last.T0_mm,
             "upper_force_N": upper,
-            "lower_force_N": last.contact["lower"]["normal_force_N"],
+            "lower_force_N": low.get("normal_force_N"),
             "upper_edge_force_N": edge,
-            "upper_body_force_N": None if edge is None else upper - edge,
+            "upper_body_force_N": None if edge is None or upper is None else upper - edge,
             "max_penetration_mm": max(s.max_penetration_mm for s in result.steps),
             "increments": sum(s.solver.get("increments", 0) for s in result.steps),
             "iterations": sum(s.solver.get("iterations", 0) for s in result.steps),
