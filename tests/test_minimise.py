@@ -446,7 +446,7 @@ def test_inexact_inner_minimisations_change_the_path_not_the_result(monkeypatch)
                                  contacts=contacts, n_increments=2, options=SolverOptions())
         return u, [c.report(u)["normal_force_N"] for c in contacts], st
 
-    assert minimise._inexact_scale(SolverOptions(), ContactConfig()) == pytest.approx(2.0)
+    assert minimise._inexact_scale(SolverOptions(), ContactConfig()) == pytest.approx(20.0)
     u_loose, f_loose, st = run()
     assert st.augmentations >= 1  # inexact minimisations were followed by updates
     monkeypatch.setattr(minimise, "_inexact_scale", lambda o, cfg: 0.0)
