@@ -8,6 +8,8 @@ The mock "body" is a grid of nodes each tied to its reference position by a spri
 from __future__ import annotations
 
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 from scipy.spatial import Delaunay
@@ -348,6 +350,23 @@ def test_plates_stand_back_until_the_first_plate_step(view):
         pc = runner.plates[name]
         assert pc.min_gap(res.steps[1].u) == pytest.approx(gap, abs=1e-6), name
         assert np.all(pc.plate.query(x[pc.nodes]).gap >= gap - 1e-6)
+
+
+def test_the_result_does_not_depend_on_the_plates_clearance():
+    """``clearance_mm`` only says where the plates wait before they move: the shipped CC on
+    the spring body, with its unloading spread along the plates' normal (10 g along +y, 4 mm,
+    more than either clearance), ends in the same state at 2 and 6 mm."""
+    ends = []
+    for clearance in (2.0, 6.0):
+        proto = shipped_protocol("cc")
+        steps = (replace(proto.steps[0], direction=[0.0, 1.0, 0.0], frame="model", factor=10.0),
+                 *proto.steps[1:])
+        proto = replace(proto, steps=steps, plates=replace(proto.plates, clearance_mm=clearance))
+        res, _ = _run(proto)
+        assert res.complete
+        ends.append((res.steps[-1].u, res.steps[-1].gap_mm, res.steps[-1].T0_mm))
+    np.testing.assert_allclose(ends[0][0], ends[1][0], atol=1e-8)
+    assert ends[0][1:] == pytest.approx(ends[1][1:], abs=1e-8)
 
 
 def test_behind_chest_wall_depth_is_measured_from_the_most_posterior_node():
