@@ -7,7 +7,6 @@ The mock "body" is a grid of nodes each tied to its reference position by a spri
 
 from __future__ import annotations
 
-
 from dataclasses import replace
 
 import numpy as np

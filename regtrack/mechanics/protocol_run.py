@@ -360,8 +360,8 @@ class ProtocolRunner:
                 "or raise penalty_factor")
         gap = _gap(self.plates, self.n) if self.plates_in else None
         rec = StepRecord(name=step.name, action=step.action, u=self.u.copy(), gravity_ms2=self.g.copy(),
-                         plates={k: c.plate.to_dict() for k, c in self.plates.items()
-                                 if self.plates_in},
+                         plates=({k: c.plate.to_dict() for k, c in self.plates.items()}
+                                 if self.plates_in else {}),
                          contact=reps, gap_mm=gap, max_penetration_mm=pen, solver=stats)
         depth, count = behind_chest_wall(self.body.points, self.u, self.body.fixed)
         rec.behind_chest_wall_mm, rec.behind_chest_wall_nodes = depth, count
