@@ -456,6 +456,54 @@ def test_inexact_inner_minimisations_change_the_path_not_the_result(monkeypatch)
     assert np.abs(u_loose - u_exact).max() <= 0.01
 
 
+def test_the_predictor_changes_the_path_not_the_result(monkeypatch):
+    """The first minimisation of an increment stops once its residual is below its
+    extrapolated lag's friction-force error (``Minimiser.lag_dominates``), and its update is
+    a plain one; the increment's accepted state meets the full tolerances all the same.  The
+    box pinched and sheared with friction 0.1, in four increments: with the predictor and
+    without it, plate forces within the friction tolerance (0.1 %) and nodes within the
+    correction tolerance (0.01 mm)."""
+    fired = []
+    dominates = Minimiser.lag_dominates
+
+    def counted(self, s, plates):
+        hit = dominates(self, s, plates)
+        fired.append(hit and not self.converged(s, 20.0))
+        return hit
+
+    def run():
+        prob, contacts = _box_between_plates(mu=0.1)
+        u, _, _ = minimise_step(prob, np.zeros_like(prob.X),
+                                gravity=lambda t: np.array([0.0, 1e3, 0.0]) * t,
+                                contacts=contacts, n_increments=4, options=SolverOptions())
+        return u, [c.report(u)["normal_force_N"] for c in contacts]
+
+    monkeypatch.setattr(Minimiser, "lag_dominates", counted)
+    u_pred, f_pred = run()
+    assert any(fired)  # some first minimisation stopped as the predictor
+    monkeypatch.setattr(Minimiser, "lag_dominates", lambda self, s, plates: False)
+    u_plain, f_plain = run()
+    assert min(f_plain) > 1e-3  # both plates carry the box
+    assert f_pred == pytest.approx(f_plain, rel=ContactConfig().friction_tol)
+    assert np.abs(u_pred - u_plain).max() <= 0.01
+
+
+def test_friction_force_error_is_the_slip_bound_error_in_newtons():
+    """``friction_force_error = mu sum A |p - pbar|`` (N), and ``friction_error`` is it over
+    ``mu`` times the plate's normal force: areas 2 and 1 mm^2, pressures 0.3 and 0.1 MPa
+    against lagged 0.2 and 0.4, mu 0.1: 0.1 (2 * 0.1 + 1 * 0.3) = 0.05 N, normal force 0.7 N."""
+    from types import SimpleNamespace
+
+    pl = PlatePotential.__new__(PlatePotential)
+    pl.c = SimpleNamespace(areas=np.array([2.0, 1.0]), mu=0.1)
+    pl.pbar = np.array([0.2, 0.4])
+    ev = SimpleNamespace(pressure=np.array([0.3, 0.1]))
+    assert pl.friction_force_error(ev) == pytest.approx(0.05, rel=1e-12)
+    assert pl.friction_error(ev) == pytest.approx(0.05 / (0.1 * 0.7), rel=1e-12)
+    pl.c.mu = 0.0
+    assert pl.friction_force_error(ev) == 0.0
+
+
 def test_friction_error_of_a_barely_touching_plate_is_measured_against_the_load_scale():
     """The lag error of the slip bound is relative to the plate's normal force, or to the
     step's load scale when the plate barely touches: a 100 % error on 1e-6 N of contact is

@@ -30,11 +30,20 @@ augmented-Lagrangian multipliers and the friction lag of every increment are ite
 larger: a plate that barely touches): each increment is a backward-Euler step of Coulomb's
 law at its own pressure, so the frictional path does not carry a lag from one increment
 into the next. A minimisation followed by an update is inexact (its residual within a
-fifth of the friction tolerance, :func:`_inexact_scale`); the state an increment ends
-with meets the full tolerances. An increment that does not converge, in ``4 max_iterations`` Newton
-iterations or in ``max_augmentations`` multiplier updates, is halved (down to 1/64 of its
-length), the last one of a step too: no tolerance is relaxed. With friction the state at
-the end of a step depends on the path, and a shorter increment is a different, closer lag
+fifth of the friction tolerance, :func:`_inexact_scale`); the state an increment ends with
+meets the full tolerances.
+
+The first minimisation of an increment is a predictor: its lag, extrapolated from the last
+two increments, is off by 1.5 to 3.6 % of the plate force (the benchmark hemisphere), far
+more than a later update leaves, so it stops as soon as the residual is below that lag's
+friction-force error (:meth:`.newton.Minimiser.lag_dominates`), and its update is a plain
+one (``omega = 1``) that does not enter Aitken's secant. Measured on eight real exams: 10 %
+fewer Newton iterations, the end states within 0.013 mm (docs/performance-mechanics.md).
+
+An increment that does not converge, in ``4 max_iterations`` Newton iterations or in
+``max_augmentations`` multiplier updates, is halved (down to 1/64 of its length), the last
+one of a step too: no tolerance is relaxed. With friction the state at the end of a step
+depends on the path, and a shorter increment is a different, closer lag
 problem whose start is nearer its fixed point.
 """
 
@@ -218,7 +227,9 @@ def _increment(m: Minimiser, origin: np.ndarray, starts: Sequence[np.ndarray], t
     loose, start = True, None
     k = 0
     while True:
-        s = m.solve(u, fext, plates, loose=scale if loose else 0.0, start=start)
+        s = m.solve(u, fext, plates, loose=scale if loose else 0.0, start=start,
+                    predictor=k == 0 and loose)
+        predicted = k == 0 and loose and not m.converged(s, scale)  # stopped as the predictor
         start = None
         u = s.u
         pen = max((pl.max_violation(e) for pl, e in zip(plates, s.plates)), default=0.0)
@@ -237,8 +248,9 @@ def _increment(m: Minimiser, origin: np.ndarray, starts: Sequence[np.ndarray], t
             break
         for i, (pl, e) in enumerate(zip(plates, s.plates)):
             eps_max = cfg.penalty_growth_max * float(np.max(pl.c.eps_n))
-            previous[i] = pl.update(e, growth=cfg.penalty_growth, slow_ratio=cfg.slow_uzawa_ratio,
-                                    eps_max=eps_max, previous=previous[i])
+            step = pl.update(e, growth=cfg.penalty_growth, slow_ratio=cfg.slow_uzawa_ratio,
+                             eps_max=eps_max, previous=previous[i])
+            previous[i] = None if predicted else step  # a predictor's step is no secant
         m.stats.augmentations += 1
         k += 1
         loose = True

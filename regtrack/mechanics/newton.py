@@ -348,7 +348,8 @@ class Minimiser:
         return best
 
     def solve(self, u: np.ndarray, fext: np.ndarray, plates: Sequence[PlatePotential], *,
-              loose: float = 0.0, start: NewtonState | None = None) -> NewtonState:
+              loose: float = 0.0, start: NewtonState | None = None,
+              predictor: bool = False) -> NewtonState:
         """Minimise ``Pi`` from ``u`` (N, 3) at fixed loads and lags; raises
         :class:`SolverDidNotConvergeError` after ``max_iterations``.
 
@@ -358,12 +359,15 @@ class Minimiser:
         be updated (Conn, Gould & Toint 1991; Nocedal & Wright section 17.4), whose state
         is never accepted as the increment's result.  ``start``: the state at ``u`` with
         its Hessian, when the caller has it at the same loads and lags (not evaluated
-        again)."""
+        again).  ``predictor`` (with ``loose``): the plates' lag is an increment's
+        extrapolated start; stop also at the first state whose residual norm is below the
+        friction-force error of that lag (:meth:`lag_dominates`), which its update corrects
+        (:func:`.minimise._increment`)."""
         s = start if start is not None else self.state(u, fext, plates, hessian=True)
         if s is None:
             raise SolverDidNotConvergeError("an element is inverted at the start of the increment")
         for _ in range(self.max_iterations):
-            if loose > 0 and self.converged(s, loose):
+            if loose > 0 and (self.converged(s, loose) or (predictor and self.lag_dominates(s, plates))):
                 return s
             forces_ok = self.converged(s)
             du = self.direction(s)
@@ -388,6 +392,13 @@ class Minimiser:
         raise SolverDidNotConvergeError(
             f"no equilibrium in {self.max_iterations} Newton iterations (|R| = "
             f"{np.linalg.norm(s.R[self.free]):.3g} N, reference {s.f_ref:.3g} N; {self.where(s, plates)})")
+
+    def lag_dominates(self, s: NewtonState, plates: Sequence[PlatePotential]) -> bool:
+        """Whether the residual norm at ``s`` is below the plates' friction-force error
+        (N; :meth:`.potential.PlatePotential.friction_force_error`, summed; False without
+        friction)."""
+        err = sum(pl.friction_force_error(e) for pl, e in zip(plates, s.plates))
+        return err > 0 and float(np.linalg.norm(s.R[self.free])) <= err
 
     def where(self, s: NewtonState, plates: Sequence[PlatePotential]) -> str:
         """The node region of the largest residual: the node, its position (mm), its

@@ -200,7 +200,15 @@ class PlatePotential:
         ref = max(float(np.sum(c.areas * ev.pressure)), floor_n)
         if c.mu <= 0 or ref <= 0:
             return 0.0
-        return float(np.sum(c.areas * np.abs(ev.pressure - self.pbar))) / ref
+        return self.friction_force_error(ev) / (c.mu * ref)
+
+    def friction_force_error(self, ev: PlateEval) -> float:
+        """``mu sum_i A_i |p_i - pbar_i|`` (N): the lagged slip bound's error as a force,
+        by which the next lag update changes the tangential forces (0 without friction)."""
+        c = self.c
+        if c.mu <= 0:
+            return 0.0
+        return c.mu * float(np.sum(c.areas * np.abs(ev.pressure - self.pbar)))
 
     def update(self, ev: PlateEval, *, growth: float, slow_ratio: float, eps_max: float,
                previous: np.ndarray | None) -> np.ndarray:
