@@ -109,6 +109,8 @@ class Minimiser:
         # Newton solve of the residual before an increment is halved
         self.max_iterations = 4 * options.max_iterations
         self.stats = StepStats()
+        #: whether the last line search took the whole Newton step (or more)
+        self.full_step = False
         #: called after every Newton iteration (progress of a long increment), or None
         self.on_iteration: Callable[[], None] | None = None
 
@@ -322,6 +324,7 @@ class Minimiser:
             trial = self.state(s.u + a * du.reshape(-1, 3), fext, plates, hessian=False,
                                pairs=pairs)
             if trial is not None and trial.energy <= s.energy + ARMIJO_C * a * slope + scale:
+                self.full_step = a == 1.0
                 if a == 1.0 and trial.energy - s.energy < EXPAND_RATIO * 0.5 * slope:
                     trial = self._expand(s, trial, du, fext, plates)
                 return trial
@@ -360,14 +363,17 @@ class Minimiser:
         is never accepted as the increment's result.  ``start``: the state at ``u`` with
         its Hessian, when the caller has it at the same loads and lags (not evaluated
         again).  ``predictor`` (with ``loose``): the plates' lag is an increment's
-        extrapolated start; stop also at the first state whose residual norm is below the
-        friction-force error of that lag (:meth:`lag_dominates`), which its update corrects
-        (:func:`.minimise._increment`)."""
+        extrapolated start; stop also after the first Newton iteration when it took the
+        whole Newton step (the start was in Newton's local region) and the residual norm is
+        below the friction-force error of that lag (:meth:`lag_dominates`), which its update
+        corrects (:func:`.minimise._increment`)."""
         s = start if start is not None else self.state(u, fext, plates, hessian=True)
         if s is None:
             raise SolverDidNotConvergeError("an element is inverted at the start of the increment")
-        for _ in range(self.max_iterations):
-            if loose > 0 and (self.converged(s, loose) or (predictor and self.lag_dominates(s, plates))):
+        for it in range(self.max_iterations):
+            if loose > 0 and self.converged(s, loose):
+                return s
+            if predictor and it == 1 and self.full_step and self.lag_dominates(s, plates):
                 return s
             forces_ok = self.converged(s)
             du = self.direction(s)
