@@ -39,8 +39,8 @@ hemisphere), far more than a later update leaves, so when the first Newton itera
 the start takes the whole Newton step and leaves a residual below that lag's friction-force
 error (:meth:`.newton.Minimiser.lag_dominates`), the lag is updated from there, by a plain
 update (``omega = 1``) that does not enter Aitken's secant. A start outside Newton's local
-region (a damped first step) is minimised as any other. Measured on eight real exams: 10 %
-fewer Newton iterations, the end states within 0.013 mm (docs/performance-mechanics.md).
+region (a damped first step) is minimised as any other. Measured on eight real exams: 7 to
+8 % fewer Newton iterations, the end states within 0.013 mm (docs/performance-mechanics.md).
 
 An increment that does not converge, in ``4 max_iterations`` Newton iterations or in
 ``max_augmentations`` multiplier updates, is halved (down to 1/64 of its length), the last
