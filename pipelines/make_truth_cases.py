@@ -60,7 +60,7 @@ Output (all under ``--out``, default reports/truth)::
 Usage::
 
     OMP_NUM_THREADS=1 .venv/bin/python pipelines/make_truth_cases.py --exams 03R,10R
-        [--views CC,MLO] [--out reports/truth] [--target-tets 3000]
+        [--views CC,MLO] [--out reports/truth] [--target-tets 1200]
 
 Data: Pelicano et al., Sensors 2021 and PLoS One 2024 (../shared/data/pelicano).
 """
